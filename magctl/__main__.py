@@ -1,0 +1,5 @@
+import sys
+
+from magctl.cli import main
+
+sys.exit(main())

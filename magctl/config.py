@@ -1,0 +1,172 @@
+"""Typed parameters loaded and validated from ``models/*.toml``.
+
+Every parameter in a model file carries its unit in its key and its source
+next to its value::
+
+    [sphere]
+    radius_um = { value = 105, source = "paper §II: 210 µm diameter PS-DVB spheres" }
+    density_kg_m3 = { value = 1050, source = "assumed: polystyrene handbook value" }
+
+:func:`load_model` returns nested :class:`Params` whose attributes are in SI
+with the unit suffix stripped (``sphere.radius`` is 1.05e-4 m). Keys without a
+unit suffix that the table below does not know, values that are not numbers
+(or lists of numbers, strings, booleans), and missing ``source`` entries are
+errors naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from magctl.core.errors import ParameterError
+
+# unit suffix → (SI unit, factor to SI)
+UNITS: dict[str, tuple[str, float]] = {
+    "m": ("m", 1.0), "mm": ("m", 1e-3), "um": ("m", 1e-6), "nm": ("m", 1e-9),
+    "s": ("s", 1.0), "ms": ("s", 1e-3), "us": ("s", 1e-6),
+    "Hz": ("1/s", 1.0), "per_s": ("1/s", 1.0), "per_s2": ("1/s^2", 1.0), "per_um": ("1/m", 1e6),
+    "m_s": ("m/s", 1.0), "mm_s": ("m/s", 1e-3), "um_s": ("m/s", 1e-6),
+    "rad": ("rad", 1.0), "deg": ("rad", np.pi / 180.0), "rad_s": ("rad/s", 1.0),
+    "kg": ("kg", 1.0), "kg_m3": ("kg/m^3", 1.0), "g_cm3": ("kg/m^3", 1e3),
+    "N": ("N", 1.0), "uN": ("N", 1e-6), "nN": ("N", 1e-9),
+    "Pa_s": ("Pa*s", 1.0), "mPa_s": ("Pa*s", 1e-3), "cSt": ("m^2/s", 1e-6),
+    "J_m2": ("J/m^2", 1.0), "mJ_m2": ("J/m^2", 1e-3),
+    "T": ("T", 1.0), "mT": ("T", 1e-3), "T_m": ("T/m", 1.0), "mT_m": ("T/m", 1e-3),
+    "A": ("A", 1.0), "V": ("V", 1.0), "ohm": ("ohm", 1.0), "H": ("H", 1.0), "mH": ("H", 1e-3),
+    "A_m": ("A/m", 1.0), "kA_m": ("A/m", 1e3), "A_m2": ("A*m^2", 1.0), "N_m": ("N*m", 1.0),
+    "pixels": ("1", 1.0), "frames": ("1", 1.0), "count": ("1", 1.0), "ratio": ("1", 1.0),
+    "1": ("1", 1.0), "px": ("1", 1.0), "percent": ("1", 1e-2),
+}
+_SUFFIXES = sorted(UNITS, key=len, reverse=True)
+
+
+def split_unit(key: str) -> tuple[str, str | None]:
+    """``"radius_um"`` → ``("radius", "um")``; keys without a known suffix → ``(key, None)``."""
+    for suf in _SUFFIXES:
+        if key.endswith("_" + suf) and len(key) > len(suf) + 1:
+            return key[: -len(suf) - 1], suf
+    return key, None
+
+
+class Params:
+    """A table of parameters in SI; attribute and item access by the unit-less name.
+
+    Attributes ``sources`` (name → source text) and ``units`` (name → SI unit)
+    document every value. Sub-tables are nested ``Params``.
+    """
+
+    def __init__(self, path: str, values: dict[str, Any], sources: dict[str, str], units: dict[str, str],
+                 raw: dict[str, Any]):
+        self._path = path
+        self._values = values
+        self.sources = sources
+        self.units = units
+        self.raw = raw
+
+    def __getattr__(self, name: str):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        try:
+            return self._values[name]
+        except KeyError:
+            raise ParameterError(
+                f"{self._path}: no parameter {name!r}; has {sorted(self._values)}"
+            ) from None
+
+    __getitem__ = __getattr__
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._values
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._values)
+
+    def get(self, name: str, default=None):
+        return self._values.get(name, default)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Values as written in the file (unit-suffixed keys), for JSON and run logs."""
+        return {k: (v.to_dict() if isinstance(v, Params) else v) for k, v in self.raw.items()}
+
+    def __repr__(self) -> str:
+        return f"<Params {self._path} {sorted(self._values)}>"
+
+
+def _parse_table(where: str, table: dict[str, Any]) -> Params:
+    values, sources, units, raw = {}, {}, {}, {}
+    for key, entry in table.items():
+        loc = f"{where}.{key}" if where.count(":") else f"{where}:{key}"
+        if isinstance(entry, dict) and "value" not in entry:
+            sub = _parse_table(loc, entry)
+            values[key], raw[key] = sub, sub.to_dict()
+            continue
+        if not isinstance(entry, dict):
+            raise ParameterError(f"{loc}: write parameters as {{ value = …, source = \"…\" }}, got {entry!r}")
+        extra = set(entry) - {"value", "source", "note"}
+        if extra:
+            raise ParameterError(f"{loc}: unknown fields {sorted(extra)} (allowed: value, source, note)")
+        source = entry.get("source")
+        if not isinstance(source, str) or not source.strip():
+            raise ParameterError(f"{loc}: missing 'source' (the paper with section, a datasheet, or 'assumed: why')")
+        name, suffix = split_unit(key)
+        value = entry["value"]
+        if isinstance(value, (str, bool)):
+            values[name] = value
+            units[name] = ""
+        else:
+            if suffix is None:
+                raise ParameterError(
+                    f"{loc}: numeric parameter needs a unit suffix in its key (e.g. _um, _s, _A, _1); "
+                    f"known suffixes: {', '.join(sorted(UNITS))}"
+                )
+            try:
+                arr = np.asarray(value, dtype=float)
+            except (TypeError, ValueError):
+                raise ParameterError(f"{loc}: value {value!r} is not a number or a list of numbers") from None
+            if not np.all(np.isfinite(arr)):
+                raise ParameterError(f"{loc}: value {value!r} is not finite")
+            si_unit, factor = UNITS[suffix]
+            values[name] = float(arr) * factor if arr.ndim == 0 else arr * factor
+            units[name] = si_unit
+        sources[name] = source
+        raw[key] = value
+    return Params(where, values, sources, units, raw)
+
+
+def models_dir() -> Path:
+    """The folder of parameter files: ``$MAGCTL_MODELS`` or ``models/`` beside the package."""
+    env = os.environ.get("MAGCTL_MODELS")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[1] / "models"
+
+
+def load_file(path: str | os.PathLike) -> Params:
+    """Load and validate one TOML parameter file."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ParameterError(f"{path}: parameter file not found") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ParameterError(f"{path}: not valid TOML: {err}") from None
+    return _parse_table(str(path), data)
+
+
+def load_model(name: str) -> Params:
+    """Load ``models/<name>.toml`` (e.g. ``load_model("sphere")``)."""
+    return load_file(models_dir() / f"{name}.toml")
+
+
+def require(params: Params, *names: str) -> None:
+    """Raise a :class:`ParameterError` naming every missing parameter."""
+    missing = [n for n in names if n not in params]
+    if missing:
+        raise ParameterError(f"{params._path}: missing parameters {missing}")

@@ -1,0 +1,298 @@
+"""Discrete linear blocks that export themselves to python-control.
+
+Each block's :meth:`to_control` returns a ``control.StateSpace`` with the
+block's ``dt``; inputs and outputs are the ports' elements in declaration
+order (a port of shape ``(2,)`` contributes two signals).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import control
+import numpy as np
+
+from magctl import FRAME_PERIOD_S
+from magctl.core.block import Block, as_batch
+from magctl.core.errors import WiringError
+from magctl.core.ports import DIMENSIONLESS, Port
+
+
+def _size(shape) -> int:
+    return int(np.prod(shape, dtype=int))
+
+
+class Constant(Block):
+    """A constant (per-trial) source: ``y[k] = value``.
+
+    Parameters
+    ----------
+    value : array_like
+        Shape ``shape`` (same for every trial) or ``(B, *shape)`` (given per trial
+        when the state is made).
+    """
+
+    def __init__(self, name: str, value, *, shape=(), unit: str = DIMENSIONLESS, dt: float = FRAME_PERIOD_S):
+        super().__init__(name, outputs=[Port("y", tuple(shape), unit)], dt=dt, feedthrough=False)
+        self.value = np.asarray(value, dtype=float)
+
+    def initial_state(self, batch, rng=None):
+        return {"y": as_batch(self.value, self.outputs["y"], batch)}
+
+    def output(self, state, u):
+        return {"y": state["y"]}
+
+    def to_control(self):
+        n = _size(self.outputs["y"].shape)
+        return control.ss(np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((n, 0)), np.zeros((n, 0)), dt=self.dt)
+
+
+class Gain(Block):
+    """``y[k] = K u[k]``: a scalar gain, or a matrix acting on a vector port.
+
+    Parameters
+    ----------
+    k : float or (m, n) array
+        Gain. A scalar keeps the shape; a matrix maps shape ``(n,)`` to ``(m,)``.
+    """
+
+    def __init__(self, name: str, k, *, shape=(), in_unit: str = DIMENSIONLESS, out_unit: str | None = None,
+                 dt: float = FRAME_PERIOD_S):
+        self.k = np.asarray(k, dtype=float)
+        shape = tuple(shape)
+        if self.k.ndim == 0:
+            out_shape = shape
+        elif self.k.ndim == 2 and shape == (self.k.shape[1],):
+            out_shape = (self.k.shape[0],)
+        else:
+            raise WiringError(f"gain {name!r}: K of shape {self.k.shape} cannot act on a port of shape {shape}")
+        super().__init__(
+            name,
+            inputs=[Port("u", shape, in_unit)],
+            outputs=[Port("y", out_shape, out_unit or in_unit)],
+            dt=dt,
+            feedthrough=True,
+        )
+
+    def output(self, state, u):
+        x = u["u"]
+        return {"y": x * self.k if self.k.ndim == 0 else x @ self.k.T}
+
+    def to_control(self):
+        n = _size(self.inputs["u"].shape)
+        D = self.k * np.eye(n) if self.k.ndim == 0 else self.k
+        return control.ss(np.zeros((0, 0)), np.zeros((0, n)), np.zeros((D.shape[0], 0)), D, dt=self.dt)
+
+
+class Sum(Block):
+    """``y[k] = Σ sᵢ uᵢ[k]`` with signs given as a string such as ``"+-"``.
+
+    Inputs are named ``u0, u1, …``.
+    """
+
+    def __init__(self, name: str, signs: str = "++", *, shape=(), unit: str = DIMENSIONLESS,
+                 dt: float = FRAME_PERIOD_S):
+        if not signs or set(signs) - {"+", "-"}:
+            raise WiringError(f"sum {name!r}: signs {signs!r} must be a string of '+' and '-'")
+        self.signs = [1.0 if s == "+" else -1.0 for s in signs]
+        ins = [Port(f"u{i}", tuple(shape), unit) for i in range(len(signs))]
+        super().__init__(name, inputs=ins, outputs=[Port("y", tuple(shape), unit)], dt=dt, feedthrough=True)
+        self._names = [p.name for p in ins]
+
+    def output(self, state, u):
+        y = u[self._names[0]] * self.signs[0] if self.signs[0] < 0 else u[self._names[0]].copy()
+        for name, s in zip(self._names[1:], self.signs[1:], strict=True):
+            if s > 0:
+                y += u[name]
+            else:
+                y -= u[name]
+        return {"y": y}
+
+    def to_control(self):
+        n = _size(self.outputs["y"].shape)
+        D = np.hstack([s * np.eye(n) for s in self.signs])
+        return control.ss(np.zeros((0, 0)), np.zeros((0, D.shape[1])), np.zeros((n, 0)), D, dt=self.dt)
+
+
+class Delay(Block):
+    """Pure delay ``y[k] = u[k - d]`` (transfer function z⁻ᵈ), zero before the first input.
+
+    The state is a ring buffer; its head index is part of the state.
+    """
+
+    def __init__(self, name: str, d: int, *, shape=(), unit: str = DIMENSIONLESS, dt: float = FRAME_PERIOD_S,
+                 initial=0.0):
+        if int(d) != d or d < 1:
+            raise WiringError(f"delay {name!r}: d={d!r} must be a positive integer (use a wire for d=0)")
+        self.d = int(d)
+        self.initial = initial
+        super().__init__(name, inputs=[Port("u", tuple(shape), unit)], outputs=[Port("y", tuple(shape), unit)],
+                         dt=dt, feedthrough=False)
+
+    def initial_state(self, batch, rng=None):
+        shape = self.inputs["u"].shape
+        buf = np.empty((self.d, batch, *shape))
+        buf[...] = self.initial
+        return {"buf": buf, "head": 0}
+
+    def output(self, state, u):
+        return {"y": state["buf"][state["head"]].copy()}
+
+    def update(self, state, u):
+        h = state["head"]
+        state["buf"][h] = u["u"]
+        state["head"] = (h + 1) % self.d
+        return state
+
+    def to_control(self):
+        n = _size(self.inputs["u"].shape)
+        d = self.d
+        # state x = [u[k-d], …, u[k-1]] stacked per channel block
+        A = np.zeros((d * n, d * n))
+        A[: (d - 1) * n, n:] = np.eye((d - 1) * n)
+        B = np.zeros((d * n, n))
+        B[(d - 1) * n:, :] = np.eye(n)
+        C = np.zeros((n, d * n))
+        C[:, :n] = np.eye(n)
+        return control.ss(A, B, C, np.zeros((n, n)), dt=self.dt)
+
+
+class Integrator(Block):
+    """Forward-Euler discrete integrator ``x[k+1] = x[k] + g·T·u[k]``, ``y[k] = x[k]``.
+
+    Transfer function ``g·T / (z − 1)``. The output unit is the input unit times seconds
+    unless given.
+    """
+
+    def __init__(self, name: str, *, gain: float = 1.0, shape=(), in_unit: str = DIMENSIONLESS,
+                 out_unit: str | None = None, dt: float = FRAME_PERIOD_S, initial=0.0):
+        self.gain = float(gain)
+        self.initial = initial
+        super().__init__(name, inputs=[Port("u", tuple(shape), in_unit)],
+                         outputs=[Port("y", tuple(shape), out_unit or f"({in_unit})*s")], dt=dt,
+                         feedthrough=False)
+
+    def initial_state(self, batch, rng=None):
+        return {"x": as_batch(self.initial, self.outputs["y"], batch)}
+
+    def output(self, state, u):
+        return {"y": state["x"]}
+
+    def update(self, state, u):
+        # a new array, so the output handed out this step is never modified afterwards
+        state["x"] = state["x"] + (self.gain * self.dt) * u["u"]
+        return state
+
+    def to_control(self):
+        n = _size(self.inputs["u"].shape)
+        eye = np.eye(n)
+        return control.ss(eye, self.gain * self.dt * eye, eye, np.zeros((n, n)), dt=self.dt)
+
+
+class PI(Block):
+    """Discrete PI controller with conditional-integration anti-windup and output saturation.
+
+    ``u[k] = Kp·e[k] + Ki·I[k]``; ``I[k+1] = I[k] + T·e[k]`` except while the
+    unsaturated ``u[k]`` exceeds the limit, when ``I`` is held. With ``norm=True``
+    the limit applies to the vector norm ``‖u‖`` (direction kept), otherwise
+    element-wise. The linear model (``to_control``) is the unsaturated law,
+    ``C(z) = Kp + Ki·T/(z − 1)``.
+
+    Ports: input ``e`` (error), outputs ``u`` (command) and ``saturated`` (bool).
+    """
+
+    def __init__(self, name: str, kp: float, ki: float, *, shape=(), limit: float | None = None,
+                 norm: bool = True, saturate: bool = True, in_unit: str = DIMENSIONLESS,
+                 out_unit: str = DIMENSIONLESS, dt: float = FRAME_PERIOD_S):
+        self.kp, self.ki = float(kp), float(ki)
+        self.limit = None if limit is None else float(limit)
+        self.norm = bool(norm) and len(tuple(shape)) > 0
+        self.saturate = bool(saturate)
+        super().__init__(
+            name,
+            inputs=[Port("e", tuple(shape), in_unit)],
+            outputs=[Port("u", tuple(shape), out_unit), Port("saturated", (), DIMENSIONLESS, "bool")],
+            dt=dt,
+            feedthrough=True,
+        )
+
+    def initial_state(self, batch, rng=None):
+        return {"I": self.inputs["e"].empty(batch)}
+
+    def _raw(self, state, e):
+        return self.kp * e + self.ki * state["I"]
+
+    def _excess(self, u):
+        """Per-trial magnitude used against the limit."""
+        if self.norm:
+            return np.sqrt((u * u).reshape(u.shape[0], -1).sum(axis=1))
+        return np.abs(u).reshape(u.shape[0], -1).max(axis=1) if u.ndim > 1 else np.abs(u)
+
+    def output(self, state, u):
+        raw = self._raw(state, u["e"])
+        if self.limit is None:
+            return {"u": raw, "saturated": np.zeros(raw.shape[0], dtype=bool)}
+        mag = self._excess(raw)
+        sat = mag > self.limit
+        if self.saturate and sat.any():
+            if self.norm:
+                scale = np.where(sat, self.limit / np.where(sat, mag, 1.0), 1.0)
+                raw = raw * scale.reshape((-1,) + (1,) * (raw.ndim - 1))
+            else:
+                raw = np.clip(raw, -self.limit, self.limit)
+        return {"u": raw, "saturated": sat}
+
+    def update(self, state, u):
+        e = u["e"]
+        if self.limit is None:
+            state["I"] += self.dt * e
+            return state
+        free = self._excess(self._raw(state, e)) <= self.limit
+        state["I"] += (self.dt * e) * free.reshape((-1,) + (1,) * (e.ndim - 1))
+        return state
+
+    def to_control(self):
+        n = _size(self.inputs["e"].shape)
+        eye = np.eye(n)
+        return control.ss(eye, self.dt * eye, self.ki * eye, self.kp * eye, dt=self.dt)
+
+
+class StateSpace(Block):
+    """Discrete state space ``x[k+1] = A x + B u``, ``y = C x + D u`` on vector ports ``u``, ``y``."""
+
+    def __init__(self, name: str, A, B, C, D, *, in_unit: str = DIMENSIONLESS, out_unit: str = DIMENSIONLESS,
+                 dt: float = FRAME_PERIOD_S, x0: Sequence[float] | None = None):
+        self.A, self.B, self.C, self.D = (np.atleast_2d(np.asarray(m, dtype=float)) for m in (A, B, C, D))
+        n, m, p = self.A.shape[0], self.B.shape[1], self.C.shape[0]
+        if self.A.shape != (n, n) or self.B.shape != (n, m) or self.C.shape != (p, n) or self.D.shape != (p, m):
+            raise WiringError(
+                f"state space {name!r}: inconsistent shapes A{self.A.shape} B{self.B.shape} "
+                f"C{self.C.shape} D{self.D.shape}"
+            )
+        self.x0 = np.zeros(n) if x0 is None else np.asarray(x0, dtype=float)
+        super().__init__(name, inputs=[Port("u", (m,), in_unit)], outputs=[Port("y", (p,), out_unit)], dt=dt,
+                         feedthrough=bool(np.any(self.D)))
+
+    @classmethod
+    def from_control(cls, name: str, sys, **kw) -> StateSpace:
+        """Wrap a discrete python-control system (its ``dt`` becomes the block's period)."""
+        ss = control.ss(sys)
+        if not ss.isdtime(strict=True):
+            raise WiringError(f"state space {name!r}: the system must be discrete-time with a numeric dt")
+        return cls(name, ss.A, ss.B, ss.C, ss.D, dt=float(ss.dt), **kw)
+
+    def initial_state(self, batch, rng=None):
+        return {"x": np.broadcast_to(self.x0, (batch, self.x0.size)).copy()}
+
+    def output(self, state, u):
+        y = state["x"] @ self.C.T
+        if self.feedthrough:
+            y = y + u["u"] @ self.D.T
+        return {"y": y}
+
+    def update(self, state, u):
+        state["x"] = state["x"] @ self.A.T + u["u"] @ self.B.T
+        return state
+
+    def to_control(self):
+        return control.ss(self.A, self.B, self.C, self.D, dt=self.dt)

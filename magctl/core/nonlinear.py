@@ -1,0 +1,65 @@
+"""Small generic nonlinear blocks: norm saturation and additive Gaussian noise."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magctl import FRAME_PERIOD_S
+from magctl.core.block import Block
+from magctl.core.ports import DIMENSIONLESS, Port
+
+
+def clip_norm(v: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """Scale each trial's vector ``v[b]`` so that ``‖v[b]‖ ≤ limit``, keeping its direction.
+
+    Returns the clipped array and a boolean ``(B,)`` flag of the trials that were clipped.
+    """
+    mag = np.sqrt(np.einsum("bi,bi->b", v, v))
+    over = mag > limit
+    if not over.any():
+        return v, over
+    scale = np.where(over, limit / np.where(over, mag, 1.0), 1.0)
+    return v * scale[:, None], over
+
+
+class NormSaturation(Block):
+    """``y = u · min(1, L/‖u‖)``: a vector limit that keeps direction; reports ``saturated``."""
+
+    def __init__(self, name: str, limit: float, *, shape=(2,), unit: str = DIMENSIONLESS,
+                 dt: float = FRAME_PERIOD_S):
+        self.limit = float(limit)
+        super().__init__(name, inputs=[Port("u", tuple(shape), unit)],
+                         outputs=[Port("y", tuple(shape), unit), Port("saturated", (), DIMENSIONLESS, "bool")],
+                         dt=dt, feedthrough=True)
+
+    def output(self, state, u):
+        y, sat = clip_norm(u["u"], self.limit)
+        return {"y": y, "saturated": sat}
+
+
+class GaussianNoise(Block):
+    """``y[k] = u[k] + σ·n[k]`` with ``n`` drawn from the trial's own stream, N(0, 1) per element."""
+
+    def __init__(self, name: str, sigma: float, *, shape=(), unit: str = DIMENSIONLESS,
+                 dt: float = FRAME_PERIOD_S):
+        self.sigma = float(sigma)
+        super().__init__(name, inputs=[Port("u", tuple(shape), unit)], outputs=[Port("y", tuple(shape), unit)],
+                         dt=dt, feedthrough=True)
+
+    @property
+    def uses_random(self) -> bool:
+        return True
+
+    def initial_state(self, batch, rng=None):
+        return {"rng": rng}
+
+    def output(self, state, u):
+        # step k's draw is cached until update(), so repeated output() calls within a step agree
+        n = state.get("n")
+        if n is None:
+            n = state["n"] = state["rng"].standard_normal(self.inputs["u"].shape)
+        return {"y": u["u"] + self.sigma * n}
+
+    def update(self, state, u):
+        state.pop("n", None)
+        return state

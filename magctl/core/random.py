@@ -1,0 +1,85 @@
+"""Per-trial random streams that do not depend on the batch size.
+
+Trial ``k`` of a run seeded with ``seed`` draws from
+``SeedSequence(seed, spawn_key=(k,))`` — the same sequence
+``SeedSequence(seed).spawn(n)[k]`` gives for any ``n > k`` — so its result is
+the same whether it ran alone, in a batch of 10 000, or in another process.
+Each block gets its own child of the trial's sequence, keyed by a stable hash
+of the block's path in the diagram.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def trial_seed_sequence(seed: int, trial: int) -> np.random.SeedSequence:
+    """The seed sequence of global trial ``trial``: ``SeedSequence(seed).spawn(n)[trial]``."""
+    return np.random.SeedSequence(int(seed), spawn_key=(int(trial),))
+
+
+def block_key(path: str) -> int:
+    """Stable 32-bit key of a block path, used as a spawn key."""
+    return zlib.crc32(path.encode())
+
+
+class TrialStreams:
+    """One numpy ``Generator`` per trial, drawn in fixed-size chunks.
+
+    Drawing ``shape`` per step for every trial would call B generators each
+    step; instead each trial draws ``chunk`` steps at once and the stream
+    serves them step by step. Chunked draws from a ``Generator`` are the same
+    numbers as one large draw, so trial ``k``'s values never depend on ``B``.
+
+    Parameters
+    ----------
+    generators : sequence of numpy.random.Generator
+        One per trial, in batch order.
+    chunk : int
+        Steps drawn per refill.
+    """
+
+    def __init__(self, generators: Sequence[np.random.Generator], chunk: int = 256):
+        self.generators = list(generators)
+        self.chunk = int(chunk)
+        self._buffers: dict[tuple, tuple[np.ndarray, int]] = {}
+
+    @classmethod
+    def for_block(cls, seed: int, trials: Sequence[int], path: str, chunk: int = 256) -> TrialStreams:
+        """Streams of block ``path`` for the given global trial indices."""
+        key = block_key(path)
+        gens = [
+            np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(k), key)))
+            for k in trials
+        ]
+        return cls(gens, chunk)
+
+    @classmethod
+    def for_trials(cls, seed: int, trials: Sequence[int], chunk: int = 256) -> TrialStreams:
+        """Streams seeded directly by each trial's sequence (no block key)."""
+        return cls([np.random.default_rng(trial_seed_sequence(seed, k)) for k in trials], chunk)
+
+    @property
+    def batch(self) -> int:
+        return len(self.generators)
+
+    def _draw(self, kind: str, shape: tuple[int, ...]) -> np.ndarray:
+        key = (kind, shape)
+        buf, pos = self._buffers.get(key, (None, self.chunk))
+        if pos >= self.chunk:
+            draw = getattr(np.random.Generator, kind)
+            buf = np.stack([draw(g, (self.chunk, *shape)) for g in self.generators], axis=0)
+            pos = 0
+        self._buffers[key] = (buf, pos + 1)
+        return buf[:, pos]
+
+    def standard_normal(self, shape: tuple[int, ...] = ()) -> np.ndarray:
+        """One step of N(0, 1) draws, shaped ``(B, *shape)``."""
+        return self._draw("standard_normal", tuple(shape))
+
+    def random(self, shape: tuple[int, ...] = ()) -> np.ndarray:
+        """One step of U[0, 1) draws, shaped ``(B, *shape)``."""
+        return self._draw("random", tuple(shape))

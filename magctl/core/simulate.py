@@ -1,0 +1,230 @@
+"""Batched, deterministic simulation of a diagram.
+
+``simulate(diagram, steps, batch=B, seed=S)`` steps B trials in lockstep and
+records every leaf output as an array shaped ``(B, T, …)``. Trial ``k``'s
+random streams come from ``SeedSequence(S, spawn_key=(k, …))`` so its
+trajectory is the same in any batch and any process (pass ``trials=`` to run
+a slice of a larger experiment).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from magctl.core.block import as_batch
+from magctl.core.diagram import EXTERNAL, Diagram
+from magctl.core.errors import NonFiniteSignalError, WiringError
+
+
+@dataclass
+class SimResult:
+    """Result of :func:`simulate`.
+
+    Attributes
+    ----------
+    t : ndarray, shape (T,)
+        Time of each step in seconds.
+    signals : dict of str to ndarray
+        Recorded signals ``"block.port"`` (nested blocks as ``"outer/inner.port"``),
+        each shaped ``(B, T, *port.shape)``.
+    outputs : dict of str to ndarray
+        The diagram's exported outputs, same layout. ``t, y = result`` unpacks these.
+    final_state : dict
+        Diagram state after the last step (continue with ``simulate(..., state=)``).
+    trials : list of int
+        Global trial indices of the batch rows.
+    """
+
+    t: np.ndarray
+    signals: dict[str, np.ndarray]
+    outputs: dict[str, np.ndarray]
+    final_state: dict = field(repr=False)
+    trials: list[int] = field(default_factory=list)
+
+    def __iter__(self):
+        return iter((self.t, self.outputs))
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name in self.outputs:
+            return self.outputs[name]
+        try:
+            return self.signals[name]
+        except KeyError:
+            known = sorted(self.outputs) + sorted(self.signals)
+            raise KeyError(f"no recorded signal {name!r}; recorded: {known}") from None
+
+
+def _external_values(diagram: Diagram, inputs: Mapping | None, batch: int, steps: int):
+    """Per-step values of the diagram's exported inputs as ``(B, T, *shape)`` arrays."""
+    inputs = dict(inputs or {})
+    unknown = set(inputs) - set(diagram.inputs)
+    if unknown:
+        raise WiringError(f"diagram {diagram.name!r} has no inputs {sorted(unknown)}; inputs: {sorted(diagram.inputs)}")
+    values = {}
+    for name, p in diagram.inputs.items():
+        if name not in inputs:
+            raise WiringError(f"diagram input {diagram.name}.{name} needs a value: pass inputs={{{name!r}: …}}")
+        v = np.asarray(inputs[name], dtype=p.dtype)
+        for shape in ((batch, steps, *p.shape), (steps, *p.shape)):
+            if v.shape == shape:
+                values[name] = np.broadcast_to(v, (batch, steps, *p.shape))
+                break
+        else:
+            const = as_batch(v, p, batch)
+            values[name] = np.broadcast_to(const[:, None], (batch, steps, *p.shape))
+    return values
+
+
+def simulate(
+    diagram: Diagram,
+    steps: int,
+    *,
+    batch: int = 1,
+    seed: int = 0,
+    inputs: Mapping | None = None,
+    record: Iterable[str] | None = None,
+    trials: Sequence[int] | None = None,
+    state: dict | None = None,
+    check_finite: bool = True,
+    check_every: int = 64,
+) -> SimResult:
+    """Simulate ``batch`` trials of ``diagram`` for ``steps`` base periods.
+
+    Parameters
+    ----------
+    diagram : Diagram
+        The system to run.
+    steps : int
+        Number of base-period steps.
+    batch : int
+        Number of trials stepped in lockstep.
+    seed : int
+        Root seed; trial ``k`` uses ``SeedSequence(seed, spawn_key=(k, …))``.
+    inputs : mapping
+        Values of the diagram's exported inputs: constants, ``(T, …)`` or ``(B, T, …)``.
+    record : iterable of str, optional
+        Leaf outputs to record (``"block.port"``); all of them by default. Exported
+        outputs are always recorded.
+    trials : sequence of int, optional
+        Global indices of the trials in this batch (default ``0 … B−1``).
+    state : dict, optional
+        Start from this diagram state instead of the initial one.
+    check_finite : bool
+        Scan recorded signals for NaN/inf every ``check_every`` steps and raise
+        :class:`NonFiniteSignalError` naming the producing block and port, the
+        consuming inputs and the first step; ``partial`` holds what ran before.
+    """
+    sched = diagram.schedule
+    steps = int(steps)
+    trials = list(range(batch)) if trials is None else list(trials)
+    if len(trials) != batch:
+        raise ValueError(f"got {len(trials)} trial indices for a batch of {batch}")
+    st = sched.initial_state(batch, seed=seed, trials=trials) if state is None else state
+    ext = _external_values(diagram, inputs, batch, steps)
+
+    names = sched.signal_names()
+    wanted = None if record is None else set(record)
+    exported_refs = {f"{sched.leaves[i].path}.{p}" for i, p in sched.outputs.values()}
+    if wanted is not None:
+        known = {n for _, _, n in names}
+        missing = wanted - known
+        if missing:
+            raise WiringError(f"cannot record unknown signals {sorted(missing)}")
+        wanted |= exported_refs
+    rec_specs = [(i, p, n) for i, p, n in names if wanted is None or n in wanted]
+    buffers = {
+        n: np.empty((batch, steps, *sched.leaves[i].block.outputs[p].shape), dtype=sched.leaves[i].block.outputs[p].dtype)
+        for i, p, n in rec_specs
+    }
+    rec_plan = [(i, p, buffers[n]) for i, p, n in rec_specs]
+
+    leaves = sched.leaves
+    blocks = [lf.block for lf in leaves]
+    ratios = [lf.ratio for lf in leaves]
+    feed = [lf.block.feedthrough for lf in leaves]
+    wirings = [lf.wiring for lf in leaves]
+    nleaf = len(leaves)
+    leaf_states = list(st["leaves"])
+    held = list(st["held"])
+    tick0 = st["tick"]
+    outs: list = [None] * (nleaf + 1)  # slot EXTERNAL (= -1) holds the diagram inputs
+    us: list = [None] * nleaf
+    empty: dict = {}
+    ext_items = list(ext.items())
+    last_checked = 0
+
+    for k in range(steps):
+        tick = tick0 + k
+        outs[EXTERNAL] = {name: v[:, k] for name, v in ext_items}
+        for i in range(nleaf):
+            r = ratios[i]
+            if r != 1 and tick % r and held[i] is not None:
+                outs[i] = held[i]
+                us[i] = None
+                continue
+            if feed[i]:
+                u = {p: outs[j][q] for p, j, q in wirings[i]}
+                us[i] = u
+                outs[i] = blocks[i].output(leaf_states[i], u)
+            else:
+                us[i] = None
+                outs[i] = blocks[i].output(leaf_states[i], empty)
+            held[i] = outs[i]
+        for i, p, buf in rec_plan:
+            buf[:, k] = outs[i][p]
+        for i in range(nleaf):
+            r = ratios[i]
+            if r != 1 and tick % r:
+                continue
+            u = us[i]
+            if u is None:
+                u = {p: outs[j][q] for p, j, q in wirings[i]}
+            leaf_states[i] = blocks[i].update(leaf_states[i], u)
+        if check_finite and (k + 1 - last_checked >= check_every or k == steps - 1):
+            _check_finite(sched, rec_plan, last_checked, k + 1, tick0, diagram, buffers, trials, leaf_states, held)
+            last_checked = k + 1
+
+    final = {"tick": tick0 + steps, "leaves": leaf_states, "held": held}
+    return _result(diagram, buffers, steps, tick0, final, trials)
+
+
+def _result(diagram, buffers, steps, tick0, final, trials) -> SimResult:
+    sched = diagram.schedule
+    t = (tick0 + np.arange(steps)) * diagram.dt
+    outputs = {name: buffers[f"{sched.leaves[i].path}.{p}"] for name, (i, p) in sched.outputs.items()}
+    return SimResult(t, buffers, outputs, final, list(trials))
+
+
+def _check_finite(sched, rec_plan, k0, k1, tick0, diagram, buffers, trials, leaf_states, held):
+    first = None
+    for i, p, buf in rec_plan:
+        seg = buf[:, k0:k1]
+        if seg.dtype.kind != "f":
+            continue
+        bad = ~np.isfinite(seg.reshape(seg.shape[0], seg.shape[1], -1)).all(axis=2)
+        if bad.any():
+            step = int(np.argmax(bad.any(axis=0)))
+            if first is None or (step, i) < first[:2]:
+                first = (step, i, p, np.flatnonzero(bad[:, step]))
+    if first is None:
+        return
+    step, i, p, rows = first
+    partial_len = k0 + step
+    partial = _result(
+        diagram,
+        {n: b[:, :partial_len] for n, b in buffers.items()},
+        partial_len,
+        tick0,
+        {"tick": tick0 + k1, "leaves": leaf_states, "held": held},
+        trials,
+    )
+    raise NonFiniteSignalError(
+        step=tick0 + partial_len,
+        source=f"{sched.leaves[i].path}.{p}",
+        consumers=sched.consumers(i, p),
+        trials=[trials[r] for r in rows],
+        partial=partial,
+    )
