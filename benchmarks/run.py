@@ -1,0 +1,46 @@
+"""``make bench``: run every ``benchmarks/bench_*.py`` and write one JSON file.
+
+Each benchmark module defines ``run(quick: bool = False) -> dict``; its numbers
+(with targets and whether they were met) go into the JSON under its name.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", type=Path, default=HERE / "results.json")
+    parser.add_argument("--only", nargs="*", help="benchmark names (e.g. b1_servo_loop)")
+    parser.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke run")
+    args = parser.parse_args()
+    sys.path.insert(0, str(HERE))
+    results = {"machine": {"python": platform.python_version(), "platform": platform.platform()}}
+    for path in sorted(HERE.glob("bench_*.py")):
+        name = path.stem.removeprefix("bench_")
+        if args.only and name not in args.only:
+            continue
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        print(f"[bench] {name} …", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        results[name] = module.run(quick=args.quick)
+        results[name]["wall_time_s"] = time.perf_counter() - t0
+        print(json.dumps({name: results[name]}, indent=2, default=float))
+    args.out.write_text(json.dumps(results, indent=2, default=float))
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
