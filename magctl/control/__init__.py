@@ -1,0 +1,1 @@
+"""Controller blocks: tracker, visual servo, path planner, push tasks."""

@@ -1,0 +1,1 @@
+"""Plant blocks: coils, robot, fluid flow, spheres, camera."""
