@@ -15,6 +15,7 @@ import numpy as np
 from magctl import FRAME_PERIOD_S
 from magctl.core.block import Block, as_batch
 from magctl.core.errors import WiringError
+from magctl.core.nonlinear import vector_norm
 from magctl.core.ports import DIMENSIONLESS, Port
 
 
@@ -100,6 +101,10 @@ class Sum(Block):
         self._names = [p.name for p in ins]
 
     def output(self, state, u):
+        if len(self._names) == 2:
+            a, b = u[self._names[0]], u[self._names[1]]
+            s0, s1 = self.signs
+            return {"y": (a + b if s1 > 0 else a - b) if s0 > 0 else (-a + b if s1 > 0 else -a - b)}
         y = u[self._names[0]] * self.signs[0] if self.signs[0] < 0 else u[self._names[0]].copy()
         for name, s in zip(self._names[1:], self.signs[1:], strict=True):
             if s > 0:
@@ -225,17 +230,22 @@ class PI(Block):
     def _excess(self, u):
         """Per-trial magnitude used against the limit."""
         if self.norm:
+            if u.ndim == 2:
+                return vector_norm(u)
             return np.sqrt((u * u).reshape(u.shape[0], -1).sum(axis=1))
         return np.abs(u).reshape(u.shape[0], -1).max(axis=1) if u.ndim > 1 else np.abs(u)
 
     def output(self, state, u):
-        raw = self._raw(state, u["e"])
+        e = u["e"]
+        raw = self.kp * e + self.ki * state["I"]
         if self.limit is None:
             return {"u": raw, "saturated": np.zeros(raw.shape[0], dtype=bool)}
-        mag = self._excess(raw)
-        sat = mag > self.limit
+        sat = self._excess(raw) > self.limit
+        # remembered for update(): the same step's error gives the same verdict
+        state["_last"] = (e, sat)
         if self.saturate and sat.any():
             if self.norm:
+                mag = self._excess(raw)
                 scale = np.where(sat, self.limit / np.where(sat, mag, 1.0), 1.0)
                 raw = raw * scale.reshape((-1,) + (1,) * (raw.ndim - 1))
             else:
@@ -245,10 +255,14 @@ class PI(Block):
     def update(self, state, u):
         e = u["e"]
         if self.limit is None:
-            state["I"] += self.dt * e
+            state["I"] = state["I"] + self.dt * e
             return state
-        free = self._excess(self._raw(state, e)) <= self.limit
-        state["I"] += (self.dt * e) * free.reshape((-1,) + (1,) * (e.ndim - 1))
+        last = state.pop("_last", None)
+        sat = last[1] if last is not None and last[0] is e else self._excess(self._raw(state, e)) > self.limit
+        if sat.any():
+            state["I"] = state["I"] + (self.dt * e) * (~sat).reshape((-1,) + (1,) * (e.ndim - 1))
+        else:
+            state["I"] = state["I"] + self.dt * e
         return state
 
     def to_control(self):

@@ -9,12 +9,19 @@ from magctl.core.block import Block
 from magctl.core.ports import DIMENSIONLESS, Port
 
 
+def vector_norm(v: np.ndarray) -> np.ndarray:
+    """Euclidean norm of each trial's vector: ``(B, n)`` → ``(B,)`` (``hypot`` for the common 2-D case)."""
+    if v.shape[1] == 2:
+        return np.hypot(v[:, 0], v[:, 1])
+    return np.sqrt(np.einsum("bi,bi->b", v, v))
+
+
 def clip_norm(v: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
     """Scale each trial's vector ``v[b]`` so that ``‖v[b]‖ ≤ limit``, keeping its direction.
 
     Returns the clipped array and a boolean ``(B,)`` flag of the trials that were clipped.
     """
-    mag = np.sqrt(np.einsum("bi,bi->b", v, v))
+    mag = vector_norm(v)
     over = mag > limit
     if not over.any():
         return v, over

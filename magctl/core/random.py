@@ -45,7 +45,7 @@ class TrialStreams:
     def __init__(self, generators: Sequence[np.random.Generator], chunk: int = 256):
         self.generators = list(generators)
         self.chunk = int(chunk)
-        self._buffers: dict[tuple, tuple[np.ndarray, int]] = {}
+        self._buffers: dict[tuple, list] = {}
 
     @classmethod
     def for_block(cls, seed: int, trials: Sequence[int], path: str, chunk: int = 256) -> TrialStreams:
@@ -68,12 +68,16 @@ class TrialStreams:
 
     def _draw(self, kind: str, shape: tuple[int, ...]) -> np.ndarray:
         key = (kind, shape)
-        buf, pos = self._buffers.get(key, (None, self.chunk))
+        entry = self._buffers.get(key)
+        if entry is None:
+            entry = self._buffers[key] = [np.empty((self.batch, self.chunk, *shape)), self.chunk]
+        buf, pos = entry
         if pos >= self.chunk:
             draw = getattr(np.random.Generator, kind)
-            buf = np.stack([draw(g, (self.chunk, *shape)) for g in self.generators], axis=0)
+            for b, g in enumerate(self.generators):
+                draw(g, out=buf[b])
             pos = 0
-        self._buffers[key] = (buf, pos + 1)
+        entry[1] = pos + 1
         return buf[:, pos]
 
     def standard_normal(self, shape: tuple[int, ...] = ()) -> np.ndarray:

@@ -135,10 +135,8 @@ def simulate(
             raise WiringError(f"cannot record unknown signals {sorted(missing)}")
         wanted |= exported_refs
     rec_specs = [(i, p, n) for i, p, n in names if wanted is None or n in wanted]
-    buffers = {
-        n: np.empty((batch, steps, *sched.leaves[i].block.outputs[p].shape), dtype=sched.leaves[i].block.outputs[p].dtype)
-        for i, p, n in rec_specs
-    }
+    ports = {n: sched.leaves[i].block.outputs[p] for i, p, n in rec_specs}
+    buffers = {n: np.empty((batch, steps, *pt.shape), dtype=pt.dtype) for n, pt in ports.items()}
     rec_plan = [(i, p, buffers[n]) for i, p, n in rec_specs]
 
     leaves = sched.leaves

@@ -1,0 +1,47 @@
+"""Parameter files: SI conversion, required sources, errors naming file and key."""
+
+import pytest
+
+from magctl.config import load_file
+from magctl.core import ParameterError
+
+
+def write(tmp_path, text):
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    return path
+
+
+def test_units_converted_and_sources_kept(tmp_path):
+    text = ('[s]\nradius_um = { value = 105, source = "paper §II" }\n'
+            'nu_cSt = { value = 20, source = "paper §II" }\nangle_deg = { value = 180, source = "x" }')
+    p = load_file(write(tmp_path, text))
+    assert p.s.radius == pytest.approx(105e-6)
+    assert p.s.nu == pytest.approx(20e-6)
+    assert p.s.angle == pytest.approx(3.141592653589793)
+    assert p.s.sources["radius"] == "paper §II"
+    assert p.to_dict() == {"s": {"radius_um": 105, "nu_cSt": 20, "angle_deg": 180}}
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ('[s]\nradius_um = 105\n', r"p\.toml:s\.radius_um: write parameters as"),
+        ('[s]\nradius_um = { value = 105 }\n', r"s\.radius_um: missing 'source'"),
+        ('[s]\nradius = { value = 105, source = "x" }\n', r"s\.radius: numeric parameter needs a unit suffix"),
+        ('[s]\nradius_um = { value = "abc", source = "x", colour = 1 }\n', r"unknown fields \['colour'\]"),
+        ('[s]\nradius_um = { value = [1, "a"], source = "x" }\n', r"is not a number"),
+        ('[s\nradius_um = 1', r"not valid TOML"),
+    ],
+)
+def test_malformed_files_name_file_and_key(tmp_path, text, message):
+    with pytest.raises(ParameterError, match=message):
+        load_file(write(tmp_path, text))
+
+
+def test_missing_file_and_missing_parameter(tmp_path):
+    with pytest.raises(ParameterError, match="not found"):
+        load_file(tmp_path / "none.toml")
+    p = load_file(write(tmp_path, '[s]\nradius_um = { value = 1, source = "x" }\n'))
+    with pytest.raises(ParameterError, match=r"no parameter 'mass'"):
+        _ = p.s.mass
