@@ -1,0 +1,148 @@
+"""Sweeps on the serial executor and local processes: ordering, chunking, errors, cleanup."""
+
+from __future__ import annotations
+
+import socket
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from magctl.core.errors import MagctlError
+from magctl.core.random import trial_seed_sequence
+from magctl.examples import drift_trials, failing_trials
+from magctl.sweep import (
+    SchedulerError,
+    SerialExecutor,
+    SweepError,
+    chunk_trials,
+    executor_kind,
+    run_trials,
+)
+
+
+def _first_normals(indices, seed):
+    """One N(0,1) draw per trial straight from its SeedSequence: independent of magctl.core.simulate."""
+    return np.array([np.random.default_rng(trial_seed_sequence(seed, k)).standard_normal() for k in indices])
+
+
+@given(n=st.integers(0, 40), chunk=st.integers(1, 12), seed=st.integers(0, 2**32 - 1))
+@settings(max_examples=40, deadline=None)
+def test_serial_results_independent_of_chunking(n, chunk, seed):
+    got = run_trials(_first_normals, n, seed=seed, scheduler="serial", chunk_size=chunk, progress=False)
+    want = np.array([np.random.default_rng(np.random.SeedSequence(seed).spawn(max(n, 1))[k]).standard_normal()
+                     for k in range(n)])
+    np.testing.assert_array_equal(np.asarray(got, dtype=float), want)
+
+
+@given(n=st.integers(0, 200), chunk=st.integers(1, 50))
+def test_chunks_cover_trials_in_order(n, chunk):
+    chunks = chunk_trials(n, chunk)
+    assert [k for c in chunks for k in c] == list(range(n))
+    assert all(1 <= len(c) <= chunk for c in chunks)
+
+
+def test_simulation_sweep_matches_one_batch():
+    whole = drift_trials(list(range(9)), 5, steps=30)
+    got = run_trials(drift_trials, 9, seed=5, scheduler="serial", chunk_size=2, progress=False, steps=30)
+    for key in whole:
+        np.testing.assert_array_equal(got[key], whole[key])
+    # the seed matters
+    other = run_trials(drift_trials, 9, seed=6, scheduler="serial", progress=False, steps=30)
+    assert not np.array_equal(other["final"], whole["final"])
+
+
+def test_given_executor_is_used_and_left_open():
+    with ThreadPoolExecutor(2) as pool:
+        a = run_trials(drift_trials, 6, seed=1, executor=pool, chunk_size=4, progress=False, steps=10)
+        b = run_trials(drift_trials, 6, seed=1, executor=pool, chunk_size=1, progress=False, steps=10)
+        assert pool.submit(int, "3").result() == 3  # still usable
+    np.testing.assert_array_equal(a["measured"], b["measured"])
+
+
+def test_list_results_are_flattened_in_order():
+    got = run_trials(_list_trials, 7, seed=0, scheduler="serial", chunk_size=3, progress=False)
+    assert got == [f"t{k}" for k in range(7)]
+
+
+def _list_trials(indices, seed):
+    return [f"t{k}" for k in indices]
+
+
+def _short_trials(indices, seed):
+    return {"x": np.zeros(len(indices) - 1)}
+
+
+def _scalar_trials(indices, seed):
+    return 3.0
+
+
+def test_serial_exception_names_chunk_and_keeps_cause():
+    with pytest.raises(SweepError, match=r"chunk 1 \(trials 3–5\) failed: ValueError: trial 4") as info:
+        run_trials(failing_trials, 9, seed=0, scheduler="serial", chunk_size=3, progress=False, fail_on=4, steps=5)
+    assert info.value.chunk == 1 and info.value.trials == [3, 4, 5]
+    assert isinstance(info.value.__cause__, ValueError)
+    assert isinstance(info.value, MagctlError)
+
+
+def test_process_worker_exception_names_chunk():
+    with pytest.raises(SweepError, match=r"chunk 0 \(trials 0–4\) failed: ValueError: trial 2"):
+        run_trials(failing_trials, 10, seed=0, workers=2, chunk_size=5, progress=False, fail_on=2, steps=5)
+
+
+@pytest.mark.parametrize(("fn", "message"), [
+    (_short_trials, r"chunk 0 \(trials 0–3\) returned 'x' with leading axis 3, expected 4"),
+    (_scalar_trials, r"chunk 0 \(trials 0–3\) returned float"),
+])
+def test_wrong_result_length_is_reported(fn, message):
+    with pytest.raises(SweepError, match=message):
+        run_trials(fn, 4, seed=0, scheduler="serial", chunk_size=4, progress=False)
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"n_trials": -1}, "n_trials must be a non-negative integer, got -1"),
+    ({"n_trials": 2.5}, "n_trials must be a non-negative integer, got 2.5"),
+    ({"chunk_size": 0}, "chunk_size must be a positive integer, got 0"),
+    ({"workers": 0, "scheduler": None}, "workers must be at least 1, got 0"),
+])
+def test_bad_arguments(kwargs, message):
+    args = {"n_trials": 3, "scheduler": "serial"} | kwargs
+    with pytest.raises(SweepError, match=message):
+        run_trials(drift_trials, args.pop("n_trials"), seed=0, progress=False, **args)
+
+
+def test_not_callable():
+    with pytest.raises(SweepError, match="is not callable"):
+        run_trials("drift", 3, seed=0, scheduler="serial")
+
+
+def test_scheduler_kinds():
+    assert executor_kind(None) == "processes"
+    assert executor_kind("processes") == "processes"
+    assert executor_kind("serial") == "serial"
+    assert executor_kind("tcp://10.0.0.1:8786") == "dask"
+    assert executor_kind("10.0.0.1:8786") == "dask"
+    with pytest.raises(SchedulerError, match="unknown scheduler 'threads'"):
+        executor_kind("threads")
+
+
+def test_unreachable_scheduler_fails_fast_naming_address():
+    with socket.socket() as s:  # a port nobody listens on: bound, never listening
+        s.bind(("127.0.0.1", 0))
+        address = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+        t0 = time.monotonic()
+        with pytest.raises(SchedulerError, match=f"cannot reach Dask scheduler at {address} within 1 s"):
+            run_trials(drift_trials, 3, seed=0, scheduler=address, timeout=1.0, progress=False)
+    assert time.monotonic() - t0 < 8.0
+
+
+def test_serial_executor_delivers_exceptions_through_future():
+    fut = SerialExecutor().submit(int, "x")
+    assert isinstance(fut.exception(), ValueError)
+
+
+def test_zero_trials():
+    assert run_trials(drift_trials, 0, seed=0, scheduler="serial") == []
