@@ -1,0 +1,127 @@
+"""PI visual servo: drive the robot to a target point by speed and heading (paper §II, §VI-A).
+
+The law acts on the planar error vector ``e = target − robot_est``::
+
+    u[k] = Kp·e[k] + Ki·I[k]              (velocity command, m/s)
+    speed = min(‖u‖, v_cap),  heading = atan2(u_y, u_x)
+    I[k+1] = I[k] + T·e[k]                (only while ‖u‖ ≤ v_cap: conditional-integration anti-windup)
+
+so along the line to the target it is the single-axis loop that
+:mod:`magctl.stability_servo` analyses. ``v_cap`` is the lower of the
+parameter ``speed_max`` and the optional ``speed_cap`` input (push tasks push
+slowly). With ``constant_speed`` the robot runs at ``v_cap`` until it arrives,
+as in the paper's experiments (§VI-A). Inside ``arrive_tol`` the speed is zero
+and ``arrived`` is true; a non-finite estimate or the optional ``hold`` input
+(wire the tracker's ``lost``) also stops the robot and freezes the integral.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magctl import FRAME_PERIOD_S
+from magctl.config import Params, load_model
+from magctl.core.block import Block
+from magctl.core.errors import ParameterError
+from magctl.core.ports import DIMENSIONLESS, Port
+
+
+def servo_params(setting: str = "default") -> Params:
+    """The ``[setting]`` table of ``models/servo.toml`` (``"default"`` = paper-like, ``"tuned"``)."""
+    model = load_model("servo")
+    if setting not in model:
+        raise ParameterError(f"models/servo.toml: no setting [{setting}]; settings: {sorted(model)}")
+    return model[setting]
+
+
+class Servo(Block):
+    """PI visual servo block.
+
+    Parameters
+    ----------
+    name : str
+        Block name.
+    kp : float
+        Proportional gain in 1/s ((m/s) of speed per m of error).
+    ki : float
+        Integral gain in 1/s².
+    speed_max : float
+        Speed limit in m/s (paper: ~400 µm/s).
+    arrive_tol : float
+        Distance in m under which the robot has arrived and stops.
+    constant_speed : bool
+        Run at the speed limit whenever not arrived (direction from the PI law).
+    speed_cap_input : bool
+        Add an input ``speed_cap`` () m/s; the effective limit is ``min(speed_max, speed_cap)``.
+    hold_input : bool
+        Add an input ``hold`` () bool that stops the robot (e.g. the tracker's ``lost``).
+    params : Params, optional
+        A table from :func:`servo_params`; explicit keyword values override it.
+
+    Ports
+    -----
+    inputs: ``target`` (2,) m, ``robot_est`` (2,) m [, ``speed_cap`` () m/s] [, ``hold`` () bool]
+    outputs: ``speed`` () m/s, ``heading`` () rad, ``arrived`` () bool, ``saturated`` () bool
+    """
+
+    def __init__(self, name: str = "servo", *, kp: float | None = None, ki: float | None = None,
+                 speed_max: float | None = None, arrive_tol: float | None = None, constant_speed: bool = False,
+                 speed_cap_input: bool = False, hold_input: bool = False, params: Params | None = None,
+                 dt: float = FRAME_PERIOD_S):
+        if params is None and None in (kp, ki, speed_max, arrive_tol):
+            params = servo_params("default")
+        self.kp = float(params.kp if kp is None else kp)
+        self.ki = float(params.ki if ki is None else ki)
+        self.speed_max = float(params.speed_max if speed_max is None else speed_max)
+        self.arrive_tol = float(params.arrive_tol if arrive_tol is None else arrive_tol)
+        for label, v, lo in (("kp", self.kp, 0.0), ("ki", self.ki, 0.0), ("speed_max", self.speed_max, 0.0),
+                             ("arrive_tol", self.arrive_tol, 0.0)):
+            if not np.isfinite(v) or v < lo or (label in ("kp", "speed_max") and v == 0):
+                raise ParameterError(f"servo {name!r}: {label}={v!r} must be finite and "
+                                     f"{'positive' if label in ('kp', 'speed_max') else 'non-negative'}")
+        self.constant_speed = bool(constant_speed)
+        ins = [Port("target", (2,), "m"), Port("robot_est", (2,), "m")]
+        if speed_cap_input:
+            ins.append(Port("speed_cap", (), "m/s"))
+        if hold_input:
+            ins.append(Port("hold", (), DIMENSIONLESS, "bool"))
+        outs = [Port("speed", (), "m/s"), Port("heading", (), "rad"), Port("arrived", (), DIMENSIONLESS, "bool"),
+                Port("saturated", (), DIMENSIONLESS, "bool")]
+        super().__init__(name, inputs=ins, outputs=outs, dt=dt, feedthrough=True)
+
+    def initial_state(self, batch, rng=None):
+        return {"I": np.zeros((batch, 2)), "heading": np.zeros(batch)}
+
+    def _law(self, state, u):
+        e = u["target"] - u["robot_est"]
+        ok = np.isfinite(e).all(axis=1)
+        if "hold" in u:
+            ok &= ~np.asarray(u["hold"], dtype=bool)
+        e = np.where(ok[:, None], e, 0.0)
+        dist = np.sqrt(np.einsum("bi,bi->b", e, e))
+        arrived = ok & (dist < self.arrive_tol)
+        cap = self.speed_max
+        if "speed_cap" in u:
+            cap = np.minimum(cap, np.maximum(u["speed_cap"], 0.0))
+        raw = self.kp * e + self.ki * state["I"]
+        mag = np.sqrt(np.einsum("bi,bi->b", raw, raw))
+        sat = mag > cap
+        speed = np.minimum(mag, cap)
+        if self.constant_speed:
+            speed = np.broadcast_to(cap, mag.shape).astype(float)
+            sat = mag > 0
+        moving = ok & ~arrived
+        speed = np.where(moving, speed, 0.0)
+        heading = np.where(mag > 0, np.arctan2(raw[:, 1], raw[:, 0]), state["heading"])
+        return e, ok, arrived, speed, heading, sat & moving
+
+    def output(self, state, u):
+        _, ok, arrived, speed, heading, sat = self._law(state, u)
+        return {"speed": speed, "heading": heading, "arrived": arrived & ok, "saturated": sat}
+
+    def update(self, state, u):
+        e, ok, arrived, _, heading, sat = self._law(state, u)
+        integrate = ok & ~arrived & ~sat
+        state["I"] = state["I"] + self.dt * e * integrate[:, None]
+        state["heading"] = heading
+        return state
