@@ -1,0 +1,36 @@
+"""``magctl bench``: run the benchmarks in ``benchmarks/`` (same as ``make bench``)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+from magctl.core.errors import MagctlError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("bench", help="run the benchmarks in benchmarks/ and write JSON")
+    p.add_argument("--only", nargs="*", help="benchmark names, e.g. b1_servo_loop")
+    p.add_argument("--quick", action="store_true", help="smaller sizes")
+    p.add_argument("--out", type=Path, default=None, help="JSON file (default benchmarks/results.json)")
+    p.add_argument("--json", action="store_true", help="print the JSON results on stdout")
+    p.set_defaults(func=cmd_bench)
+
+
+def cmd_bench(args) -> int:
+    runner = Path(__file__).resolve().parents[2] / "benchmarks" / "run.py"
+    if not runner.is_file():
+        raise MagctlError(f"benchmark runner {runner} not found (benchmarks/ ships with the source tree)")
+    out = args.out or runner.parent / "results.json"
+    cmd = [sys.executable, str(runner), "--out", str(out)]
+    if args.only:
+        cmd += ["--only", *args.only]
+    if args.quick:
+        cmd.append("--quick")
+    done = subprocess.run(cmd, stdout=subprocess.DEVNULL if args.json else None, check=False)
+    if done.returncode:
+        raise MagctlError(f"benchmarks failed (exit {done.returncode})")
+    if args.json:
+        print(out.read_text())
+    return 0
