@@ -4,9 +4,16 @@ The law acts on the planar error vector ``e = target − robot_est``::
 
     u[k] = Kp·e[k] + Ki·I[k]              (velocity command, m/s)
     speed = min(‖u‖, v_cap),  heading = atan2(u_y, u_x)
-    I[k+1] = I[k] + T·e[k]                (only while ‖u‖ ≤ v_cap: conditional-integration anti-windup)
+    I[k+1] = I[k] + T·e[k]
 
-so along the line to the target it is the single-axis loop that
+With ``anti_windup`` (conditional integration) ``I`` is held while ``‖u‖ > v_cap``.
+Without it — the paper's "basic" PI — ``I`` integrates all the time and is only
+clamped to ``Ki·‖I‖ ≤ v_cap``: during a long approach at the constant (saturated)
+speed the integral fills up, and it must be emptied by running past the target.
+Together with the camera lag this gives an overshoot of about
+``v_cap/Kp + v_cap·d·T`` whatever the step length, the ~100 µm of §VI-A.
+
+So along the line to the target it is the single-axis loop that
 :mod:`magctl.stability_servo` analyses. ``v_cap`` is the lower of the
 parameter ``speed_max`` and the optional ``speed_cap`` input (push tasks push
 slowly). With ``constant_speed`` the robot runs at ``v_cap`` until it arrives,
@@ -49,6 +56,8 @@ class Servo(Block):
         Speed limit in m/s (paper: ~400 µm/s).
     arrive_tol : float
         Distance in m under which the robot has arrived and stops.
+    anti_windup : bool
+        Conditional integration (hold ``I`` while saturated); otherwise ``Ki·‖I‖`` is clamped at the speed limit.
     constant_speed : bool
         Run at the speed limit whenever not arrived (direction from the PI law).
     speed_cap_input : bool
@@ -65,11 +74,13 @@ class Servo(Block):
     """
 
     def __init__(self, name: str = "servo", *, kp: float | None = None, ki: float | None = None,
-                 speed_max: float | None = None, arrive_tol: float | None = None, constant_speed: bool = False,
+                 speed_max: float | None = None, arrive_tol: float | None = None, anti_windup: bool | None = None,
+                 constant_speed: bool = False,
                  speed_cap_input: bool = False, hold_input: bool = False, params: Params | None = None,
                  dt: float = FRAME_PERIOD_S):
-        if params is None and None in (kp, ki, speed_max, arrive_tol):
+        if params is None and None in (kp, ki, speed_max, arrive_tol, anti_windup):
             params = servo_params("default")
+        self.anti_windup = bool(params.anti_windup if anti_windup is None else anti_windup)
         self.kp = float(params.kp if kp is None else kp)
         self.ki = float(params.ki if ki is None else ki)
         self.speed_max = float(params.speed_max if speed_max is None else speed_max)
@@ -121,7 +132,14 @@ class Servo(Block):
 
     def update(self, state, u):
         e, ok, arrived, _, heading, sat = self._law(state, u)
-        integrate = ok & ~arrived & ~sat
-        state["I"] = state["I"] + self.dt * e * integrate[:, None]
+        integrate = ok & ~arrived
+        if self.anti_windup:
+            integrate &= ~sat
+        I = state["I"] + self.dt * e * integrate[:, None]
+        if not self.anti_windup and self.ki > 0:
+            cap = self.speed_max if "speed_cap" not in u else np.minimum(self.speed_max, np.maximum(u["speed_cap"], 0))
+            mag = self.ki * np.sqrt(np.einsum("bi,bi->b", I, I))
+            I = I * np.where(mag > cap, cap / np.where(mag > 0, mag, 1.0), 1.0)[:, None]
+        state["I"] = I
         state["heading"] = heading
         return state
