@@ -24,12 +24,13 @@ from dataclasses import dataclass
 
 import control
 import numpy as np
+from scipy.special import ndtr
 
 from magctl.control.learning import ATTEMPT, LearningLaw, front_push_law, side_push_law
 from magctl.control.push_common import UM, ExpSideModel, LinSideModel, check_positive, side_model
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
-from magctl.core.linear import Integrator, Sum
+from magctl.core.linear import Gain, Integrator, Sum
 
 POLE_TOL = 1e-9
 
@@ -144,13 +145,15 @@ def front_iteration_diagram(law: LearningLaw) -> Diagram:
     Inputs ``goal`` (``P_g``) and ``release`` (``D_p,r``); outputs ``sphere`` (``P_s``),
     ``error`` and ``delta``. ``Diagram.to_control()`` has the single pole ``1 − K_c``.
     """
+    goal = Gain("goal", 1.0, in_unit="m", dt=ATTEMPT)
     sphere = Sum("sphere", "++-", unit="m", dt=ATTEMPT)
     err = Sum("error", "+-", unit="m", dt=ATTEMPT)
     return Diagram(
         "front_iterations",
-        [law, sphere, err],
-        [(f"{law.name}.y", "sphere.u1"), ("sphere.y", "error.u1"), ("error.y", f"{law.name}.e")],
-        inputs={"goal": ["sphere.u0", "error.u0"], "release": "sphere.u2"},
+        [law, goal, sphere, err],
+        [("goal.y", "sphere.u0"), ("goal.y", "error.u0"), (f"{law.name}.y", "sphere.u1"), ("sphere.y", "error.u1"),
+         ("error.y", f"{law.name}.e")],
+        inputs={"goal": "goal.u", "release": "sphere.u2"},
         outputs={"sphere": "sphere.y", "error": "error.y", "delta": f"{law.name}.y"},
         dt=ATTEMPT,
     )
@@ -162,8 +165,6 @@ def side_iteration_diagram(law: LearningLaw, ratio: float) -> Diagram:
     The sphere position is an integrator of the displacements; inputs ``goal``;
     outputs ``sphere``, ``error`` (``D_s,des``) and ``correction`` (``Δ``).
     """
-    from magctl.core.linear import Gain
-
     pos = Integrator("sphere", gain=1.0, in_unit="m", out_unit="m", dt=ATTEMPT)
     des = Sum("desired", "+-", unit="m", dt=ATTEMPT)
     cmd = Sum("command", "++", unit="m", dt=ATTEMPT)
@@ -280,12 +281,15 @@ def front_attempts_markov(kc: float, delta0: float, *, mean: float = RELEASE_MEA
     mass = np.zeros(n_grid)
     _deposit(mass, np.array([delta0]), np.array([1.0]), grid[0], h)
     conv_mask = np.abs(d[None, :] - grid[:, None]) < eps  # (grid, quad)
-    p_conv = conv_mask @ w
+    # exact convergence probability; the quadrature only carries the surviving mass
+    p_conv = ndtr((grid + eps - c) / std) - ndtr((grid - eps - c) / std)
+    w_stay = w[None, :] * ~conv_mask
+    w_stay *= ((1.0 - p_conv) / np.maximum(w_stay.sum(axis=1), 1e-300))[:, None]
     new_delta = grid[:, None] + kc * (d[None, :] - grid[:, None])
     out = np.zeros(max_attempts + 1)
     for i in range(max_attempts):
         out[i] = mass @ p_conv
-        stay = mass[:, None] * w[None, :] * ~conv_mask
+        stay = mass[:, None] * w_stay
         nxt = np.zeros(n_grid)
         _deposit(nxt, new_delta.ravel(), stay.ravel(), grid[0], h)
         mass = nxt
