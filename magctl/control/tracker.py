@@ -165,9 +165,9 @@ class Tracker(Block):
         missed = np.where(valid, 0, state["missed"] + 1)
         if self.mode == "particle":
             pos, heading, vel, sph, found = self._particle(state, u)
-            lost = ~found
+            started = np.array([pf.started for pf in state["pf"]], dtype=bool)
             missed = np.where(found, 0, state["missed"] + 1)
-            lost = lost | (missed > self.max_coast) & ~found
+            lost = ~started | (missed > self.max_coast)
             est = (pos, heading, vel, sph, lost, missed, None)
         else:
             x, P, init = self._posterior(state, u)
