@@ -93,10 +93,22 @@ def executor_kind(scheduler: str | None) -> str:
     )
 
 
-def _process_context():
-    # forkserver: workers never inherit the parent's threads (tqdm, Dask client) mid-lock, unlike fork
+PRELOAD = ("__main__", "numpy", "magctl.core")
+"""Modules the fork server imports once, so each worker starts without importing them again."""
+
+
+def _process_context(start_method: str | None = None):
+    """``forkserver`` by default: workers never inherit the parent's threads (tqdm, a Dask client) holding a
+    lock, as ``fork`` children can; like ``spawn`` it needs scripts to guard their entry point with
+    ``if __name__ == "__main__":``."""
     methods = multiprocessing.get_all_start_methods()
-    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+    method = start_method or ("forkserver" if "forkserver" in methods else "spawn")
+    if method not in methods:
+        raise SweepError(f"start method {method!r} is not available here; available: {methods}", -1, [])
+    ctx = multiprocessing.get_context(method)
+    if method == "forkserver":
+        ctx.set_forkserver_preload(list(PRELOAD))
+    return ctx
 
 
 def connect_dask(address: str, timeout: float = DEFAULT_CONNECT_TIMEOUT_S):
@@ -132,8 +144,20 @@ def connect_dask(address: str, timeout: float = DEFAULT_CONNECT_TIMEOUT_S):
 
 @contextmanager
 def open_executor(scheduler: str | None = None, workers: int | None = None,
-                  timeout: float = DEFAULT_CONNECT_TIMEOUT_S) -> Iterator[tuple[Executor, int]]:
+                  timeout: float = DEFAULT_CONNECT_TIMEOUT_S, start_method: str | None = None,
+                  ) -> Iterator[tuple[Executor, int]]:
     """The executor for ``scheduler`` and its parallelism; shut down (or disconnected) on exit.
+
+    Parameters
+    ----------
+    scheduler : str, optional
+        ``"serial"``, ``"processes"`` / None, or a Dask scheduler address.
+    workers : int, optional
+        Local processes (default: the CPUs this process may use).
+    timeout : float
+        Seconds allowed to reach a Dask scheduler and see a worker there.
+    start_method : str, optional
+        multiprocessing start method of local processes (default ``forkserver``).
 
     Yields
     ------
@@ -147,7 +171,7 @@ def open_executor(scheduler: str | None = None, workers: int | None = None,
         yield SerialExecutor(), 1
     elif kind == PROCESSES:
         n = int(workers) if workers is not None else default_workers()
-        pool = ProcessPoolExecutor(max_workers=n, mp_context=_process_context())
+        pool = ProcessPoolExecutor(max_workers=n, mp_context=_process_context(start_method))
         try:
             yield pool, n
         finally:
@@ -227,9 +251,11 @@ def run_trials(fn: Callable, n_trials: int, *, seed: int, chunk_size: int | None
     scheduler : str, optional
         ``"serial"``, ``"processes"`` / None (local processes) or a Dask address.
     workers : int, optional
-        Local worker processes (default: CPU count); ignored by the other executors.
+        Local worker processes (default: CPU count); with ``executor``, the number
+        of chunks it runs at once (default: its ``max_workers`` or the CPU count).
     executor : concurrent.futures.Executor, optional
         Use this executor instead (not shut down here); overrides ``scheduler``.
+        Open one with :func:`open_executor` to share a pool between sweeps.
     progress : bool
         Show a progress bar on stderr (only when stderr is a terminal).
     desc : str
@@ -260,10 +286,32 @@ def run_trials(fn: Callable, n_trials: int, *, seed: int, chunk_size: int | None
         raise SweepError(f"chunk_size must be a positive integer, got {chunk_size!r}", -1, [])
     n_trials, seed = int(n_trials), int(seed)
     if executor is not None:
-        return _run(executor, 1 if isinstance(executor, SerialExecutor) else default_workers(), fn, n_trials,
-                    seed, chunk_size, progress, desc, kwargs)
+        return _run(executor, _parallelism(executor, workers), fn, n_trials, seed, chunk_size, progress, desc,
+                    kwargs)
+    guess = int(chunk_size or default_chunk_size(n_trials, workers or default_workers()))
+    if scheduler is None and n_trials <= guess:
+        # a single chunk gains nothing from a pool; skip its start-up (same results: per-trial seeds)
+        scheduler = SERIAL
     with open_executor(scheduler, workers, timeout) as (ex, parallelism):
         return _run(ex, parallelism, fn, n_trials, seed, chunk_size, progress, desc, kwargs)
+
+
+def _parallelism(executor: Executor, workers: int | None) -> int:
+    if workers is not None:
+        return max(1, int(workers))
+    if isinstance(executor, SerialExecutor):
+        return 1
+    client = getattr(executor, "_client", None)  # distributed's ClientExecutor
+    if client is not None:
+        return max(1, sum(client.nthreads().values()))
+    return int(getattr(executor, "_max_workers", 0)) or default_workers()
+
+
+def run_study_trials(ctx, fn: Callable, n_trials: int, *, desc: str = "trials", chunk_size: int | None = None,
+                     **kwargs):
+    """:func:`run_trials` with the seed, scheduler, workers and quietness of a ``magctl.studies.StudyContext``."""
+    return run_trials(fn, n_trials, seed=ctx.seed, chunk_size=chunk_size, scheduler=ctx.scheduler,
+                      workers=ctx.workers, progress=not ctx.quiet, desc=desc, **kwargs)
 
 
 def _run(ex: Executor, parallelism: int, fn, n_trials, seed, chunk_size, progress, desc, kwargs):

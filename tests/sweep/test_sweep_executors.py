@@ -146,3 +146,25 @@ def test_serial_executor_delivers_exceptions_through_future():
 
 def test_zero_trials():
     assert run_trials(drift_trials, 0, seed=0, scheduler="serial") == []
+
+
+def _pid_trials(indices, seed):
+    import os
+
+    return np.full(len(indices), os.getpid())
+
+
+def test_single_chunk_runs_in_process_without_a_pool():
+    import os
+
+    got = run_trials(_pid_trials, 5, seed=0, chunk_size=5, progress=False)  # default scheduler, one chunk
+    assert set(got.tolist()) == {os.getpid()}
+
+
+def test_study_context_sweep(tmp_path):
+    from magctl.studies import StudyContext
+    from magctl.sweep import run_study_trials
+
+    ctx = StudyContext(out=tmp_path, seed=11, scheduler="serial", quiet=True)
+    got = run_study_trials(ctx, drift_trials, 4, steps=8)
+    np.testing.assert_array_equal(got["final"], drift_trials([0, 1, 2, 3], 11, steps=8)["final"])
