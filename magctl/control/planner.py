@@ -1,0 +1,279 @@
+"""Wavefront path planner (paper §II, ref [22]) and the block that feeds its waypoints to the servo.
+
+The workspace rectangle is cut into square cells of side ``h``. Obstacles
+are the spheres inflated by the keep-out radius ``r_k`` (650 µm while the
+robot repositions, paper §VI-B), each grown by half a cell diagonal so that
+the straight segment between two free neighbouring cells stays out of every
+inflated disc. A breadth-first wave from the goal numbers each free cell with
+its 8-connected step count; the path descends the numbers from the start and is
+then shortened by keeping only the waypoints needed for straight segments that
+clear every disc of radius ``r_k`` (exact segment–circle test).
+
+A start inside a keep-out disc first escapes radially to its edge (the
+robot has just pushed the sphere); a goal inside one, outside the workspace or
+cut off from the start raises :class:`PlanningError`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from magctl import FRAME_PERIOD_S
+from magctl.core.block import Block
+from magctl.core.errors import MagctlError
+from magctl.core.ports import DIMENSIONLESS, Port
+
+KEEP_OUT_M = 650e-6
+"""Keep-out distance from a sphere centre while repositioning (paper §VI-B)."""
+
+_NEIGHBOURS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
+
+
+class PlanningError(MagctlError):
+    """No path: the goal is blocked, outside the workspace or unreachable."""
+
+
+def segment_clearance(p0: np.ndarray, p1: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Smallest distance from each centre (N, 2) to the segment ``p0 → p1``."""
+    d = p1 - p0
+    L2 = float(d @ d)
+    if L2 == 0.0:
+        return np.linalg.norm(centres - p0, axis=1)
+    t = np.clip((centres - p0) @ d / L2, 0.0, 1.0)
+    return np.linalg.norm(centres - (p0 + t[:, None] * d), axis=1)
+
+
+def path_clearance(path: np.ndarray, centres: np.ndarray) -> float:
+    """Smallest distance from any sphere centre to the polyline ``path`` (K, 2); inf without spheres."""
+    centres = np.asarray(centres, dtype=float).reshape(-1, 2)
+    if len(centres) == 0:
+        return float("inf")
+    if len(path) == 1:
+        return float(np.linalg.norm(centres - path[0], axis=1).min())
+    return float(min(segment_clearance(a, b, centres).min() for a, b in zip(path[:-1], path[1:], strict=True)))
+
+
+class Grid:
+    """Cell geometry of the workspace ``bounds = (xmin, ymin, xmax, ymax)`` with cell side ``h``."""
+
+    def __init__(self, bounds, h: float):
+        self.x0, self.y0, self.x1, self.y1 = (float(b) for b in bounds)
+        if not (self.x1 > self.x0 and self.y1 > self.y0) or h <= 0:
+            raise PlanningError(f"workspace bounds {bounds} must have xmax > xmin, ymax > ymin and cell size > 0")
+        self.h = float(h)
+        self.nx = int(np.floor((self.x1 - self.x0) / h)) + 1
+        self.ny = int(np.floor((self.y1 - self.y0) / h)) + 1
+
+    def centre(self, cell) -> np.ndarray:
+        return np.array([self.x0 + cell[1] * self.h, self.y0 + cell[0] * self.h])
+
+    def cell(self, p) -> tuple[int, int]:
+        return (int(np.clip(np.round((p[1] - self.y0) / self.h), 0, self.ny - 1)),
+                int(np.clip(np.round((p[0] - self.x0) / self.h), 0, self.nx - 1)))
+
+    def inside(self, p) -> bool:
+        return self.x0 <= p[0] <= self.x1 and self.y0 <= p[1] <= self.y1
+
+    def free_mask(self, centres: np.ndarray, keep_out: float) -> np.ndarray:
+        yy, xx = np.mgrid[0:self.ny, 0:self.nx]
+        x, y = self.x0 + xx * self.h, self.y0 + yy * self.h
+        free = np.ones((self.ny, self.nx), dtype=bool)
+        grow = keep_out + self.h * np.sqrt(0.5)
+        for cx, cy in centres:
+            free &= (x - cx) ** 2 + (y - cy) ** 2 >= grow**2
+        return free
+
+
+def wavefront(free: np.ndarray, goal: tuple[int, int]) -> np.ndarray:
+    """8-connected breadth-first step count from ``goal`` to every free cell; −1 where unreachable."""
+    dist = np.full(free.shape, -1, dtype=int)
+    if not free[goal]:
+        return dist
+    front = np.zeros_like(free)
+    front[goal] = True
+    dist[goal] = 0
+    visited = front.copy()
+    k = 0
+    struct = np.ones((3, 3), dtype=bool)
+    while front.any():
+        k += 1
+        front = ndimage.binary_dilation(front, structure=struct) & free & ~visited
+        dist[front] = k
+        visited |= front
+    return dist
+
+
+def _descend(dist: np.ndarray, start: tuple[int, int], goal_xy: np.ndarray, grid: Grid) -> list[tuple[int, int]]:
+    cells = [start]
+    c = start
+    while dist[c] > 0:
+        best, key = None, None
+        for di, dj in _NEIGHBOURS:
+            n = (c[0] + di, c[1] + dj)
+            if 0 <= n[0] < dist.shape[0] and 0 <= n[1] < dist.shape[1] and dist[n] >= 0:
+                k = (dist[n], float(np.linalg.norm(grid.centre(n) - goal_xy)))
+                if key is None or k < key:
+                    best, key = n, k
+        c = best
+        cells.append(c)
+    return cells
+
+
+def _shorten(points: np.ndarray, centres: np.ndarray, keep_out: float) -> np.ndarray:
+    """Greedy line-of-sight shortening: from each kept point jump to the farthest visible one."""
+    out = [points[0]]
+    i = 0
+    while i < len(points) - 1:
+        j = len(points) - 1
+        while j > i + 1 and len(centres) and segment_clearance(points[i], points[j], centres).min() < keep_out:
+            j -= 1
+        out.append(points[j])
+        i = j
+    return np.asarray(out)
+
+
+def plan_path(start, goal, spheres, *, bounds, keep_out: float = KEEP_OUT_M, cell: float = 25e-6) -> np.ndarray:
+    """Waypoints (K, 2) in m from ``start`` to ``goal`` around the inflated spheres.
+
+    Parameters
+    ----------
+    start, goal : (2,) array, m
+    spheres : (N, 2) array, m
+        Sphere centres; each is a disc of radius ``keep_out`` the path must not enter.
+    bounds : (xmin, ymin, xmax, ymax), m
+        Workspace rectangle.
+    keep_out : float
+        Keep-out radius (m), 650 µm while repositioning (paper §VI-B).
+    cell : float
+        Grid cell side (m).
+
+    Raises
+    ------
+    PlanningError
+        Goal outside the workspace, inside a keep-out disc, or unreachable.
+    """
+    start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
+    centres = np.asarray(spheres, dtype=float).reshape(-1, 2)
+    grid = Grid(bounds, cell)
+    for label, p in (("start", start), ("goal", goal)):
+        if not np.all(np.isfinite(p)) or not grid.inside(p):
+            raise PlanningError(f"{label} {np.round(p * 1e6, 1).tolist()} µm is outside the workspace "
+                                f"{np.round(np.array(bounds) * 1e6, 1).tolist()} µm")
+    if len(centres):
+        gap = np.linalg.norm(centres - goal, axis=1)
+        if gap.min() < keep_out:
+            i = int(np.argmin(gap))
+            raise PlanningError(f"goal {np.round(goal * 1e6, 1).tolist()} µm is {gap[i] * 1e6:.0f} µm from sphere {i}, "
+                                f"inside its {keep_out * 1e6:.0f} µm keep-out")
+    head = [start]
+    if len(centres):
+        gap = np.linalg.norm(centres - start, axis=1)
+        inside = gap < keep_out
+        if inside.any():
+            i = int(np.argmin(gap))
+            away = start - centres[i]
+            n = np.linalg.norm(away)
+            away = away / n if n > 0 else (goal - centres[i]) / max(np.linalg.norm(goal - centres[i]), 1e-12)
+            escape = centres[i] + away * (keep_out + grid.h)
+            head.append(escape)
+            start = escape
+    free = grid.free_mask(centres, keep_out)
+    gcell, scell = grid.cell(goal), grid.cell(start)
+    dist = wavefront(free, gcell)
+    if not free[gcell]:
+        raise PlanningError(f"goal {np.round(goal * 1e6, 1).tolist()} µm is too close to a sphere for the "
+                            f"{cell * 1e6:.0f} µm grid")
+    if dist[scell] < 0:
+        raise PlanningError(f"goal {np.round(goal * 1e6, 1).tolist()} µm is unreachable from "
+                            f"{np.round(start * 1e6, 1).tolist()} µm: the keep-out discs "
+                            f"({keep_out * 1e6:.0f} µm) and the workspace bounds cut it off")
+    cells = _descend(dist, scell, goal, grid)
+    pts = np.array([start] + [grid.centre(c) for c in cells[1:-1]] + [goal]) if len(cells) > 1 \
+        else np.array([start, goal])
+    pts = _shorten(pts, centres, keep_out)
+    return np.vstack([np.asarray(head[:-1]).reshape(-1, 2), pts]) if len(head) > 1 else pts
+
+
+class Planner(Block):
+    """Wavefront planner block: feeds the servo the next waypoint towards ``goal``.
+
+    It plans when the goal changes or a sphere has moved more than ``replan_tol``
+    since the last plan, and advances to the next waypoint once the robot is within
+    ``waypoint_tol`` of the current one. Planning runs per trial (grid BFS); advancing
+    is vectorised over the batch.
+
+    Ports
+    -----
+    inputs: ``goal`` (2,) m, ``robot_est`` (2,) m, ``spheres_est`` (N, 2) m
+    outputs: ``target`` (2,) m, ``final`` () bool (the target is the goal), ``feasible`` () bool,
+    ``replans`` () count
+    """
+
+    def __init__(self, name: str = "planner", *, n_spheres: int = 1, bounds, keep_out: float = KEEP_OUT_M,
+                 cell: float = 25e-6, waypoint_tol: float = 50e-6, replan_tol: float = 15e-6,
+                 max_waypoints: int = 64, dt: float = FRAME_PERIOD_S):
+        self.bounds = tuple(float(b) for b in bounds)
+        Grid(self.bounds, cell)  # validates
+        self.keep_out, self.cell = float(keep_out), float(cell)
+        self.waypoint_tol, self.replan_tol = float(waypoint_tol), float(replan_tol)
+        self.kmax = int(max_waypoints)
+        n = int(n_spheres)
+        super().__init__(name, inputs=[Port("goal", (2,), "m"), Port("robot_est", (2,), "m"),
+                                       Port("spheres_est", (n, 2), "m")],
+                         outputs=[Port("target", (2,), "m"), Port("final", (), DIMENSIONLESS, "bool"),
+                                  Port("feasible", (), DIMENSIONLESS, "bool"), Port("replans", (), DIMENSIONLESS)],
+                         dt=dt, feedthrough=True)
+
+    def initial_state(self, batch, rng=None):
+        n = self.inputs["spheres_est"].shape[0]
+        return {"path": np.zeros((batch, self.kmax, 2)), "len": np.zeros(batch, dtype=int),
+                "idx": np.zeros(batch, dtype=int), "goal": np.full((batch, 2), np.nan),
+                "spheres": np.full((batch, n, 2), np.nan), "feasible": np.ones(batch, dtype=bool),
+                "replans": np.zeros(batch)}
+
+    def _plan(self, state, u):
+        cached = state.get("planned")
+        if cached is not None:
+            return cached
+        path, length, idx = state["path"].copy(), state["len"].copy(), state["idx"].copy()
+        feasible, replans = state["feasible"].copy(), state["replans"].copy()
+        goal, sph, robot = u["goal"], u["spheres_est"], u["robot_est"]
+        moved = np.abs(sph - state["spheres"]).reshape(len(goal), -1)
+        need = (length == 0) | np.any(goal != state["goal"], axis=1) | np.any(~(moved <= self.replan_tol), axis=1)
+        for b in np.flatnonzero(need):
+            try:
+                wp = plan_path(robot[b], goal[b], sph[b], bounds=self.bounds, keep_out=self.keep_out, cell=self.cell)
+                feasible[b] = True
+            except PlanningError:
+                wp = robot[b][None]
+                feasible[b] = False
+            wp = wp[1:] if len(wp) > 1 else wp  # the first point is where the robot is
+            if len(wp) > self.kmax:
+                wp = np.vstack([wp[: self.kmax - 1], wp[-1:]])
+            path[b, : len(wp)] = wp
+            length[b], idx[b] = len(wp), 0
+            replans[b] += 1
+        # advance past reached waypoints (vectorised)
+        rows = np.arange(len(goal))
+        near = np.linalg.norm(path[rows, idx] - robot, axis=1) < self.waypoint_tol
+        step = near & (idx < length - 1)
+        idx = idx + step
+        planned = (path, length, idx, feasible, replans, need)
+        state["planned"] = planned
+        return planned
+
+    def output(self, state, u):
+        path, length, idx, feasible, replans, _ = self._plan(state, u)
+        rows = np.arange(len(idx))
+        return {"target": path[rows, idx].copy(), "final": idx >= length - 1, "feasible": feasible.copy(),
+                "replans": replans.copy()}
+
+    def update(self, state, u):
+        path, length, idx, feasible, replans, need = self._plan(state, u)
+        state["path"], state["len"], state["idx"] = path, length, idx
+        state["feasible"], state["replans"] = feasible, replans
+        state["goal"] = np.where(need[:, None], u["goal"], state["goal"])
+        state["spheres"] = np.where(need[:, None, None], u["spheres_est"], state["spheres"])
+        del state["planned"]
+        return state
