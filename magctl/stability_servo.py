@@ -212,7 +212,8 @@ class KinematicRobot(Block):
 
 def servo_step_diagram(servo, *, delay_frames: int, start=(1.0e-3, 1.0e-3), tracker_mode: str = "raw",
                        predict: bool = False, position_noise_px: float = 0.0, heading_noise: float = 0.0,
-                       drop_probability: float = 0.0, spheres=(), dt: float = FRAME_PERIOD_S):
+                       drop_probability: float = 0.0, spheres=(), pixel_size: float | None = None,
+                       dt: float = FRAME_PERIOD_S):
     """Servo + camera (positions mode) + tracker + kinematic robot; exported input ``target`` (2,) m.
 
     Parameters
@@ -230,8 +231,9 @@ def servo_step_diagram(servo, *, delay_frames: int, start=(1.0e-3, 1.0e-3), trac
     n = int(np.asarray(spheres).reshape(-1, 2).shape[0])
     robot = KinematicRobot("robot", start=start, spheres=spheres, dt=dt)
     cam = Camera("camera", n_spheres=n, latency_frames=delay_frames, position_noise_px=position_noise_px,
-                 heading_noise=heading_noise, drop_probability=drop_probability, dt=dt)
-    trk = Tracker("tracker", n_spheres=n, mode=tracker_mode, predict_frames=delay_frames if predict else 0, dt=dt)
+                 heading_noise=heading_noise, drop_probability=drop_probability, pixel_size=pixel_size, dt=dt)
+    trk = Tracker("tracker", n_spheres=n, mode=tracker_mode, predict_frames=delay_frames if predict else 0,
+                  pixel_size=pixel_size, position_noise_px=position_noise_px, dt=dt)
     conns = [("robot.position", "camera.position"), ("robot.heading", "camera.heading"),
              ("robot.spheres", "camera.spheres"), ("camera.robot_meas", "tracker.robot_meas"),
              ("camera.heading_meas", "tracker.heading_meas"), ("camera.spheres_meas", "tracker.spheres_meas"),
@@ -253,3 +255,29 @@ def simulated_overshoot(position: np.ndarray, start: np.ndarray, target: np.ndar
     length = np.linalg.norm(line)
     along = (position - start) @ (line / length)
     return np.maximum(along.max(axis=1) - length, 0.0)
+
+
+def step_report(servo, *, delay_frames: int, step: float, steps: int = 450, start=(1.0e-3, 1.0e-3),
+                pixel_size: float | None = None) -> dict:
+    """Linear prediction and simulated step of ``step`` m along x: overshoots (µm) and trajectories.
+
+    The simulation runs the servo block, the camera (positions mode, no noise) and the raw
+    tracker around the kinematic robot, so saturation, the integral clamp and pixel
+    quantisation are included; the linear model has none of them.
+    """
+    from magctl.core.simulate import simulate
+
+    start = np.asarray(start, dtype=float)
+    target = start + np.array([step, 0.0])
+    res = simulate(servo_step_diagram(servo, delay_frames=delay_frames, start=start, pixel_size=pixel_size),
+                   steps, inputs={"target": target})
+    x = res["position"][0]
+    t_lin, x_lin = linear_step(servo.kp, servo.ki, delay_frames, step, steps)
+    arrived = np.flatnonzero(res["arrived"][0])
+    return {
+        "t_s": res.t, "sim_um": (x[:, 0] - start[0]) * 1e6, "linear_um": x_lin * 1e6,
+        "sim_overshoot_um": float(simulated_overshoot(res["position"], start, target)[0] * 1e6),
+        "linear_overshoot_um": float(max(0.0, x_lin.max() - step) * 1e6),
+        "first_arrival_s": float(res.t[arrived[0]]) if arrived.size else None,
+        "final_error_um": float(np.linalg.norm(x[-1] - target) * 1e6),
+    }
