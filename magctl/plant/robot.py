@@ -1,0 +1,155 @@
+"""The stick-slip robot block: delivered field → pose, velocity and tilt at the frame rate.
+
+Per frame of length ``h`` with the delivered field held (docs/plant-actuator.md):
+
+* **Heading** follows the in-plane field direction ``ψ_B``: ``ζ ψ̇ = −m|B| sin(ψ − ψ_B)``,
+  solved exactly, ``tan(e(t)/2) = tan(e₀/2) e^{−t/τ_ψ}`` with ``e = ψ − ψ_B`` and
+  ``τ_ψ = ζ / (m|B|)``.
+* **Translation** along the heading at the stick-slip speed ``v = f·s(θ_a)``
+  (:mod:`magctl.plant._stickslip`), times ``max(0, 1 + c_v n)`` with ``n ~ N(0, 1)``
+  per frame when ``step_cv > 0``. The displacement integrates the turning heading
+  over the frame by Simpson's rule (start, middle, end).
+* **Tilt** is the cycle-mean pitch ``(2/π) θ_a`` that the fluid model uses (paper §IV-C
+  models the robot at a fixed ``π/8``).
+
+The outputs are the state at the start of the frame, so the block has no feedthrough.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magctl import FRAME_PERIOD_S
+from magctl.core.block import Block
+from magctl.core.errors import WiringError
+from magctl.core.ports import Port
+from magctl.plant._stickslip import (
+    StickSlipParams,
+    heading_rate,
+    load_robot,
+    rocking_amplitude,
+    speed,
+    step_length,
+)
+
+__all__ = ["StickSlipParams", "StickSlipRobot", "load_robot", "rocking_amplitude", "speed", "step_length"]
+
+
+class StickSlipRobot(Block):
+    """Mag-µBot on glass under oil, driven by the delivered coil field.
+
+    Ports (docs/interfaces.md): inputs ``b_static_delivered`` (2,) T,
+    ``b_osc_delivered`` () T, ``freq_delivered`` () 1/s; outputs ``position`` (2,) m,
+    ``heading`` () rad, ``velocity`` (2,) m/s (mean over the previous frame),
+    ``tilt`` () rad.
+
+    Parameters
+    ----------
+    name : str
+    params : StickSlipParams, optional
+        Defaults to ``load_robot()`` (``models/robot.toml`` and ``models/fluid.toml``).
+    position : array_like, (2,) or (B, 2)
+        Initial position(s), m; per-trial arrays must match the batch.
+    heading : float or array_like (B,)
+        Initial heading(s), rad.
+    variability : bool
+        Draw the per-frame step variation (``params.step_cv``); False makes the block deterministic.
+    dt : float
+        Frame period, s.
+    """
+
+    def __init__(self, name: str = "robot", params: StickSlipParams | None = None, *, position=(0.0, 0.0),
+                 heading=0.0, variability: bool = True, dt: float = FRAME_PERIOD_S):
+        self.params = load_robot() if params is None else params
+        self.position = np.asarray(position, dtype=float)
+        self.heading = np.asarray(heading, dtype=float)
+        self.cv = self.params.step_cv if variability else 0.0
+        super().__init__(
+            name,
+            inputs=[Port("b_static_delivered", (2,), "T"), Port("b_osc_delivered", (), "T"),
+                    Port("freq_delivered", (), "1/s")],
+            outputs=[Port("position", (2,), "m"), Port("heading", (), "rad"), Port("velocity", (2,), "m/s"),
+                     Port("tilt", (), "rad")],
+            dt=dt, feedthrough=False,
+        )
+        p = self.params
+        self._half_rate = -0.5 * dt * p.moment / p.turn_drag  # −(h/2)/τ_ψ per tesla
+        self._pitch_c = 2.0 * np.pi * p.pitch_drag_ratio * p.turn_drag / p.moment  # ωτ_θ·|B| per hertz
+        self._cos0 = float(np.cos(p.break_angle))
+        self._eta_l = p.slip_efficiency * p.length
+        self._simpson = np.array([1.0, 4.0, 1.0]) / 6.0
+
+    @property
+    def uses_random(self) -> bool:
+        return self.cv > 0
+
+    # --- state ---------------------------------------------------------------------------
+    def initial_state(self, batch, rng=None):
+        state = {"pos": np.zeros((batch, 2)), "psi": np.zeros(batch), "vel": np.zeros((batch, 2)),
+                 "tilt": np.zeros(batch), "rng": rng}
+        return self.set_pose(state, self.position, self.heading)
+
+    def set_pose(self, state, position=None, heading=None):
+        """A copy of ``state`` with the robot placed at ``position`` (2,)/(B, 2) m and ``heading`` ()/(B,) rad."""
+        batch = state["psi"].shape[0]
+        new = dict(state)
+        if position is not None:
+            pos = np.asarray(position, dtype=float)
+            if pos.shape not in ((2,), (batch, 2)):
+                raise WiringError(f"block {self.name!r}: initial position must be (2,) or ({batch}, 2), "
+                                  f"got {pos.shape}")
+            new["pos"] = np.broadcast_to(pos, (batch, 2)).copy()
+        if heading is not None:
+            psi = np.asarray(heading, dtype=float)
+            if psi.shape not in ((), (batch,)):
+                raise WiringError(f"block {self.name!r}: initial heading must be a scalar or ({batch},), "
+                                  f"got {psi.shape}")
+            new["psi"] = np.broadcast_to(psi, (batch,)).copy()
+        new["vel"] = np.zeros((batch, 2))
+        return new
+
+    # --- behaviour -----------------------------------------------------------------------
+    def output(self, state, u):
+        return {"position": state["pos"], "heading": state["psi"], "velocity": state["vel"], "tilt": state["tilt"]}
+
+    def update(self, state, u):
+        # hot path: every line below is one vectorised op over the batch
+        h = self.dt
+        b = u["b_static_delivered"]
+        bmag = np.hypot(b[:, 0], b[:, 1])
+        psi_b = np.arctan2(b[:, 1], b[:, 0])
+        # tan(e/2) is 2π-periodic in e, so e = ψ − ψ_B needs no wrapping
+        t0 = np.tan(0.5 * (state["psi"] - psi_b))
+        k = np.exp(self._half_rate * bmag)  # e^{−(h/2)/τ_ψ}
+        tk = t0 * k
+        psis = np.empty((bmag.shape[0], 3))
+        psis[:, 0] = state["psi"]
+        psis[:, 1] = psi_b + 2.0 * np.arctan(tk)
+        psis[:, 2] = psi_b + 2.0 * np.arctan(tk * k)
+
+        # θ_a = atan(b_osc/|B|) / √(1 + (ωτ_θ)²) with ωτ_θ = c f / |B|  (see _stickslip.rocking_amplitude)
+        freq = np.maximum(u["freq_delivered"], 0.0)
+        theta = np.arctan2(np.abs(u["b_osc_delivered"]), bmag) * bmag / np.maximum(
+            np.hypot(bmag, self._pitch_c * freq), 1e-300)
+        v = freq * np.maximum(self._cos0 - np.cos(theta), 0.0)
+        v *= self._eta_l
+        if self.cv > 0:
+            v *= np.maximum(1.0 + self.cv * state["rng"].standard_normal(), 0.0)
+        # Simpson's rule over the frame for ∫ v e^{iψ} dt, weights 1, 4, 1
+        vel = np.empty((v.shape[0], 2))
+        vel[:, 0] = np.cos(psis) @ self._simpson
+        vel[:, 1] = np.sin(psis) @ self._simpson
+        vel *= v[:, None]
+        psi1 = np.remainder(psis[:, 2] + np.pi, 2.0 * np.pi) - np.pi
+        return {"pos": state["pos"] + vel * h, "psi": psi1, "vel": vel, "tilt": theta * (2.0 / np.pi),
+                "rng": state["rng"]}
+
+
+def steady_speed(params: StickSlipParams, b_xy, b_osc, freq) -> np.ndarray:
+    """Stick-slip speed (m/s) the robot settles to for a constant delivered field; see :func:`speed`."""
+    return speed(params, b_xy, b_osc, freq)
+
+
+def heading_time_constant(params: StickSlipParams, b_xy) -> np.ndarray:
+    """``τ_ψ = ζ / (m |B_xy|)`` (s)."""
+    return 1.0 / heading_rate(params, b_xy)
