@@ -1,0 +1,364 @@
+"""The rig interface: lifecycle, observations, field commands and safety limits.
+
+A rig follows the lifecycle of ros2_control's hardware interface::
+
+    unconfigured --configure--> inactive --activate--> active
+                                   ^                      |
+                                   +------deactivate------+
+
+    any error --> coils zeroed --> inactive (last_error set)
+    error while zeroing (rig unreachable) --> error (terminal)
+
+``read()`` returns the latest observation in every state but unconfigured;
+``write()`` is accepted only when active. Reactivation is always explicit, and
+every activation increments :attr:`Rig.activation` so that the runtime resets
+the controller's state.
+
+The command is the drive's field command of docs/interfaces.md — ``b_static``
+(2,) T, ``b_osc`` () T, ``freq`` () 1/s — and the observation is the tracker's
+output — ``robot_est`` (2,) m, ``heading_est`` rad, ``spheres_est`` (N, 2) m,
+``lost`` — with the rig's timestamp and frame number.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from magctl.config import Params, load_model
+from magctl.core.errors import MagctlError
+
+
+class RigError(MagctlError):
+    """A rig failed or refused an operation."""
+
+
+class RigStateError(RigError):
+    """An operation is not allowed in the rig's current lifecycle state."""
+
+
+class CommandRejected(RigError):
+    """A command is malformed, not finite or outside the limits; it was not applied."""
+
+
+class RigConnectionError(RigError):
+    """The rig (server) cannot be reached; the coils' state is unknown to the client."""
+
+
+class Lifecycle(enum.StrEnum):
+    """Lifecycle states of a rig."""
+
+    UNCONFIGURED = "unconfigured"
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    ERROR = "error"
+
+
+@dataclass(frozen=True)
+class Command:
+    """A field command for the coils (SI).
+
+    Attributes
+    ----------
+    b_static : ndarray, shape (2,)
+        In-plane static field in T; its direction sets the robot's heading.
+    b_osc : float
+        Amplitude of the oscillating field in T (drives stick-slip steps).
+    freq : float
+        Oscillation frequency in 1/s.
+    """
+
+    b_static: np.ndarray
+    b_osc: float
+    freq: float
+
+    @staticmethod
+    def zero() -> Command:
+        """Coils off."""
+        return Command(np.zeros(2), 0.0, 0.0)
+
+    @staticmethod
+    def from_values(b_static, b_osc, freq) -> Command:
+        """Build a command, checking shapes and finiteness (raises :class:`CommandRejected`)."""
+        try:
+            bs = np.asarray(b_static, dtype=float).reshape(-1)
+            bo, fr = float(np.asarray(b_osc, dtype=float)), float(np.asarray(freq, dtype=float))
+        except (TypeError, ValueError):
+            raise CommandRejected(
+                f"command fields must be numbers: b_static={b_static!r}, b_osc={b_osc!r}, freq={freq!r}"
+            ) from None
+        if bs.shape != (2,):
+            raise CommandRejected(f"b_static must have 2 elements, got {bs.size}")
+        for name, v in (("b_static", bs), ("b_osc", bo), ("freq", fr)):
+            if not np.all(np.isfinite(v)):
+                raise CommandRejected(f"{name} is not finite: {v!r}")
+        return Command(bs, bo, fr)
+
+    def is_zero(self) -> bool:
+        return not (np.any(self.b_static) or self.b_osc or self.freq)
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One tracker observation (SI).
+
+    Attributes
+    ----------
+    t : float
+        Rig timestamp of the frame in s (the rig's own monotonic clock).
+    frame : int
+        Frame number since the rig was configured.
+    robot_est : ndarray, shape (2,)
+        Estimated robot position in m.
+    heading_est : float
+        Estimated heading in rad.
+    spheres_est : ndarray, shape (N, 2)
+        Estimated sphere positions in m.
+    lost : bool
+        Tracking lost: the positions are not to be trusted.
+    currents : ndarray, shape (6,)
+        Coil currents (peak) in A applied during the frame.
+    """
+
+    t: float
+    frame: int
+    robot_est: np.ndarray
+    heading_est: float
+    spheres_est: np.ndarray
+    lost: bool
+    currents: np.ndarray = field(default_factory=lambda: np.zeros(6))
+
+    def controller_inputs(self) -> dict[str, np.ndarray]:
+        """The observation as B = 1 signals named as in docs/interfaces.md."""
+        return {
+            "robot_est": self.robot_est[None, :],
+            "heading_est": np.array([self.heading_est]),
+            "spheres_est": self.spheres_est[None, :, :],
+            "lost": np.array([self.lost]),
+        }
+
+
+class CoilMap:
+    """Linear map from a field command to the peak currents of the six coils.
+
+    Coils are ordered +x, −x, +y, −y, +z, −z. A pair produces a field along its
+    axis with each coil carrying ``B / (2 k)``, where ``k`` is one coil's field
+    per ampere; the oscillating field is applied by the z pair. The peak
+    current of a coil is what the amplifier must deliver.
+
+    Parameters
+    ----------
+    current_max : float
+        Amplifier current limit per coil, A.
+    k_xy, k_z : float
+        Field per ampere of one in-plane / out-of-plane coil at the workspace centre, T/A.
+    """
+
+    def __init__(self, current_max: float, k_xy: float, k_z: float):
+        self.current_max, self.k_xy, self.k_z = float(current_max), float(k_xy), float(k_z)
+
+    @classmethod
+    def from_params(cls, coils: Params) -> CoilMap:
+        i = coils.current_max
+        return cls(i, coils.xy_pair_field_at_max / (2 * i), coils.z_pair_field_at_max / (2 * i))
+
+    def currents(self, b_static: np.ndarray, b_osc: np.ndarray) -> np.ndarray:
+        """Peak currents ``(B, 6)`` A for fields ``b_static`` ``(B, 2)`` T and ``b_osc`` ``(B,)`` T."""
+        ix = b_static[:, 0] / (2 * self.k_xy)
+        iy = b_static[:, 1] / (2 * self.k_xy)
+        iz = np.abs(b_osc) / (2 * self.k_z)
+        return np.stack([ix, ix, iy, iy, iz, iz], axis=1)
+
+
+@dataclass(frozen=True)
+class RigLimits:
+    """Safety limits enforced by the server (reject) and by the client (clip).
+
+    Attributes
+    ----------
+    b_static_max, b_osc_max : float
+        Largest accepted ‖b_static‖ and b_osc, T.
+    freq_max : float
+        Largest accepted frequency, 1/s (the smallest is 0).
+    coils : CoilMap
+        Field-to-current map; the peak current of every coil must stay within
+        ``coils.current_max``.
+    """
+
+    b_static_max: float
+    b_osc_max: float
+    freq_max: float
+    coils: CoilMap
+
+    @classmethod
+    def from_params(cls, rig: Params | None = None) -> RigLimits:
+        rig = rig or load_model("rig")
+        lim = rig.limits
+        return cls(lim.b_static_max, lim.b_osc_max, lim.freq_max, CoilMap.from_params(rig.coils))
+
+    def currents(self, cmd: Command) -> np.ndarray:
+        return self.coils.currents(cmd.b_static[None, :], np.array([cmd.b_osc]))[0]
+
+    def check(self, cmd: Command) -> np.ndarray:
+        """Raise :class:`CommandRejected` naming the violated limit; return the coil currents."""
+        tol = 1e-12
+        bmag = math.hypot(*cmd.b_static)
+        if bmag > self.b_static_max * (1 + 1e-9) + tol:
+            raise CommandRejected(
+                f"|b_static| = {bmag * 1e3:.4g} mT exceeds the limit {self.b_static_max * 1e3:.4g} mT")
+        if not 0.0 <= cmd.b_osc <= self.b_osc_max * (1 + 1e-9) + tol:
+            raise CommandRejected(f"b_osc = {cmd.b_osc * 1e3:.4g} mT is outside [0, {self.b_osc_max * 1e3:.4g}] mT")
+        if not 0.0 <= cmd.freq <= self.freq_max * (1 + 1e-9):
+            raise CommandRejected(f"freq = {cmd.freq:.4g} Hz is outside [0, {self.freq_max:.4g}] Hz")
+        cur = self.currents(cmd)
+        peak = float(np.max(np.abs(cur)))
+        if peak > self.coils.current_max * (1 + 1e-9):
+            raise CommandRejected(
+                f"coil current {peak:.4g} A exceeds the amplifier limit {self.coils.current_max:.4g} A"
+            )
+        return cur
+
+    def clip(self, cmd: Command) -> Command:
+        """The nearest command within the limits: field magnitudes scaled down, frequency clipped."""
+        bs = cmd.b_static
+        bmag = math.hypot(*bs)
+        # the current limit on the in-plane pair bounds each component
+        i_lim = self.coils.current_max * 2 * self.coils.k_xy
+        scale = min(1.0, self.b_static_max / bmag if bmag > 0 else 1.0,
+                    i_lim / max(abs(bs[0]), abs(bs[1])) if bmag > 0 else 1.0)
+        bo_max = min(self.b_osc_max, self.coils.current_max * 2 * self.coils.k_z)
+        return Command(bs * scale, min(max(cmd.b_osc, 0.0), bo_max), min(max(cmd.freq, 0.0), self.freq_max))
+
+
+class Rig:
+    """Base class of rig implementations: the lifecycle and its checks.
+
+    Subclasses implement ``_configure``, ``_activate``, ``_deactivate``,
+    ``_read``, ``_write``, ``_zero`` and ``_close``. Any exception raised by
+    them in ``read``/``write``/``activate`` zeroes the coils and leaves the rig
+    inactive (or in ``error`` if the coils could not be zeroed).
+
+    Attributes
+    ----------
+    state : Lifecycle
+        Current lifecycle state.
+    activation : int
+        Number of activations so far; the runtime resets the controller when it changes.
+    last_error : str or None
+        Message of the last error.
+    limits : RigLimits
+        Limits this side enforces (clipping happens in the runtime; ``write`` rejects).
+    n_spheres : int
+        Number of tracked spheres (set by ``configure``).
+    """
+
+    def __init__(self, limits: RigLimits | None = None):
+        self.state = Lifecycle.UNCONFIGURED
+        self.activation = 0
+        self.last_error: str | None = None
+        self.limits = limits or RigLimits.from_params()
+        self.n_spheres = 0
+
+    # --- lifecycle ------------------------------------------------------------------------------
+    def configure(self) -> None:
+        """unconfigured → inactive."""
+        self._require(Lifecycle.UNCONFIGURED, "configure")
+        self._guard(self._configure)
+        self.state = Lifecycle.INACTIVE
+
+    def activate(self) -> None:
+        """inactive → active (explicit, also after an error)."""
+        self._require(Lifecycle.INACTIVE, "activate")
+        self._guard(self._activate)
+        self.state = Lifecycle.ACTIVE
+        self.activation += 1
+        self.last_error = None
+
+    def deactivate(self) -> None:
+        """active → inactive, coils zeroed."""
+        if self.state is Lifecycle.INACTIVE:
+            return
+        self._require(Lifecycle.ACTIVE, "deactivate")
+        self._guard(self._deactivate)
+        self.state = Lifecycle.INACTIVE
+
+    def read(self) -> Observation:
+        """Latest observation (inactive or active)."""
+        if self.state in (Lifecycle.UNCONFIGURED, Lifecycle.ERROR):
+            raise RigStateError(f"cannot read: rig is {self.state.value}")
+        return self._guard(self._read)
+
+    def write(self, cmd: Command) -> None:
+        """Send a field command; only when active. Out-of-limit commands raise :class:`CommandRejected`."""
+        if self.state is not Lifecycle.ACTIVE:
+            raise RigStateError(f"cannot write: rig is {self.state.value} (activate it first)")
+        self._guard(lambda: (self.limits.check(cmd), self._write(cmd)))
+
+    def close(self) -> None:
+        """Zero the coils (best effort) and release resources."""
+        try:
+            if self.state is Lifecycle.ACTIVE:
+                self._zero()
+        except Exception:  # noqa: BLE001 - closing must not raise
+            pass
+        finally:
+            self._close()
+            self.state = Lifecycle.UNCONFIGURED
+
+    def fail(self, message: str) -> None:
+        """Record an error: zero the coils and go inactive (or error if zeroing fails)."""
+        self.last_error = message
+        if self.state is Lifecycle.UNCONFIGURED:
+            return
+        try:
+            self._zero()
+            self.state = Lifecycle.INACTIVE
+        except Exception as err:  # noqa: BLE001 - any failure to zero is terminal
+            self.last_error = f"{message}; zeroing the coils failed too: {err}"
+            self.state = Lifecycle.ERROR
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # --- helpers --------------------------------------------------------------------------------
+    def _require(self, expected: Lifecycle, op: str) -> None:
+        if self.state is not expected:
+            raise RigStateError(f"cannot {op}: rig is {self.state.value}, needs {expected.value}")
+
+    def _guard(self, fn):
+        try:
+            return fn()
+        except RigError as err:
+            self.fail(str(err))
+            raise
+        except Exception as err:
+            self.fail(f"{type(err).__name__}: {err}")
+            raise RigError(f"rig failed: {type(err).__name__}: {err}") from err
+
+    # --- to implement ---------------------------------------------------------------------------
+    def _configure(self) -> None:
+        raise NotImplementedError
+
+    def _activate(self) -> None:
+        raise NotImplementedError
+
+    def _deactivate(self) -> None:
+        self._zero()
+
+    def _read(self) -> Observation:
+        raise NotImplementedError
+
+    def _write(self, cmd: Command) -> None:
+        raise NotImplementedError
+
+    def _zero(self) -> None:
+        raise NotImplementedError
+
+    def _close(self) -> None:
+        pass

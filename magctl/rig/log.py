@@ -1,0 +1,378 @@
+"""Run logs: append-only JSON-lines streams of documents, read back, exported and replayed.
+
+A run log is one JSON document per line, in the spirit of Bluesky's event model:
+
+* ``start`` — task, resolved options, seed, parameters, limits, magctl version, rig description;
+* ``descriptor`` — every event field with its shape and unit;
+* ``event`` — one per frame: observation, controller command (raw and as sent), task outputs, timing;
+* ``stop`` — exit status and counters. A log without ``stop`` is a run that crashed.
+
+Every document is flushed when written, so a process killed with SIGKILL loses
+at most the line being written; :func:`read_log` drops a torn last line and
+reads everything before it.
+
+Floats are written with Python's shortest round-trip ``repr``, so logged values
+read back bit for bit; :func:`replay` relies on it to feed the logged
+observations through a freshly built controller and compare the commands
+exactly.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from magctl import __version__
+from magctl.core.errors import MagctlError
+from magctl.rig import protocol as P
+from magctl.rig.interface import CoilMap, Command, Observation, RigLimits
+
+FORMAT = "magctl-runlog/1"
+
+
+class LogError(MagctlError):
+    """A run log cannot be written, read, exported or replayed."""
+
+
+def _dumps(doc: dict) -> str:
+    return json.dumps(doc, allow_nan=False, separators=(",", ":"))
+
+
+class RunLogWriter:
+    """Append-only writer of one run log.
+
+    Parameters
+    ----------
+    path : str or Path
+        File to create; an existing file is an error (logs are never overwritten).
+    fsync : bool
+        Also ``fsync`` after every frame (survives power loss, not only process death).
+    """
+
+    def __init__(self, path, fsync: bool = False):
+        self.path = Path(path)
+        self.fsync = fsync
+        try:
+            self._fh = open(self.path, "x", encoding="utf-8")
+        except FileExistsError:
+            raise LogError(f"{self.path}: run log exists; logs are append-only and never overwritten") from None
+        except OSError as err:
+            raise LogError(f"{self.path}: cannot create run log: {err}") from None
+        self.uid = uuid.uuid4().hex
+        self.n_events = 0
+        self.closed = False
+
+    def _write(self, doc: dict) -> None:
+        self._fh.write(_dumps(doc) + "\n")
+        self._fh.flush()
+        if self.fsync:
+            os.fsync(self._fh.fileno())
+
+    def start(self, **fields) -> None:
+        self._write({"doc": "start", "format": FORMAT, "uid": self.uid, "time_unix": time.time(),
+                     "magctl_version": __version__, **fields})
+
+    def descriptor(self, fields: dict[str, dict]) -> None:
+        self._write({"doc": "descriptor", "run": self.uid, "fields": fields})
+
+    def event(self, seq: int, obs: Observation, cmd_raw: Command | None, cmd: Command | None,
+              outputs: dict[str, Any], timing: dict[str, float], activation: int, error: str | None = None) -> None:
+        doc = {"doc": "event", "seq": seq, "activation": activation, "obs": P.observation_to_wire(obs),
+               "cmd_raw": None if cmd_raw is None else P.command_to_wire(cmd_raw),
+               "cmd": None if cmd is None else P.command_to_wire(cmd), "outputs": outputs, "timing": timing}
+        if error is not None:
+            doc["error"] = error
+        self._write(doc)
+        self.n_events += 1
+
+    def stop(self, exit_status: str, reason: str = "", **fields) -> None:
+        if self.closed:
+            return
+        self._write({"doc": "stop", "run": self.uid, "time_unix": time.time(), "exit_status": exit_status,
+                     "reason": reason, "n_events": self.n_events, **fields})
+        self.close()
+
+    def close(self) -> None:
+        if not self.closed:
+            self._fh.close()
+            self.closed = True
+
+
+def descriptor_fields(n_spheres: int, outputs: dict[str, tuple]) -> dict[str, dict]:
+    """The descriptor's field table: shape and unit of every logged quantity."""
+    f = {
+        "obs.t_s": {"shape": [], "unit": "s"}, "obs.frame": {"shape": [], "unit": "1"},
+        "obs.robot_est_m": {"shape": [2], "unit": "m"}, "obs.heading_est_rad": {"shape": [], "unit": "rad"},
+        "obs.spheres_est_m": {"shape": [n_spheres, 2], "unit": "m"}, "obs.lost": {"shape": [], "unit": "bool"},
+        "obs.currents_A": {"shape": [6], "unit": "A"},
+    }
+    for c in ("cmd_raw", "cmd"):
+        f |= {f"{c}.b_static_T": {"shape": [2], "unit": "T"}, f"{c}.b_osc_T": {"shape": [], "unit": "T"},
+              f"{c}.freq_Hz": {"shape": [], "unit": "1/s"}}
+    for name, (shape, unit) in outputs.items():
+        f[f"outputs.{name}"] = {"shape": list(shape), "unit": unit}
+    for t in TIMING_FIELDS:
+        f[f"timing.{t}"] = {"shape": [], "unit": "s"}
+    return f
+
+
+TIMING_FIELDS = ("scheduled_s", "start_s", "jitter_s", "read_s", "compute_s", "write_s", "skipped")
+
+
+@dataclass
+class RunLog:
+    """A run log read back.
+
+    Attributes
+    ----------
+    start, descriptor, stop : dict or None
+        The documents (``stop`` is None when the run crashed).
+    events : list of dict
+        Event documents in order.
+    torn_tail : bool
+        The last line was incomplete (the process died while writing it) and was dropped.
+    """
+
+    path: Path
+    start: dict | None
+    descriptor: dict | None
+    events: list[dict] = field(default_factory=list)
+    stop: dict | None = None
+    torn_tail: bool = False
+
+    @property
+    def crashed(self) -> bool:
+        return self.stop is None
+
+    def summary(self) -> dict[str, Any]:
+        ev = self.events
+        timing = np.array([[e["timing"].get("jitter_s", 0.0), e["timing"].get("compute_s", 0.0)] for e in ev]) \
+            if ev else np.zeros((0, 2))
+        last = ev[-1] if ev else None
+        return {
+            "path": str(self.path), "task": (self.start or {}).get("task"),
+            "options": (self.start or {}).get("options"), "events": len(ev),
+            "exit_status": None if self.stop is None else self.stop.get("exit_status"),
+            "reason": None if self.stop is None else self.stop.get("reason"),
+            "crashed": self.crashed, "torn_tail": self.torn_tail,
+            "duration_s": (ev[-1]["timing"]["scheduled_s"] - ev[0]["timing"]["scheduled_s"]) if len(ev) > 1 else 0.0,
+            "jitter_p99_ms": float(np.percentile(timing[:, 0], 99) * 1e3) if len(ev) else None,
+            "compute_p99_ms": float(np.percentile(timing[:, 1], 99) * 1e3) if len(ev) else None,
+            "final_robot_um": None if last is None else [x * 1e6 for x in last["obs"]["robot_est_m"]],
+            "final_spheres_um": None if last is None else [[x * 1e6 for x in s] for s in last["obs"]["spheres_est_m"]],
+            "final_outputs": None if last is None else last["outputs"],
+        }
+
+
+def read_log(path) -> RunLog:
+    """Read a run log; a torn last line is dropped, any other bad line is a :class:`LogError`."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise LogError(f"{path}: no such run log") from None
+    lines = text.split("\n")
+    torn = False
+    if lines and lines[-1] == "":
+        lines.pop()
+    elif lines:
+        # no final newline: the writer died mid-line
+        lines.pop()
+        torn = True
+    log = RunLog(path, None, None)
+    for i, line in enumerate(lines, 1):
+        try:
+            doc = json.loads(line)
+        except json.JSONDecodeError as err:
+            raise LogError(f"{path}:{i}: not a JSON document: {err}") from None
+        kind = doc.get("doc") if isinstance(doc, dict) else None
+        if i == 1 and (kind != "start" or doc.get("format") != FORMAT):
+            raise LogError(f"{path}:1: not a magctl run log (expected a start document of format {FORMAT})")
+        if kind == "start":
+            log.start = doc
+        elif kind == "descriptor":
+            log.descriptor = doc
+        elif kind == "event":
+            log.events.append(doc)
+        elif kind == "stop":
+            log.stop = doc
+        else:
+            raise LogError(f"{path}:{i}: unknown document kind {kind!r}")
+    if log.start is None:
+        raise LogError(f"{path}: empty run log")
+    log.torn_tail = torn
+    return log
+
+
+def event_observation(ev: dict) -> Observation:
+    return P.observation_from_wire(ev["obs"])
+
+
+def limits_from_doc(doc: dict) -> RigLimits:
+    lim = doc["limits"]
+    coils = CoilMap(lim["current_max_A"], lim["k_xy_T_per_A"], lim["k_z_T_per_A"])
+    return RigLimits(lim["b_static_max_T"], lim["b_osc_max_T"], lim["freq_max_Hz"], coils)
+
+
+def limits_to_doc(limits: RigLimits) -> dict:
+    return {"b_static_max_T": limits.b_static_max, "b_osc_max_T": limits.b_osc_max, "freq_max_Hz": limits.freq_max,
+            "current_max_A": limits.coils.current_max, "k_xy_T_per_A": limits.coils.k_xy,
+            "k_z_T_per_A": limits.coils.k_z}
+
+
+def params_from_doc(start: dict):
+    """The rig parameters a run used, from the parameter file text kept in its start document."""
+    import tempfile
+
+    from magctl.config import load_file
+
+    text = start.get("params_toml")
+    if not isinstance(text, str):
+        raise LogError("start document has no params_toml; cannot rebuild the controller")
+    with tempfile.TemporaryDirectory() as tmp:
+        f = Path(tmp) / "rig.toml"
+        f.write_text(text, encoding="utf-8")
+        return load_file(f)
+
+
+# --- export ------------------------------------------------------------------------------------------
+def columns(log: RunLog) -> dict[str, np.ndarray]:
+    """The events as flat columns (one value per frame), SI with unit-suffixed names."""
+    ev = log.events
+    cols: dict[str, list] = {"seq": [], "activation": [], "t_s": [], "frame": [], "robot_x_m": [], "robot_y_m": [],
+                             "heading_rad": [], "lost": []}
+    n_sph = len(ev[0]["obs"]["spheres_est_m"]) if ev else 0
+    for i in range(n_sph):
+        cols[f"sphere{i}_x_m"], cols[f"sphere{i}_y_m"] = [], []
+    for j in range(6):
+        cols[f"current{j}_A"] = []
+    for c in ("cmd_raw", "cmd"):
+        for k in ("b_static_x_T", "b_static_y_T", "b_osc_T", "freq_Hz"):
+            cols[f"{c}_{k}"] = []
+    out_names = sorted({k for e in ev for k, v in e["outputs"].items() if not isinstance(v, list)})
+    for k in out_names:
+        cols[f"out_{k}"] = []
+    for t in TIMING_FIELDS:
+        cols[t] = []
+    nan = float("nan")
+    for e in ev:
+        o = e["obs"]
+        cols["seq"].append(e["seq"])
+        cols["activation"].append(e["activation"])
+        cols["t_s"].append(o["t_s"])
+        cols["frame"].append(o["frame"])
+        cols["robot_x_m"].append(o["robot_est_m"][0])
+        cols["robot_y_m"].append(o["robot_est_m"][1])
+        cols["heading_rad"].append(o["heading_est_rad"])
+        cols["lost"].append(o["lost"])
+        for i in range(n_sph):
+            cols[f"sphere{i}_x_m"].append(o["spheres_est_m"][i][0])
+            cols[f"sphere{i}_y_m"].append(o["spheres_est_m"][i][1])
+        for j in range(6):
+            cols[f"current{j}_A"].append(o["currents_A"][j])
+        for c in ("cmd_raw", "cmd"):
+            cm = e.get(c)
+            vals = (nan,) * 4 if cm is None else (*cm["b_static_T"], cm["b_osc_T"], cm["freq_Hz"])
+            for k, v in zip(("b_static_x_T", "b_static_y_T", "b_osc_T", "freq_Hz"), vals, strict=True):
+                cols[f"{c}_{k}"].append(v)
+        for k in out_names:
+            cols[f"out_{k}"].append(e["outputs"].get(k, nan))
+        for t in TIMING_FIELDS:
+            cols[t].append(e["timing"].get(t, nan))
+    arrays = {}
+    for k, v in cols.items():
+        dtype = bool if k == "lost" else (np.int64 if k in ("seq", "activation", "frame", "skipped") else float)
+        arrays[k] = np.asarray(v, dtype=dtype)
+    return arrays
+
+
+def export(log_path, out_path) -> Path:
+    """Export a run log to Parquet (``.parquet``) or HDF5 (``.h5``/``.hdf5``); documents go into metadata."""
+    log = read_log(log_path)
+    out = Path(out_path)
+    cols = columns(log)
+    meta = {"start": log.start, "descriptor": log.descriptor, "stop": log.stop, "torn_tail": log.torn_tail}
+    suffix = out.suffix.lower()
+    if suffix == ".parquet":
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        table = pa.table(cols)
+        table = table.replace_schema_metadata({k.encode(): json.dumps(v).encode() for k, v in meta.items()})
+        pq.write_table(table, out)
+    elif suffix in (".h5", ".hdf5"):
+        import h5py
+
+        with h5py.File(out, "w") as f:
+            g = f.create_group("events")
+            for k, v in cols.items():
+                g.create_dataset(k, data=v)
+            for k, v in meta.items():
+                f.attrs[k] = json.dumps(v)
+    else:
+        raise LogError(f"{out}: unknown export format {suffix!r}; use .parquet, .h5 or .hdf5")
+    return out
+
+
+# --- replay ------------------------------------------------------------------------------------------
+@dataclass
+class ReplayResult:
+    """Outcome of :func:`replay`: commands compared, mismatches (with the first one), identical flag."""
+
+    events: int
+    compared: int
+    mismatches: int
+    first_mismatch: dict | None
+
+    @property
+    def identical(self) -> bool:
+        return self.mismatches == 0 and self.compared > 0
+
+
+def replay(log_path) -> ReplayResult:
+    """Feed the logged observations through a freshly built controller; compare commands bit for bit.
+
+    The controller is rebuilt from the start document (task, resolved options,
+    seed, parameters) and reset at every change of ``activation``, as the
+    runtime did; both the raw controller command and the clipped command sent
+    to the rig are compared with ``==`` on the float64 values.
+    """
+    from magctl.rig.tasks import Controller, build_task
+
+    log = read_log(log_path)
+    st = log.start
+    if not log.events:
+        raise LogError(f"{log.path}: no events to replay")
+    params = params_from_doc(st)
+    limits = limits_from_doc(st)
+    first = event_observation(log.events[0])
+    task = build_task(st["task"], first, st["options"], params)
+    ctrl = Controller(task, seed=st.get("seed", 0))
+    activation = log.events[0]["activation"]
+    compared = mismatches = 0
+    first_bad = None
+    for e in log.events:
+        if e["activation"] != activation:
+            ctrl.reset()
+            activation = e["activation"]
+        if e.get("cmd_raw") is None:
+            continue
+        raw, _ = ctrl.step(event_observation(e))
+        sent = limits.clip(raw)
+        for key, cmd in (("cmd_raw", raw), ("cmd", sent)):
+            if e.get(key) is None:
+                continue
+            compared += 1
+            mine = P.command_to_wire(cmd)
+            if mine != e[key]:
+                mismatches += 1
+                if first_bad is None:
+                    first_bad = {"seq": e["seq"], "field": key, "logged": e[key], "replayed": mine}
+    return ReplayResult(len(log.events), compared, mismatches, first_bad)

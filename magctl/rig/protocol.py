@@ -1,0 +1,147 @@
+"""Wire format of the rig protocol, version 1 (docs/rig-protocol.md).
+
+Every message is one UTF-8 JSON object of at most :data:`MAX_MESSAGE_BYTES`
+bytes. Requests carry ``protocol``, ``version``, ``id`` and ``op``; replies echo
+``id`` and carry ``ok`` plus either the result fields or ``error`` with a
+``code`` and a ``message``. Quantities are SI with the unit in the key
+(``b_static_T``, ``robot_est_m``, ``t_s``). NaN and infinities are not JSON and
+are rejected.
+
+This module is pure: encoding, decoding and validation, no sockets.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import numpy as np
+
+from magctl.rig.interface import Command, CommandRejected, Observation
+
+PROTOCOL = "magctl-rig"
+VERSION = 1
+MAX_MESSAGE_BYTES = 65536
+OPS = ("hello", "configure", "activate", "deactivate", "read", "write", "status")
+
+# error codes
+BAD_JSON = "bad-json"
+TOO_LARGE = "too-large"
+BAD_VERSION = "bad-version"
+BAD_REQUEST = "bad-request"
+BAD_COMMAND = "bad-command"
+BAD_STATE = "bad-state"
+INTERNAL = "internal"
+
+
+class ProtocolError(Exception):
+    """A message that must be answered with an error reply; ``code`` is one of the codes above."""
+
+    def __init__(self, code: str, message: str, request_id=None):
+        super().__init__(message)
+        self.code, self.request_id = code, request_id
+
+
+def _reject_constant(name: str):
+    raise ProtocolError(BAD_JSON, f"{name} is not allowed (JSON numbers must be finite)")
+
+
+def encode(doc: dict[str, Any]) -> bytes:
+    """Serialise a message; raises ``ValueError`` on NaN/inf."""
+    return json.dumps(doc, allow_nan=False, separators=(",", ":")).encode()
+
+
+def decode(raw: bytes) -> dict[str, Any]:
+    """Parse a message: size, UTF-8, JSON object, finite numbers (raises :class:`ProtocolError`)."""
+    if len(raw) > MAX_MESSAGE_BYTES:
+        raise ProtocolError(TOO_LARGE, f"message of {len(raw)} bytes exceeds {MAX_MESSAGE_BYTES} bytes")
+    try:
+        doc = json.loads(raw.decode("utf-8"), parse_constant=_reject_constant)
+    except ProtocolError:
+        raise
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ProtocolError(BAD_JSON, f"not a UTF-8 JSON document: {err}") from None
+    except RecursionError:
+        raise ProtocolError(BAD_JSON, "JSON nested too deeply") from None
+    if not isinstance(doc, dict):
+        raise ProtocolError(BAD_JSON, f"message must be a JSON object, got {type(doc).__name__}")
+    return doc
+
+
+def request(op: str, request_id: int, **fields) -> dict[str, Any]:
+    return {"protocol": PROTOCOL, "version": VERSION, "id": request_id, "op": op, **fields}
+
+
+def parse_request(raw: bytes) -> dict[str, Any]:
+    """Decode and check a request's envelope: protocol, version, id, known op."""
+    doc = decode(raw)
+    rid = doc.get("id")
+    if doc.get("protocol") != PROTOCOL:
+        raise ProtocolError(BAD_REQUEST, f"'protocol' must be {PROTOCOL!r}, got {doc.get('protocol')!r}", rid)
+    if doc.get("version") != VERSION:
+        raise ProtocolError(BAD_VERSION, f"protocol version {doc.get('version')!r} not supported (server speaks "
+                                         f"version {VERSION})", rid)
+    if not isinstance(rid, int) or isinstance(rid, bool):
+        raise ProtocolError(BAD_REQUEST, f"'id' must be an integer, got {rid!r}", None)
+    if doc.get("op") not in OPS:
+        raise ProtocolError(BAD_REQUEST, f"unknown op {doc.get('op')!r}; ops: {', '.join(OPS)}", rid)
+    return doc
+
+
+def ok_reply(request_id, **fields) -> dict[str, Any]:
+    return {"protocol": PROTOCOL, "version": VERSION, "id": request_id, "ok": True, **fields}
+
+
+def error_reply(request_id, code: str, message: str) -> dict[str, Any]:
+    return {"protocol": PROTOCOL, "version": VERSION, "id": request_id, "ok": False,
+            "error": {"code": code, "message": message}}
+
+
+# --- payloads ---------------------------------------------------------------------------------------
+def command_to_wire(cmd: Command) -> dict[str, Any]:
+    return {"b_static_T": [float(cmd.b_static[0]), float(cmd.b_static[1])], "b_osc_T": float(cmd.b_osc),
+            "freq_Hz": float(cmd.freq)}
+
+
+def command_from_wire(doc: Any) -> Command:
+    """Validate a ``cmd`` object (shape, types, finiteness); limits are checked by the rig."""
+    if not isinstance(doc, dict):
+        raise ProtocolError(BAD_REQUEST, "'cmd' must be an object with b_static_T, b_osc_T, freq_Hz")
+    missing = [k for k in ("b_static_T", "b_osc_T", "freq_Hz") if k not in doc]
+    if missing:
+        raise ProtocolError(BAD_REQUEST, f"'cmd' lacks {missing}")
+    bs, bo, fr = doc["b_static_T"], doc["b_osc_T"], doc["freq_Hz"]
+    if not (isinstance(bs, list) and len(bs) == 2 and all(_is_number(x) for x in bs)):
+        raise ProtocolError(BAD_COMMAND, f"b_static_T must be a list of 2 numbers, got {bs!r}")
+    for name, v in (("b_osc_T", bo), ("freq_Hz", fr)):
+        if not _is_number(v):
+            raise ProtocolError(BAD_COMMAND, f"{name} must be a number, got {v!r}")
+    try:
+        return Command.from_values(bs, bo, fr)
+    except CommandRejected as err:
+        raise ProtocolError(BAD_COMMAND, str(err)) from None
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def observation_to_wire(obs: Observation) -> dict[str, Any]:
+    return {
+        "t_s": obs.t, "frame": obs.frame,
+        "robot_est_m": obs.robot_est.tolist(), "heading_est_rad": obs.heading_est,
+        "spheres_est_m": obs.spheres_est.tolist(), "lost": obs.lost, "currents_A": obs.currents.tolist(),
+    }
+
+
+def observation_from_wire(doc: dict[str, Any]) -> Observation:
+    try:
+        spheres = np.asarray(doc["spheres_est_m"], dtype=float).reshape(-1, 2)
+        return Observation(
+            t=float(doc["t_s"]), frame=int(doc["frame"]),
+            robot_est=np.asarray(doc["robot_est_m"], dtype=float).reshape(2),
+            heading_est=float(doc["heading_est_rad"]), spheres_est=spheres, lost=bool(doc["lost"]),
+            currents=np.asarray(doc.get("currents_A", [0.0] * 6), dtype=float).reshape(6),
+        )
+    except (KeyError, TypeError, ValueError) as err:
+        raise ProtocolError(BAD_REQUEST, f"malformed observation: {err}") from None

@@ -1,0 +1,184 @@
+"""The simulated rig: plant blocks behind the rig interface.
+
+:class:`SimPlant` is the part shared by the in-process :class:`SimRig` and the
+``magctl rig serve-sim`` server: a plant diagram stepped one frame at a time
+(B = 1) with a held field command, the server-side current limits and the
+watchdog. :class:`SimRig` puts it behind :class:`~magctl.rig.interface.Rig`,
+stepping either one frame per ``read()`` (as fast as possible) or in real time
+on the monotonic clock.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from magctl import FRAME_PERIOD_S
+from magctl.config import load_model
+from magctl.core.diagram import Diagram
+from magctl.rig.interface import Command, Lifecycle, Observation, Rig, RigError, RigLimits
+from magctl.rig.plant import build_sim_plant, check_plant
+
+PlantFactory = Callable[[], Diagram]
+
+
+class SimPlant:
+    """A plant diagram stepped frame by frame with a held, limit-checked command and a watchdog.
+
+    Parameters
+    ----------
+    factory : callable
+        Returns the plant diagram (see :func:`magctl.rig.plant.build_sim_plant`).
+    limits : RigLimits
+        Commands outside them are rejected by :meth:`apply`.
+    watchdog : float
+        Seconds without a valid command after which :meth:`check_watchdog` zeroes the coils.
+    seed : int
+        Seed of the plant's random streams.
+    """
+
+    def __init__(self, factory: PlantFactory, limits: RigLimits, watchdog: float, seed: int = 0,
+                 period: float = FRAME_PERIOD_S):
+        self.factory, self.limits, self.watchdog, self.seed, self.period = factory, limits, watchdog, seed, period
+        self.diagram = factory()
+        check_plant(self.diagram)
+        self.n_spheres = self.diagram.outputs["spheres_est"].shape[0]
+        self.reset()
+
+    def reset(self) -> None:
+        """Plant back to its initial state, coils off, frame 0."""
+        self.state = self.diagram.initial_state(1, seed=self.seed)
+        self.cmd = Command.zero()
+        self.frame = 0
+        self.last_command_t: float | None = None
+        self.watchdog_trips = 0
+        self.tripped_at: float | None = None
+        self._u = self._inputs(self.cmd)
+        outs = self.diagram.output(self.state, self._u)
+        self.latest = self._observation(0.0, outs)
+
+    def _inputs(self, cmd: Command) -> dict[str, np.ndarray]:
+        return {"b_static": cmd.b_static[None, :].copy(), "b_osc": np.array([cmd.b_osc]),
+                "freq": np.array([cmd.freq])}
+
+    def _observation(self, t: float, outs) -> Observation:
+        return Observation(
+            t=t, frame=self.frame,
+            robot_est=np.array(outs["robot_est"][0], dtype=float),
+            heading_est=float(outs["heading_est"][0]),
+            spheres_est=np.array(outs["spheres_est"][0], dtype=float).reshape(-1, 2),
+            lost=bool(outs["lost"][0]),
+            currents=np.array(outs["currents"][0], dtype=float),
+        )
+
+    def apply(self, cmd: Command, now: float) -> np.ndarray:
+        """Hold ``cmd`` from now on (after the limit check) and feed the watchdog; returns the currents."""
+        currents = self.limits.check(cmd)
+        self.cmd = cmd
+        self._u = self._inputs(cmd)
+        self.last_command_t = now
+        return currents
+
+    def zero(self) -> None:
+        """Coils off; the watchdog is disarmed until the next command."""
+        self.cmd = Command.zero()
+        self._u = self._inputs(self.cmd)
+        self.last_command_t = None
+
+    def check_watchdog(self, now: float) -> bool:
+        """Zero the coils if the last command is older than the timeout; True when it tripped now."""
+        if self.last_command_t is not None and now - self.last_command_t > self.watchdog:
+            self.tripped_at = now - self.last_command_t
+            self.zero()
+            self.watchdog_trips += 1
+            return True
+        return False
+
+    def watchdog_deadline(self) -> float | None:
+        return None if self.last_command_t is None else self.last_command_t + self.watchdog
+
+    def step(self, t: float) -> Observation:
+        """Advance one frame under the held command; the observation is stamped ``t``."""
+        outs, self.state = self.diagram.step(self.state, self._u)
+        self.frame += 1
+        # after the update, so the observation is the one the tracker reports at the new frame
+        outs = self.diagram.output(self.state, self._u)
+        self.latest = self._observation(t, outs)
+        return self.latest
+
+
+class SimRig(Rig):
+    """In-process simulated rig.
+
+    Parameters
+    ----------
+    factory : callable, optional
+        Plant factory; ``build_sim_plant(n_spheres)`` by default.
+    n_spheres : int
+        Spheres in the default scene.
+    realtime : bool
+        False: every ``read()`` advances the plant by exactly one frame and the
+        rig clock is ``frame · period`` (as fast as possible, deterministic).
+        True: ``read()`` advances the plant by every frame due on the monotonic clock.
+    seed : int
+        Plant seed.
+    """
+
+    def __init__(self, factory: PlantFactory | None = None, *, n_spheres: int = 1, realtime: bool = False,
+                 seed: int = 0, limits: RigLimits | None = None, params=None):
+        params = params or load_model("rig")
+        super().__init__(limits or RigLimits.from_params(params))
+        self.factory = factory or (lambda: build_sim_plant(n_spheres, params=params))
+        self.realtime = realtime
+        self.seed = seed
+        self.watchdog = params.watchdog.timeout
+        self.plant: SimPlant | None = None
+
+    def _now(self) -> float:
+        if self.realtime:
+            return time.monotonic() - self._t0
+        return self.plant.frame * self.plant.period
+
+    def _configure(self) -> None:
+        self.plant = SimPlant(self.factory, self.limits, self.watchdog, self.seed)
+        self.n_spheres = self.plant.n_spheres
+        self._t0 = time.monotonic()
+
+    def _activate(self) -> None:
+        self.plant.zero()
+
+    def _advance(self) -> None:
+        p = self.plant
+        if not self.realtime:
+            self._step_frame((p.frame + 1) * p.period)
+            return
+        now = self._now()
+        while (p.frame + 1) * p.period <= now:
+            self._step_frame((p.frame + 1) * p.period)
+
+    def _step_frame(self, t: float) -> None:
+        p = self.plant
+        if p.check_watchdog(t) and self.state is Lifecycle.ACTIVE:
+            self.state = Lifecycle.INACTIVE
+            self.last_error = f"watchdog: no command for {p.tripped_at * 1e3:.0f} ms; coils zeroed"
+        p.step(t)
+
+    def _read(self) -> Observation:
+        self._advance()
+        return self.plant.latest
+
+    def _write(self, cmd: Command) -> None:
+        if self.realtime:
+            self._advance()
+        if self.state is not Lifecycle.ACTIVE:
+            raise RigError(self.last_error or "rig is not active")
+        self.plant.apply(cmd, self._now())
+
+    def _zero(self) -> None:
+        if self.plant is not None:
+            self.plant.zero()
+
+    def _close(self) -> None:
+        self.plant = None

@@ -1,0 +1,204 @@
+"""A kinematic STAND-IN plant for the simulated rig.
+
+These blocks exist so that the rig (adapter, server, runtime, logs) can be
+built and tested before the physical plant blocks of ``magctl.plant`` are
+wired in. They honour the port names, shapes and units of docs/interfaces.md
+but not the physics of the paper:
+
+* coils: a linear field-to-current map with a current limit (no RL dynamics);
+* robot: the heading follows the static field instantly and the robot moves
+  along it at ``v = s · (b_osc / b_osc_max) · freq`` — a stick-slip step ``s``
+  per field cycle scaled by the oscillation amplitude (no tilt, no slip model);
+* spheres: pushed by contact only — a sphere overlapping the robot's contact
+  disc is moved out along the line of centres (no Stokes flow, no D_p,r, no
+  side-pushing, no sphere–sphere contact);
+* tracker: exact positions one frame late; ``lost`` outside the field of view
+  or during a configured blackout.
+
+At integration :func:`magctl.rig.plant.build_sim_plant` swaps these for the
+real blocks; nothing else in :mod:`magctl.rig` depends on this module.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magctl import FRAME_PERIOD_S
+from magctl.core.block import Block
+from magctl.core.ports import Port
+from magctl.rig.interface import CoilMap
+
+FIELD_IN = [Port("b_static", (2,), "T"), Port("b_osc", (), "T"), Port("freq", (), "1/s")]
+
+
+class StandinCoils(Block):
+    """Field command → coil currents with the amplifier limit (stand-in for ``magctl.plant.coils``).
+
+    A command whose peak current exceeds the limit is scaled down (static and
+    oscillating parts separately) and flagged ``saturated``.
+    """
+
+    def __init__(self, name: str, coils: CoilMap, dt: float = FRAME_PERIOD_S):
+        self.coils = coils
+        super().__init__(
+            name,
+            inputs=FIELD_IN,
+            outputs=[Port("currents", (6,), "A"), Port("b_static_delivered", (2,), "T"),
+                     Port("b_osc_delivered", (), "T"), Port("freq_delivered", (), "1/s"),
+                     Port("saturated", (), "1", "bool")],
+            dt=dt, feedthrough=True,
+        )
+
+    def output(self, state, u):
+        bs, bo = u["b_static"], np.abs(u["b_osc"])
+        i_max = self.coils.current_max
+        bs_lim = i_max * 2 * self.coils.k_xy
+        bo_lim = i_max * 2 * self.coils.k_z
+        peak = np.max(np.abs(bs), axis=1)
+        s = np.minimum(1.0, bs_lim / np.maximum(peak, 1e-300))
+        bs_d = bs * s[:, None]
+        bo_d = np.minimum(bo, bo_lim)
+        return {
+            "currents": self.coils.currents(bs_d, bo_d),
+            "b_static_delivered": bs_d,
+            "b_osc_delivered": bo_d,
+            "freq_delivered": u["freq"].copy(),
+            "saturated": (s < 1.0) | (bo > bo_lim),
+        }
+
+
+class StandinRobot(Block):
+    """Kinematic robot: heading along ``b_static``, speed ``s · (b_osc/b_ref) · freq`` along it.
+
+    Parameters
+    ----------
+    step_max : float
+        Stick-slip step per field cycle at ``b_osc = b_ref``, m.
+    b_ref : float
+        Oscillating amplitude giving the full step, T.
+    start : (2,) array
+        Initial position, m.
+    heading0 : float
+        Initial heading, rad.
+    """
+
+    def __init__(self, name: str, step_max: float, b_ref: float, start=(0.0, 0.0), heading0: float = 0.0,
+                 dt: float = FRAME_PERIOD_S):
+        self.step_max, self.b_ref = float(step_max), float(b_ref)
+        self.start, self.heading0 = np.asarray(start, dtype=float), float(heading0)
+        super().__init__(
+            name,
+            inputs=[Port("b_static_delivered", (2,), "T"), Port("b_osc_delivered", (), "T"),
+                    Port("freq_delivered", (), "1/s")],
+            outputs=[Port("position", (2,), "m"), Port("heading", (), "rad"), Port("velocity", (2,), "m/s"),
+                     Port("tilt", (), "rad")],
+            dt=dt, feedthrough=False,
+        )
+
+    def initial_state(self, batch, rng=None):
+        return {"p": np.broadcast_to(self.start, (batch, 2)).copy(), "h": np.full(batch, self.heading0),
+                "v": np.zeros((batch, 2))}
+
+    def output(self, state, u):
+        return {"position": state["p"], "heading": state["h"], "velocity": state["v"],
+                "tilt": np.zeros_like(state["h"])}
+
+    def update(self, state, u):
+        bs = u["b_static_delivered"]
+        has_field = np.any(bs != 0.0, axis=1)
+        h = np.where(has_field, np.arctan2(bs[:, 1], bs[:, 0]), state["h"])
+        speed = self.step_max * (u["b_osc_delivered"] / self.b_ref) * u["freq_delivered"]
+        v = speed[:, None] * np.stack([np.cos(h), np.sin(h)], axis=1)
+        # new arrays: outputs handed out this step stay untouched
+        return {"p": state["p"] + v * self.dt, "h": h, "v": v}
+
+
+class StandinSpheres(Block):
+    """Spheres moved by contact only: overlap with the robot's contact disc is removed along the line of centres.
+
+    Parameters
+    ----------
+    start : (N, 2) array
+        Initial sphere centres, m.
+    contact_distance : float
+        Robot contact radius plus sphere radius, m.
+    """
+
+    def __init__(self, name: str, start, contact_distance: float, dt: float = FRAME_PERIOD_S):
+        self.start = np.asarray(start, dtype=float).reshape(-1, 2)
+        self.contact_distance = float(contact_distance)
+        n = self.start.shape[0]
+        super().__init__(
+            name,
+            inputs=[Port("position", (2,), "m"), Port("heading", (), "rad"), Port("velocity", (2,), "m/s")],
+            outputs=[Port("spheres", (n, 2), "m"), Port("contact", (), "1", "bool")],
+            dt=dt, feedthrough=False,
+        )
+
+    def initial_state(self, batch, rng=None):
+        return {"s": np.broadcast_to(self.start, (batch, *self.start.shape)).copy(),
+                "contact": np.zeros(batch, dtype=bool)}
+
+    def output(self, state, u):
+        return {"spheres": state["s"], "contact": state["contact"]}
+
+    def update(self, state, u):
+        s = state["s"]
+        if s.shape[1] == 0:
+            return state
+        # the robot's position at the end of this frame: where it is now plus this frame's step
+        r = (u["position"] + u["velocity"] * self.dt)[:, None, :]
+        d = s - r
+        dist = np.sqrt(np.einsum("bni,bni->bn", d, d))
+        over = dist < self.contact_distance
+        safe = np.where(dist > 0, dist, 1.0)
+        pushed = r + d * (self.contact_distance / safe)[..., None]
+        return {"s": np.where(over[..., None], pushed, s), "contact": over.any(axis=1)}
+
+
+class StandinTracker(Block):
+    """Exact positions one frame late; ``lost`` outside the field of view or during a blackout.
+
+    Parameters
+    ----------
+    n_spheres : int
+        Number of spheres.
+    half_width : float
+        Half side of the square field of view centred at the origin, m.
+    blackout : (float, float) or None
+        Time window ``[t0, t1)`` in s during which tracking is reported lost.
+    """
+
+    def __init__(self, name: str, n_spheres: int, half_width: float, blackout=None, start=(0.0, 0.0),
+                 heading0: float = 0.0, spheres0=None, dt: float = FRAME_PERIOD_S):
+        self.half_width = float(half_width)
+        self.blackout = None if blackout is None else (float(blackout[0]), float(blackout[1]))
+        self.start = np.asarray(start, dtype=float)
+        self.heading0 = float(heading0)
+        self.spheres0 = np.zeros((n_spheres, 2)) if spheres0 is None else np.asarray(spheres0, float).reshape(-1, 2)
+        super().__init__(
+            name,
+            inputs=[Port("position", (2,), "m"), Port("heading", (), "rad"), Port("spheres", (n_spheres, 2), "m")],
+            outputs=[Port("robot_est", (2,), "m"), Port("heading_est", (), "rad"), Port("velocity_est", (2,), "m/s"),
+                     Port("spheres_est", (n_spheres, 2), "m"), Port("lost", (), "1", "bool")],
+            dt=dt, feedthrough=False,
+        )
+
+    def initial_state(self, batch, rng=None):
+        return {"r": np.broadcast_to(self.start, (batch, 2)).copy(), "h": np.full(batch, self.heading0),
+                "v": np.zeros((batch, 2)),
+                "s": np.broadcast_to(self.spheres0, (batch, *self.spheres0.shape)).copy(),
+                "lost": np.zeros(batch, dtype=bool), "k": 0}
+
+    def output(self, state, u):
+        return {"robot_est": state["r"], "heading_est": state["h"], "velocity_est": state["v"],
+                "spheres_est": state["s"], "lost": state["lost"]}
+
+    def update(self, state, u):
+        p = u["position"]
+        k = state["k"] + 1
+        lost = np.any(np.abs(p) > self.half_width, axis=1)
+        if self.blackout is not None and self.blackout[0] <= k * self.dt < self.blackout[1]:
+            lost = np.ones_like(lost)
+        return {"r": p.copy(), "h": u["heading"].copy(), "v": (p - state["r"]) / self.dt,
+                "s": u["spheres"].copy(), "lost": lost, "k": k}
