@@ -221,6 +221,13 @@ def _combine(results: list, chunks: list[list[int]]):
     if not results:
         return []
     first = results[0]
+    for i, (res, idx) in enumerate(zip(results, chunks)):
+        kinds_match = isinstance(res, dict) == isinstance(first, dict)
+        if not kinds_match or (isinstance(res, dict) and res.keys() != first.keys()):
+            got = sorted(res) if isinstance(res, dict) else type(res).__name__
+            want = sorted(first) if isinstance(first, dict) else type(first).__name__
+            raise SweepError(f"chunk {i} (trials {idx[0]}–{idx[-1]}) returned {got}, but chunk 0 returned {want}",
+                             i, idx)
     if isinstance(first, dict):
         return {k: np.concatenate([np.asarray(r[k]) for r in results], axis=0) for k in first}
     if isinstance(first, np.ndarray):

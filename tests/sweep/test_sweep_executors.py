@@ -168,3 +168,13 @@ def test_study_context_sweep(tmp_path):
     ctx = StudyContext(out=tmp_path, seed=11, scheduler="serial", quiet=True)
     got = run_study_trials(ctx, drift_trials, 4, steps=8)
     np.testing.assert_array_equal(got["final"], drift_trials([0, 1, 2, 3], 11, steps=8)["final"])
+
+
+def _inconsistent_trials(indices, seed):
+    key = "a" if indices[0] == 0 else "b"
+    return {key: np.zeros(len(indices))}
+
+
+def test_chunks_with_different_keys_are_reported():
+    with pytest.raises(SweepError, match=r"chunk 1 \(trials 2–3\) returned \['b'\], but chunk 0 returned \['a'\]"):
+        run_trials(_inconsistent_trials, 4, seed=0, scheduler="serial", chunk_size=2, progress=False)
