@@ -32,44 +32,7 @@ from magctl.core.block import Block
 from magctl.core.ports import Port
 from magctl.plant._coilfield import Coil, CoilSet, load_coils
 
-__all__ = ["Coil", "CoilActuator", "CoilSet", "allocate", "load_coils", "oscillation_gain"]
-
-
-def oscillation_gain(coils: CoilSet, i_static, i_osc, freq) -> np.ndarray:
-    """Fraction ``s ∈ [0, 1]`` of the commanded oscillation amplitude the coils can deliver.
-
-    Parameters
-    ----------
-    coils : CoilSet
-    i_static : ndarray (B, 6)
-        Static currents (A) after static limiting.
-    i_osc : ndarray (B, 6)
-        Commanded oscillation current amplitudes (A).
-    freq : ndarray (B,)
-        Oscillation frequency (Hz).
-
-    Returns
-    -------
-    ndarray (B,)
-        ``min over coils of min(1, (I_max − |i_s|)/|i_o|, (V_max − R|i_s|)/(|R + jωL| |i_o|))``.
-    """
-    R, L = coils.resistance, coils.inductance
-    w = 2.0 * np.pi * np.asarray(freq, dtype=float)[:, None]
-    z = np.sqrt(R * R + (w * L) ** 2)
-    ai = np.abs(i_static)
-    ao = np.maximum(np.abs(i_osc), 1e-300)
-    cap = np.minimum((coils.current_limit - ai) / ao, (coils.voltage_limit - R * ai) / (z * ao))
-    return np.clip(cap.min(axis=1), 0.0, 1.0)
-
-
-def allocate(coils: CoilSet, pinv: np.ndarray, b_static, b_osc, clamp: float = 0.0):
-    """Minimum-norm currents for a field command, before limits.
-
-    Returns ``(i_static (B, 6), i_osc (B, 6))``: ``i = A⁺ [b_x, b_y, 0, G]`` and ``A⁺ [0, 0, b_osc, 0]``.
-    """
-    i_s = np.asarray(b_static) @ pinv[:, :2].T + clamp * pinv[:, 3]
-    i_o = np.asarray(b_osc)[:, None] * pinv[:, 2]
-    return i_s, i_o
+__all__ = ["Coil", "CoilActuator", "CoilSet", "load_coils"]
 
 
 class CoilActuator(Block):
@@ -130,6 +93,17 @@ class CoilActuator(Block):
 
     def initial_state(self, batch, rng=None):
         return {"i": np.zeros((batch, len(self.coils.coils)))}
+
+    def deliver(self, b_static, b_osc, freq):
+        """Steady-state delivered field for a command held long enough for the RL transients to end.
+
+        Returns ``(b_static_delivered (B, 2), b_osc_delivered (B,), saturated (B,))``; the same
+        limits as the block, used for speed curves and the drive's inverse.
+        """
+        u = {"b_static": np.atleast_2d(np.asarray(b_static, float)), "b_osc": np.atleast_1d(np.asarray(b_osc, float)),
+             "freq": np.atleast_1d(np.asarray(freq, float))}
+        i_s, _, s_osc, _, sat = self._solve({"i": 0.0}, u)
+        return i_s @ self._A_xy, u["b_osc"] * s_osc, sat
 
     def _solve(self, state, u):
         # hot path: one vectorised op per line; see the module docstring for the steps

@@ -3,8 +3,8 @@
 The in-plane field points along the commanded heading at the nominal magnitude
 ``B_0``; the rocking amplitude is the nominal ``b_osc``; the speed is set by the
 frequency. The drive inverts the steady stick-slip speed ``v(f)``
-(:func:`magctl.plant._stickslip.speed`, times the coils' deliverable fraction
-of ``b_osc`` from :func:`magctl.plant.coils.oscillation_gain`) on its rising
+(:func:`magctl.plant._stickslip.speed` of the field the coils deliver,
+:meth:`magctl.plant.coils.CoilActuator.deliver`) on its rising
 branch ``0 ≤ f ≤ f_peak`` by interpolating a table computed once from the same
 parameters. Commanded speeds are clipped to ``[0, v_max]``; zero speed turns
 the oscillation off and keeps the aligning field.
@@ -24,7 +24,7 @@ from magctl.core.errors import ParameterError
 from magctl.core.ports import Port
 from magctl.plant._coilfield import CoilSet, load_coils
 from magctl.plant._stickslip import StickSlipParams, load_robot, speed
-from magctl.plant.coils import CoilActuator, allocate, oscillation_gain
+from magctl.plant.coils import CoilActuator
 from magctl.plant.robot import StickSlipRobot
 
 __all__ = ["Drive", "DriveSettings", "actuated_robot", "delivered_speed_curve", "load_drive"]
@@ -75,11 +75,9 @@ def delivered_speed_curve(robot: StickSlipParams, coils: CoilSet, static_field: 
     """
     freqs = np.asarray(freqs, dtype=float)
     n = freqs.size
-    pinv = np.linalg.pinv(coils.actuation_matrix())
-    b_s = np.tile([static_field, 0.0], (n, 1))
-    i_s, i_o = allocate(coils, pinv, b_s, np.full(n, osc_field), coils.clamp_gradient)
-    b_osc = osc_field * oscillation_gain(coils, i_s, i_o, freqs)
-    return speed(robot, static_field, b_osc, freqs), b_osc
+    b_s, b_osc, _ = CoilActuator("coils", coils).deliver(np.tile([static_field, 0.0], (n, 1)),
+                                                       np.full(n, osc_field), freqs)
+    return speed(robot, np.hypot(b_s[:, 0], b_s[:, 1]), b_osc, freqs), b_osc
 
 
 class Drive(Block):

@@ -1,0 +1,227 @@
+"""The star-shaped robot as a solid: outline, tilt and surface discretisation (paper §II, §IV-C).
+
+Body frame: ``x`` forward, ``y`` left, ``z`` up from the glass. The outline is a
+``length × width`` star with a concave front face (the notch that captures
+spheres) and shallow concave flanks and rear, extruded to ``thickness`` and
+tilted by ``tilt`` about the edge that rests on the glass. The robot's reference
+point (its ``position`` port) is the centre of its footprint on the glass.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from magctl.config import Params, load_model
+from magctl.core.errors import ParameterError
+
+
+def _arc(p0, p1, inward, sagitta, n):
+    """Points from ``p0`` to ``p1`` (excluding ``p1``) bulging by ``sagitta`` along ``inward``."""
+    p0, p1, inward = (np.asarray(v, float) for v in (p0, p1, inward))
+    t = np.linspace(0.0, 1.0, n, endpoint=False)
+    chord = np.linalg.norm(p1 - p0)
+    line = p0 + t[:, None] * (p1 - p0)
+    if sagitta <= 0:
+        return line
+    rho = (chord**2 / 4 + sagitta**2) / (2 * sagitta)
+    offset = np.sqrt(np.maximum(rho**2 - (chord * (t - 0.5)) ** 2, 0.0)) - (rho - sagitta)
+    return line + offset[:, None] * inward
+
+
+def star_outline(length, width, front_notch_depth, front_notch_width, side_notch_depth, rear_notch_depth,
+                 arc_points=9) -> np.ndarray:
+    """Counter-clockwise outline ``(V, 2)`` [m] of the star robot in its body frame (x forward).
+
+    The front face has a circular concave notch of chord ``front_notch_width`` and
+    depth ``front_notch_depth``; flanks and rear are circular arcs of the given depths.
+    """
+    lx, wy = length / 2, width / 2
+    if not 0 < front_notch_width < width:
+        raise ParameterError(f"front notch width {front_notch_width * 1e6:.0f} um must lie in (0, width)")
+    if not 0 <= front_notch_depth < length / 2:
+        raise ParameterError(f"front notch depth {front_notch_depth * 1e6:.0f} um must lie in [0, length/2)")
+    cw = front_notch_width / 2
+    n = int(arc_points)
+    parts = [
+        np.array([[lx, -wy]]),
+        _arc([lx, -cw], [lx, cw], [-1, 0], front_notch_depth, n),         # concave front face
+        _arc([lx, wy], [-lx, wy], [0, -1], side_notch_depth, n),          # left flank
+        _arc([-lx, wy], [-lx, -wy], [1, 0], rear_notch_depth, n),         # rear
+        _arc([-lx, -wy], [lx, -wy], [0, 1], side_notch_depth, n),         # right flank
+    ]
+    return np.vstack(parts)
+
+
+def points_in_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Even-odd test of points ``(..., 2)`` against a closed polygon ``(V, 2)``."""
+    x, y = pts[..., 0, None], pts[..., 1, None]
+    x0, y0 = poly[:, 0], poly[:, 1]
+    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
+    crosses = (y0 > y) != (y1 > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xint = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
+    return (crosses & (x < xint)).sum(axis=-1) % 2 == 1
+
+
+def polygon_distance(pts: np.ndarray, poly: np.ndarray):
+    """Distance from points ``(..., 2)`` to the polygon boundary and the nearest boundary point.
+
+    Returns
+    -------
+    dist : ndarray (...)
+    nearest : ndarray (..., 2)
+    """
+    a = poly
+    b = np.roll(poly, -1, axis=0)
+    ab = b - a
+    ap = pts[..., None, :] - a
+    t = np.clip((ap * ab).sum(-1) / (ab * ab).sum(-1), 0.0, 1.0)
+    proj = a + t[..., None] * ab
+    d2 = ((pts[..., None, :] - proj) ** 2).sum(-1)
+    k = np.argmin(d2, axis=-1)
+    nearest = np.take_along_axis(proj, k[..., None, None], axis=-2)[..., 0, :]
+    return np.sqrt(np.take_along_axis(d2, k[..., None], axis=-1)[..., 0]), nearest
+
+
+@dataclass(frozen=True)
+class RobotGeometry:
+    """Solid geometry of the tilted star robot.
+
+    Attributes
+    ----------
+    outline : ndarray (V, 2)
+        Body-frame outline [m], centred on the untilted body.
+    thickness : float
+        [m]
+    tilt : float
+        Angle to the glass [rad] (paper §IV-C: π/8).
+    raised_edge : str
+        ``"front"`` or ``"rear"``: which end is lifted.
+    clearance : float
+        Height of the lowest edge above the glass [m].
+    spacing, source_offset : float
+        Collocation spacing and source depth of the flow solver [m].
+    """
+
+    outline: np.ndarray = field(repr=False)
+    thickness: float
+    tilt: float
+    raised_edge: str = "front"
+    clearance: float = 2e-6
+    spacing: float = 30e-6
+    source_offset: float = 28e-6
+    source_step_ratio: float = 1.4
+
+    def __post_init__(self):
+        if self.raised_edge not in ("front", "rear"):
+            raise ParameterError(f"raised_edge must be 'front' or 'rear', got {self.raised_edge!r}")
+        if not 0 <= self.tilt < np.pi / 2:
+            raise ParameterError(f"tilt {self.tilt!r} rad must lie in [0, pi/2)")
+        if self.thickness <= 2 * self.source_offset:
+            raise ParameterError("source_offset must be less than half the thickness")
+
+    @classmethod
+    def from_params(cls, p: Params | None = None) -> RobotGeometry:
+        """Build from ``models/robot_geometry.toml``."""
+        p = p if p is not None else load_model("robot_geometry")
+        o = p.outline
+        outline = star_outline(o.length, o.width, o.front_notch_depth, o.front_notch_width, o.side_notch_depth,
+                               o.rear_notch_depth, int(o.arc_points))
+        d = p.discretisation
+        return cls(outline, o.thickness, p.pose.tilt, p.pose.raised_edge, p.pose.clearance, d.spacing,
+                   d.source_offset)
+
+    def key(self) -> tuple:
+        """Hashable identity of the geometry (for flow caches)."""
+        return (self.outline.round(12).tobytes(), self.thickness, self.tilt, self.raised_edge, self.clearance,
+                self.spacing, self.source_offset)
+
+    # --- body ↔ world (robot frame, origin at the footprint centre) ----------------------------
+    @cached_property
+    def _pivot(self) -> tuple[float, float]:
+        xs = self.outline[:, 0]
+        sign = 1.0 if self.raised_edge == "front" else -1.0
+        pivot = xs.min() if sign > 0 else xs.max()
+        foot = np.array([xs.min(), xs.max()])
+        foot_w = pivot + (foot - pivot) * np.cos(self.tilt)
+        return float(pivot), float(foot_w.mean())
+
+    def to_frame(self, body: np.ndarray) -> np.ndarray:
+        """Body coordinates ``(ξ, y, ζ)`` (ζ up through the plate) → robot-frame ``(x, y, z)``."""
+        pivot, centre = self._pivot
+        s = 1.0 if self.raised_edge == "front" else -1.0
+        c, sn = np.cos(self.tilt), np.sin(self.tilt)
+        xi, y, zeta = body[..., 0] - pivot, body[..., 1], body[..., 2]
+        x = pivot + xi * c - s * zeta * sn - centre
+        z = s * xi * sn + zeta * c + self.clearance
+        return np.stack([x, y, z], axis=-1)
+
+    def to_body(self, pts: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`to_frame`."""
+        pivot, centre = self._pivot
+        s = 1.0 if self.raised_edge == "front" else -1.0
+        c, sn = np.cos(self.tilt), np.sin(self.tilt)
+        x, y, z = pts[..., 0] + centre - pivot, pts[..., 1], pts[..., 2] - self.clearance
+        xi = x * c + s * z * sn
+        zeta = -s * x * sn + z * c
+        return np.stack([xi + pivot, y, zeta], axis=-1)
+
+    def contains(self, pts: np.ndarray) -> np.ndarray:
+        """True for robot-frame points ``(..., 3)`` inside the solid."""
+        b = self.to_body(np.asarray(pts, float))
+        return (b[..., 2] >= 0) & (b[..., 2] <= self.thickness) & points_in_polygon(b[..., :2], self.outline)
+
+    @cached_property
+    def footprint(self) -> np.ndarray:
+        """Contact outline on the glass ``(V, 2)`` [m]: the bottom face projected, robot frame."""
+        body = np.column_stack([self.outline, np.zeros(len(self.outline))])
+        return self.to_frame(body)[:, :2]
+
+    # --- discretisation for the flow solver --------------------------------------------------
+    def _face_grid(self, step: float, inset: float) -> np.ndarray:
+        xs, ys = self.outline[:, 0], self.outline[:, 1]
+        gx = np.arange(xs.min() + step / 2, xs.max(), step)
+        gy = np.arange(ys.min() + step / 2, ys.max(), step)
+        pts = np.stack(np.meshgrid(gx, gy), -1).reshape(-1, 2)
+        inside = points_in_polygon(pts, self.outline)
+        dist, _ = polygon_distance(pts, self.outline)
+        return pts[inside & (dist >= inset)]
+
+    def _perimeter(self, step: float) -> tuple[np.ndarray, np.ndarray]:
+        """Points along the outline at ``step`` and their outward normals."""
+        a, b = self.outline, np.roll(self.outline, -1, axis=0)
+        pts, normals = [], []
+        for p, q in zip(a, b, strict=True):
+            seg = q - p
+            n = max(int(np.ceil(np.linalg.norm(seg) / step)), 1)
+            t = (np.arange(n) + 0.5) / n
+            pts.append(p + t[:, None] * seg)
+            normals.append(np.repeat([[seg[1], -seg[0]] / np.linalg.norm(seg)], n, axis=0))
+        return np.vstack(pts), np.vstack(normals)
+
+    def collocation_points(self) -> np.ndarray:
+        """Points on the robot's surface (robot frame) where no-slip is imposed ``(P, 3)``."""
+        h, t = self.spacing, self.thickness
+        face = self._face_grid(h, 0.0)
+        per, _ = self._perimeter(h)
+        levels = np.linspace(0.0, t, max(int(np.ceil(t / h)), 1) + 1)
+        body = [np.column_stack([face, np.zeros(len(face))]), np.column_stack([face, np.full(len(face), t)])]
+        body += [np.column_stack([per, np.full(len(per), z)]) for z in levels]
+        return self.to_frame(np.vstack(body))
+
+    def source_points(self) -> np.ndarray:
+        """Stokeslet positions inside the robot (robot frame) ``(M, 3)``."""
+        d, t = self.source_offset, self.thickness
+        step = self.source_step_ratio * self.spacing
+        face = self._face_grid(step, d)
+        per, normal = self._perimeter(step)
+        inner = per - d * normal
+        dist, _ = polygon_distance(inner, self.outline)
+        inner = inner[points_in_polygon(inner, self.outline) & (dist >= 0.8 * d)]  # drop points past sharp tips
+        mid = np.linspace(d, t - d, 3)
+        body = [np.column_stack([face, np.full(len(face), d)]), np.column_stack([face, np.full(len(face), t - d)])]
+        body += [np.column_stack([inner, np.full(len(inner), z)]) for z in mid]
+        return self.to_frame(np.vstack(body))

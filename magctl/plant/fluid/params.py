@@ -1,0 +1,60 @@
+"""Fluid and sphere parameters from ``models/`` in SI."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from magctl.config import load_model
+from magctl.core.errors import ParameterError
+
+GRAVITY = 9.80665
+"""Standard gravity [m/s²]."""
+
+
+def fluid_viscosity(fluid=None) -> float:
+    """Dynamic viscosity μ = ν ρ [Pa·s] from ``models/fluid.toml``."""
+    f = (fluid if fluid is not None else load_model("fluid")).fluid
+    mu = f.viscosity * f.density
+    if mu <= 0:
+        raise ParameterError(f"fluid viscosity {f.viscosity!r} m^2/s and density {f.density!r} kg/m^3 must be positive")
+    return float(mu)
+
+
+def fluid_density(fluid=None) -> float:
+    """Fluid density [kg/m³] from ``models/fluid.toml``."""
+    return float((fluid if fluid is not None else load_model("fluid")).fluid.density)
+
+
+@dataclass(frozen=True)
+class SphereParams:
+    """The sphere table of ``models/sphere.toml`` in SI (see that file for sources)."""
+
+    radius: float
+    density: float
+    roughness: float
+    adhesion_range: float
+    adhesion: bool
+    drag_mode: str
+    substeps: int
+    contact_tolerance: float
+    sticky_probability: float
+    sticky_mobility: float
+    release_scatter: float
+
+
+def sphere_params(p=None) -> SphereParams:
+    """Load and check ``models/sphere.toml``."""
+    p = p if p is not None else load_model("sphere")
+    s, v = p.sphere, p.variability
+    out = SphereParams(s.radius, s.density, s.roughness, s.adhesion_range, bool(s.adhesion), str(s.drag_mode),
+                       int(s.substeps), s.contact_tolerance, v.sticky_probability, v.sticky_mobility,
+                       v.release_scatter)
+    if out.radius <= 0 or out.roughness <= 0:
+        raise ParameterError(f"{p._path}: sphere radius and roughness must be positive")
+    if out.drag_mode not in ("paper", "accurate"):
+        raise ParameterError(f"{p._path}: sphere.drag_mode must be 'paper' or 'accurate', got {out.drag_mode!r}")
+    if out.substeps < 1:
+        raise ParameterError(f"{p._path}: sphere.substeps_count must be >= 1")
+    if not 0 <= out.sticky_probability <= 1:
+        raise ParameterError(f"{p._path}: variability.sticky_probability_ratio must lie in [0, 1]")
+    return out
