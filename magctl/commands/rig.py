@@ -38,6 +38,7 @@ def register(sub) -> None:
     r.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
     r.add_argument("--spheres", type=int, default=1, help="with --rig sim: number of spheres")
     r.add_argument("--fast", action="store_true", help="with --rig sim: run ticks back to back, not at 30 Hz")
+    r.add_argument("--reset", action="store_true", help="ask a simulated rig server to restart its scene")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--quiet", action="store_true")
     add_json(r)
@@ -99,7 +100,7 @@ def cmd_run(args) -> int:
     else:
         from magctl.rig.client import RigClient
 
-        rig = RigClient(args.rig)
+        rig = RigClient(args.rig, reset=args.reset)
         desc = {"kind": "RigClient", "address": args.rig}
     runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not (args.rig == "sim" and args.fast),
                       max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,

@@ -36,10 +36,13 @@ class RigClient(Rig):
         Seconds to wait for each reply.
     limits : RigLimits
         Client-side limits (the server enforces its own as well).
+    reset : bool
+        Ask a simulated rig to restart its scene on ``configure`` (real rigs ignore it).
     """
 
     def __init__(self, address: str, *, timeout: float | None = None, limits: RigLimits | None = None,
-                 params=None):
+                 params=None, reset: bool = False):
+        self.reset = reset
         params = params or load_model("rig")
         super().__init__(limits or RigLimits.from_params(params))
         self.address = address
@@ -100,7 +103,7 @@ class RigClient(Rig):
     # --- lifecycle hooks ------------------------------------------------------------------------
     def _configure(self) -> None:
         self.server_info = self.call("hello")
-        reply = self.call("configure")
+        reply = self.call("configure", reset=self.reset)
         self.n_spheres = int(reply["n_spheres"])
 
     def _activate(self) -> None:

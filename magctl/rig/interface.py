@@ -205,6 +205,8 @@ class RigLimits:
     def check(self, cmd: Command) -> np.ndarray:
         """Raise :class:`CommandRejected` naming the violated limit; return the coil currents."""
         tol = 1e-12
+        if not (np.all(np.isfinite(cmd.b_static)) and math.isfinite(cmd.b_osc) and math.isfinite(cmd.freq)):
+            raise CommandRejected(f"command is not finite: b_static={cmd.b_static}, b_osc={cmd.b_osc}, freq={cmd.freq}")
         bmag = math.hypot(*cmd.b_static)
         if bmag > self.b_static_max * (1 + 1e-9) + tol:
             raise CommandRejected(
@@ -225,10 +227,14 @@ class RigLimits:
         """The nearest command within the limits: field magnitudes scaled down, frequency clipped."""
         bs = cmd.b_static
         bmag = math.hypot(*bs)
-        # the current limit on the in-plane pair bounds each component
+        peak = max(abs(bs[0]), abs(bs[1]))
+        # the current limit on the in-plane pairs bounds each component
         i_lim = self.coils.current_max * 2 * self.coils.k_xy
-        scale = min(1.0, self.b_static_max / bmag if bmag > 0 else 1.0,
-                    i_lim / max(abs(bs[0]), abs(bs[1])) if bmag > 0 else 1.0)
+        scale = 1.0
+        if bmag > self.b_static_max:
+            scale = self.b_static_max / bmag
+        if peak * scale > i_lim:
+            scale = i_lim / peak
         bo_max = min(self.b_osc_max, self.coils.current_max * 2 * self.coils.k_z)
         return Command(bs * scale, min(max(cmd.b_osc, 0.0), bo_max), min(max(cmd.freq, 0.0), self.freq_max))
 

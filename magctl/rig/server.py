@@ -100,10 +100,11 @@ class RigServer:
                 "scene": self.describe}
 
     def _op_configure(self, doc):
-        self._need(Lifecycle.UNCONFIGURED, Lifecycle.INACTIVE, op="configure")
-        if self.plant is None or doc.get("reset", False):
+        # from any state: a new client takes over a rig left active by one that went away
+        if self.plant is None or doc.get("reset") is True:
             self.plant = SimPlant(self.factory, self.limits, self.watchdog, self.seed, self.period)
             self._next_frame = self.now() + self.period
+        self.plant.zero()
         self.state = Lifecycle.INACTIVE
         return {"state": self.state.value, "n_spheres": self.plant.n_spheres}
 

@@ -1,0 +1,142 @@
+"""The serve-sim subprocess: watchdog, hostile messages, server-side limits, losing the server."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+
+from magctl.config import load_model
+from magctl.rig import protocol as P
+from magctl.rig.client import RigClient
+from magctl.rig.interface import Command, Lifecycle, RigConnectionError, RigError
+
+PARAMS = load_model("rig")
+PERIOD = 1.0 / PARAMS.runtime.rate
+WATCHDOG = PARAMS.watchdog.timeout
+ROOT = Path(__file__).resolve().parents[2]
+
+
+class Raw:
+    """A bare REQ socket speaking to the server byte for byte."""
+
+    def __init__(self, address):
+        self.ctx = zmq.Context.instance()
+        self.sock = self.ctx.socket(zmq.REQ)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.RCVTIMEO, 3000)
+        self.sock.connect(address)
+        self.id = 0
+
+    def send_raw(self, raw: bytes) -> dict:
+        self.sock.send(raw)
+        return json.loads(self.sock.recv())
+
+    def op(self, op, **kw) -> dict:
+        self.id += 1
+        return self.send_raw(json.dumps(P.request(op, self.id, **kw)).encode())
+
+    def close(self):
+        self.sock.close(0)
+
+
+@pytest.fixture
+def raw(server):
+    r = Raw(server.address)
+    assert r.op("configure", reset=True)["ok"]
+    yield r
+    r.op("deactivate")
+    r.close()
+
+
+def moving():
+    return {"b_static_T": [3e-3, 0.0], "b_osc_T": 3e-3, "freq_Hz": 50.0}
+
+
+def test_watchdog_zeroes_the_coils_within_100_ms_plus_one_frame(raw):
+    assert raw.op("activate")["ok"]
+    reply = raw.op("write", cmd=moving())
+    t_sent = time.monotonic()
+    assert reply["ok"] and max(reply["currents_A"]) > 0
+    # go silent for commands; only watch
+    while True:
+        st = raw.op("status")
+        if st["coils_zero"]:
+            seen = time.monotonic() - t_sent
+            break
+        assert time.monotonic() - t_sent < 1.0, "coils never zeroed"
+        time.sleep(0.002)
+    assert st["watchdog_trips"] == 1
+    assert WATCHDOG <= st["watchdog_tripped_after_s"] <= WATCHDOG + PERIOD
+    assert seen <= WATCHDOG + PERIOD + 0.02  # + polling slack
+    assert st["state"] == "inactive" and "watchdog" in st["last_error"]
+    # the rig stays off until reactivated explicitly
+    r = raw.op("write", cmd=moving())
+    assert not r["ok"] and r["error"]["code"] == P.BAD_STATE
+    time.sleep(2 * PERIOD)
+    assert all(c == 0.0 for c in raw.op("read")["obs"]["currents_A"])
+
+
+@pytest.mark.parametrize("payload, code", [
+    (b"\x00\xffgarbage\x13", P.BAD_JSON),
+    (b'{"protocol": "magctl-rig", "version": 1, "id": 7, "op": "wri', P.BAD_JSON),
+    (b"x" * (P.MAX_MESSAGE_BYTES + 1000), P.TOO_LARGE),
+    (b'{"protocol": "magctl-rig", "version": 99, "id": 7, "op": "write"}', P.BAD_VERSION),
+    (b'{"protocol": "magctl-rig", "version": 1, "id": 7, "op": "write", '
+     b'"cmd": {"b_static_T": [NaN, 0], "b_osc_T": 0, "freq_Hz": 0}}', P.BAD_JSON),
+    (json.dumps(P.request("write", 7, cmd={"b_static_T": [0.005, 0.0], "b_osc_T": 0.0, "freq_Hz": 1e4})).encode(),
+     P.BAD_COMMAND),
+    (json.dumps(P.request("write", 7, cmd={"b_static_T": [0.0, 0.0], "b_osc_T": 0.05, "freq_Hz": 10})).encode(),
+     P.BAD_COMMAND),
+])
+def test_hostile_messages_get_errors_and_are_never_applied(raw, payload, code):
+    assert raw.op("activate")["ok"]
+    reply = raw.send_raw(payload)
+    assert reply["ok"] is False and reply["error"]["code"] == code and reply["error"]["message"]
+    # nothing was applied, and the server keeps serving
+    st = raw.op("status")
+    assert st["ok"] and st["coils_zero"]
+    assert raw.op("write", cmd=moving())["ok"]
+    assert raw.op("hello")["ok"]
+
+
+def test_server_enforces_current_limits_whatever_the_client_sends(start_server, tmp_path):
+    """Coils of 1 mT/A on a 1 A amplifier: a 5 mT command passes the 6 mT field limit but needs 2.5 A."""
+    text = (ROOT / "models" / "rig.toml").read_text()
+    text = text.replace("current_max_A = { value = 4.0,", "current_max_A = { value = 1.0,")
+    text = text.replace("xy_pair_field_at_max_mT = { value = 8.0,", "xy_pair_field_at_max_mT = { value = 2.0,")
+    (tmp_path / "rig.toml").write_text(text)
+    srv = start_server(env={"MAGCTL_MODELS": str(tmp_path)})
+    raw = Raw(srv.address)
+    assert raw.op("configure")["ok"] and raw.op("activate")["ok"]
+    assert raw.op("hello")["limits"]["current_max_A"] == 1.0
+    reply = raw.op("write", cmd={"b_static_T": [5e-3, 0.0], "b_osc_T": 0.0, "freq_Hz": 0.0})
+    assert not reply["ok"] and reply["error"]["code"] == P.BAD_COMMAND and "current" in reply["error"]["message"]
+    assert raw.op("status")["coils_zero"]
+    ok = raw.op("write", cmd={"b_static_T": [1.9e-3, 0.0], "b_osc_T": 0.0, "freq_Hz": 0.0})
+    # B = 2 k I with k = 1 mT/A
+    assert ok["ok"] and max(ok["currents_A"]) == pytest.approx(0.95, rel=1e-9)
+    raw.close()
+
+
+def test_killing_the_server_stops_the_client_with_a_clear_error(start_server):
+    srv = start_server()
+    rig = RigClient(srv.address, timeout=0.3)
+    rig.configure()
+    rig.activate()
+    rig.write(Command(np.array([3e-3, 0.0]), 3e-3, 50.0))
+    rig.read()
+    srv.kill()
+    t0 = time.monotonic()
+    with pytest.raises(RigConnectionError, match="did not answer"):
+        rig.read()
+    assert time.monotonic() - t0 < 1.0
+    # the client could not zero the coils itself: it says so and refuses to go on
+    assert rig.state is Lifecycle.ERROR and "zeroing" in rig.last_error
+    with pytest.raises(RigError):
+        rig.write(Command.zero())
+    rig.close()
