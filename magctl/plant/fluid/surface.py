@@ -71,12 +71,11 @@ def pull_off_range(radius: float, materials=None) -> PullOffRange:
     high end of oil and vice versa.
     """
     m = materials if materials is not None else load_model("materials")
-    try:
-        g1 = m.polystyrene.surface_energy
-        g2 = (m.glass.surface_energy_min, m.glass.surface_energy_max)
-        g3 = (m.silicone_oil.surface_energy_min, m.silicone_oil.surface_energy_max)
-    except ParameterError:
-        raise
+    g1 = m.polystyrene.surface_energy
+    g2 = (m.glass.surface_energy_min, m.glass.surface_energy_max)
+    g3 = (m.silicone_oil.surface_energy_min, m.silicone_oil.surface_energy_max)
+    if min(g1, *g2, *g3) <= 0:
+        raise ParameterError(f"{m._path}: surface energies must be positive")
     corners = [work_of_adhesion(g1, a, b) for a in g2 for b in g3]
     w_lo, w_hi = float(min(corners)), float(max(corners))
     return PullOffRange(w_lo, w_hi, float(jkr_pull_off(radius, w_lo)), float(jkr_pull_off(radius, w_hi)))

@@ -103,7 +103,7 @@ def far_coefficients(gap_ratio):
 @lru_cache(maxsize=1)
 def _table():
     t = load_model("wall_resistance").table
-    x = np.log(t.gap_ratio)
+    x = np.log(t.gap)
     return x, [PchipInterpolator(x, getattr(t, k)) for k in ("f_t", "f_r", "t_t", "t_r", "f_s", "t_s")]
 
 

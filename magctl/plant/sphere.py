@@ -1,0 +1,291 @@
+"""The Spheres block: micro-spheres on the glass moved by the robot's Stokes flow and by contact.
+
+Ports (docs/interfaces.md): inputs ``position`` (2,) m, ``heading`` () rad,
+``velocity`` (2,) m/s of the robot; outputs ``spheres`` (N, 2) m and ``contact``
+() bool (some sphere touched the robot during the last frame).
+
+Within a frame the robot's velocity is held (zero-order hold) and its path is
+split into sub-steps. Each sub-step
+
+1. looks up the robot's flow at every sphere centre (:mod:`magctl.plant.fluid.flow`:
+   map in the robot frame, scaled by the body-frame velocity, rotated back);
+2. moves each sphere with the inertia-free near-wall balance F_G = 0 of eq 4
+   (``V_p = k(δ) U``, :mod:`magctl.plant.fluid.wall_drag`), and its gap δ with the
+   vertical balance of eq 8-9 (buoyant weight, drag, adhesion P within ε);
+3. enforces non-penetration against the robot's footprint (including the concave
+   front face) and between spheres.
+
+Optional seeded per-trial variability (off by default, ``models/sphere.toml``):
+a sphere may sit on a sticky patch that scales its mobility (§VI-B, "stuck on a
+piece of dirt"), and a lognormal scatter of the mobility spreads the release
+displacement (§VI-A). The inertial form of eq 6-8 is :func:`integrate_inertial`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from magctl import FRAME_PERIOD_S
+from magctl.core.block import Block
+from magctl.core.errors import ParameterError, WiringError
+from magctl.core.ports import Port
+from magctl.plant.fluid import params as fluid_params
+from magctl.plant.fluid.flow import RobotFlow, robot_flow
+from magctl.plant.fluid.geometry import RobotGeometry, points_in_polygon, polygon_distance
+from magctl.plant.fluid.params import GRAVITY, SphereParams, fluid_viscosity, sphere_params
+from magctl.plant.fluid.surface import pull_off_range
+from magctl.plant.fluid.wall_drag import mobility
+
+InitialPositions = np.ndarray | Callable[[int, object], np.ndarray]
+
+
+def _rot(theta):
+    c, s = np.cos(theta), np.sin(theta)
+    return c, s
+
+
+def to_body(xy, origin, heading):
+    """World points ``(B, N, 2)`` → robot frame given robot ``origin (B, 2)`` and ``heading (B,)``."""
+    c, s = _rot(heading)
+    d = xy - origin[:, None, :]
+    return np.stack([c[:, None] * d[..., 0] + s[:, None] * d[..., 1],
+                     -s[:, None] * d[..., 0] + c[:, None] * d[..., 1]], axis=-1)
+
+
+def to_world(v, heading):
+    """Rotate robot-frame vectors ``(B, N, 2)`` into the world frame."""
+    c, s = _rot(heading)
+    return np.stack([c[:, None] * v[..., 0] - s[:, None] * v[..., 1],
+                     s[:, None] * v[..., 0] + c[:, None] * v[..., 1]], axis=-1)
+
+
+def push_out_of_outline(rel: np.ndarray, outline: np.ndarray, radius: float, iterations: int = 3):
+    """Move circle centres ``rel (..., 2)`` (robot frame) so circles of ``radius`` do not overlap ``outline``.
+
+    Returns the corrected centres and a bool array of which ones were in contact.
+    Several passes settle a sphere wedged in the concave front face.
+    """
+    touched = np.zeros(rel.shape[:-1], bool)
+    for _ in range(iterations):
+        dist, nearest = polygon_distance(rel, outline)
+        inside = points_in_polygon(rel, outline)
+        hit = inside | (dist < radius * (1 - 1e-9))
+        if not hit.any():
+            break
+        touched |= hit
+        d = rel[hit] - nearest[hit]
+        n = d / np.maximum(dist[hit], 1e-15)[:, None]
+        n[inside[hit]] *= -1.0
+        rel = rel.copy()
+        rel[hit] = nearest[hit] + n * radius
+    return rel, touched
+
+
+def separate_spheres(xy: np.ndarray, radius: float, iterations: int = 3) -> np.ndarray:
+    """Push overlapping spheres ``(B, N, 2)`` apart along their centre line, half each."""
+    n = xy.shape[1]
+    if n < 2:
+        return xy
+    i, j = np.triu_indices(n, 1)
+    for _ in range(iterations):
+        d = xy[:, j] - xy[:, i]
+        dist = np.linalg.norm(d, axis=-1)
+        overlap = 2 * radius - dist
+        if not np.any(overlap > 0):
+            break
+        unit = d / np.maximum(dist, 1e-15)[..., None]
+        corr = 0.5 * np.where(overlap > 0, overlap, 0.0)[..., None] * unit
+        xy = xy.copy()
+        np.add.at(xy, (slice(None), i), -corr)
+        np.add.at(xy, (slice(None), j), corr)
+    return xy
+
+
+class Spheres(Block):
+    """N micro-spheres on the glass, driven by the robot's flow and by contact.
+
+    Parameters
+    ----------
+    initial_positions : array (N, 2) or (B, N, 2), or callable ``(batch, rng) -> (B, N, 2)``
+        Sphere centres at step 0 [m].
+    name : str
+    params : SphereParams, optional
+        ``models/sphere.toml`` by default.
+    geometry : RobotGeometry, optional
+        ``models/robot_geometry.toml`` by default.
+    viscosity, fluid_density : float, optional
+        From ``models/fluid.toml`` by default.
+    drag_mode : {"paper", "accurate"}, optional
+        Overrides ``params.drag_mode``.
+    roughness : float, optional
+        Overrides ε (a calibration knob; see docs/fluid.md).
+    dt : float
+        Frame period [s].
+    """
+
+    def __init__(self, initial_positions: InitialPositions, name: str = "spheres", *,
+                 params: SphereParams | None = None, geometry: RobotGeometry | None = None,
+                 viscosity: float | None = None, fluid_density: float | None = None,
+                 drag_mode: str | None = None, roughness: float | None = None, dt: float = FRAME_PERIOD_S):
+        self.params = params if params is not None else sphere_params()
+        self.init = initial_positions
+        n = self._count(initial_positions)
+        super().__init__(name, inputs=[Port("position", (2,), "m"), Port("heading", (), "rad"),
+                                       Port("velocity", (2,), "m/s")],
+                         outputs=[Port("spheres", (n, 2), "m"), Port("contact", (), "1", "bool")],
+                         dt=dt, feedthrough=False)
+        self.n = n
+        self.geometry = geometry if geometry is not None else RobotGeometry.from_params()
+        self.viscosity = float(viscosity) if viscosity is not None else fluid_viscosity()
+        rho_f = float(fluid_density) if fluid_density is not None else fluid_params.fluid_density()
+        self.mode = drag_mode if drag_mode is not None else self.params.drag_mode
+        if self.mode not in ("paper", "accurate"):
+            raise ParameterError(f"drag_mode must be 'paper' or 'accurate', got {self.mode!r}")
+        self.roughness = float(roughness) if roughness is not None else self.params.roughness
+        if self.roughness <= 0:
+            raise ParameterError(f"roughness must be positive, got {self.roughness!r} m")
+        r = self.params.radius
+        self.radius = r
+        volume = 4.0 / 3.0 * np.pi * r**3
+        self.buoyant_weight = (self.params.density - rho_f) * volume * GRAVITY       # W_b, eq 8
+        self.pull_off = pull_off_range(r).p_min if self.params.adhesion else 0.0    # P, eq 3 (low end)
+        self.zeta = 6 * np.pi * self.viscosity * r                                    # eq 9 drag coefficient
+        self.footprint = self.geometry.footprint
+        self.reach = float(np.linalg.norm(self.footprint, axis=1).max()) + r
+        self._flow: RobotFlow | None = None
+
+    @staticmethod
+    def _count(init) -> int:
+        if callable(init):
+            probe = np.asarray(init(1, None))
+            if probe.ndim != 3 or probe.shape[-1] != 2:
+                raise WiringError(f"initial_positions callable must return (B, N, 2), got {probe.shape}")
+            return probe.shape[1]
+        arr = np.asarray(init, float)
+        if arr.ndim not in (2, 3) or arr.shape[-1] != 2 or arr.shape[-2] < 1:
+            raise WiringError(f"initial_positions must be (N, 2) or (B, N, 2) metres, got shape {arr.shape}")
+        return arr.shape[-2]
+
+    @property
+    def flow(self) -> RobotFlow:
+        """The robot's cached flow at the sphere-centre height (solved on first use)."""
+        if self._flow is None:
+            self._flow = robot_flow(self.geometry, self.viscosity, self.radius + self.roughness)
+        return self._flow
+
+    @property
+    def uses_random(self) -> bool:
+        p = self.params
+        return p.sticky_probability > 0 or p.release_scatter > 0
+
+    # --- state ------------------------------------------------------------------------------
+    def initial_state(self, batch: int, rng=None) -> dict:
+        init = self.init(batch, rng) if callable(self.init) else self.init
+        xy = np.broadcast_to(np.asarray(init, float), (batch, self.n, 2)).copy()
+        if not np.all(np.isfinite(xy)):
+            raise WiringError(f"block {self.name!r}: initial sphere positions must be finite")
+        mult = np.ones((batch, self.n))
+        p = self.params
+        if rng is not None and self.uses_random:
+            if p.sticky_probability > 0:
+                sticky = rng.random((self.n,)) < p.sticky_probability
+                mult = np.where(sticky, p.sticky_mobility, mult)
+            if p.release_scatter > 0:
+                sig = np.sqrt(np.log1p(p.release_scatter**2))
+                mult = mult * np.exp(sig * rng.standard_normal((self.n,)) - 0.5 * sig**2)
+        xy = separate_spheres(xy, self.radius)
+        return {"xy": xy, "gap": np.zeros((batch, self.n)), "mobility": mult,
+                "contact": np.zeros(batch, bool)}
+
+    def output(self, state, u):
+        return {"spheres": state["xy"].copy(), "contact": state["contact"].copy()}
+
+    # --- physics ----------------------------------------------------------------------------
+    def sphere_velocity(self, xy, gap, mult, pos, heading, vel):
+        """In-plane sphere velocity ``(B, N, 2)`` and gap rate ``(B, N)`` for the robot state given."""
+        rel = to_body(xy, pos, heading)
+        c, s = _rot(heading)
+        vb = np.stack([c * vel[:, 0] + s * vel[:, 1], -s * vel[:, 0] + c * vel[:, 1]], axis=-1)
+        u = self.flow.lookup(rel, np.broadcast_to(vb[:, None, :], rel.shape))
+        u_xy = to_world(u[..., :2], heading)
+        k = mobility(self.mode, self.radius, gap, self.roughness) * mult
+        pull = np.where(gap <= self.params.adhesion_range, self.pull_off, 0.0)
+        gap_rate = u[..., 2] - (self.buoyant_weight + pull) / self.zeta
+        return k[..., None] * u_xy, gap_rate
+
+    def update(self, state, u):
+        pos = np.asarray(u["position"], float)
+        heading = np.asarray(u["heading"], float)
+        vel = np.asarray(u["velocity"], float)
+        xy, gap, mult = state["xy"].copy(), state["gap"].copy(), state["mobility"]
+        n_sub = self.params.substeps
+        tau = self.dt / n_sub
+        contact = np.zeros(len(pos), bool)
+        for k in range(n_sub):
+            p_mid = pos + vel * (k + 0.5) * tau
+            v_xy, g_rate = self.sphere_velocity(xy, gap, mult, p_mid, heading, vel)
+            xy += v_xy * tau
+            gap = np.maximum(gap + g_rate * tau, 0.0)
+            p_end = pos + vel * (k + 1) * tau
+            xy, touched = self._contacts(xy, p_end, heading)
+            contact |= touched
+        return {"xy": xy, "gap": gap, "mobility": mult, "contact": contact}
+
+    def _contacts(self, xy, pos, heading):
+        touched = np.zeros(len(xy), bool)
+        near = np.linalg.norm(xy - pos[:, None, :], axis=-1) < self.reach
+        if near.any():
+            b = np.nonzero(near.any(axis=1))[0]
+            rel = to_body(xy[b], pos[b], heading[b])
+            rel2, hit = push_out_of_outline(rel, self.footprint, self.radius)
+            if hit.any():
+                xy = xy.copy()
+                xy[b] = pos[b, None, :] + to_world(rel2, heading[b])
+                touched[b] = hit.any(axis=1)
+        if self.n > 1:
+            xy = separate_spheres(xy, self.radius)
+        return xy, touched
+
+
+def integrate_inertial(block: Spheres, start: np.ndarray, robot_path: Callable[[float], tuple], t_end: float,
+                       rtol: float = 1e-6, atol: float = 1e-10):
+    """One sphere under eq 6-7 with inertia, integrated with a stiff solver (scipy BDF).
+
+    ``m dV/dt = F_G(U, V) = 6πμR c (k U - V)`` where ``c = -(F*_trans + (ΩR/V) F*_rot)`` is the
+    resistance of eq 4-5 at contact and ``k`` the block's mobility V_p/U (so the inertia-free
+    limit is exactly the block's Stokes mode); the gap is held at zero (W_b > 0 keeps the
+    sphere on the glass). No contact handling.
+
+    Parameters
+    ----------
+    robot_path : callable ``t -> (position (2,), heading, velocity (2,))``
+    Returns
+    -------
+    t : ndarray, xy : ndarray (T, 2)
+    """
+    from magctl.plant.fluid.wall_drag import paper_coefficients, paper_rotation_ratio
+
+    r = block.radius
+    mass = block.params.density * 4.0 / 3.0 * np.pi * r**3
+    _, f_trans, f_rot = paper_coefficients(r, 0.0, block.roughness)
+    resist = -(f_trans + paper_rotation_ratio(r, r + block.roughness) * f_rot)   # > 0
+    k = float(mobility(block.mode, r, 0.0, block.roughness))
+
+    def rhs(t, y):
+        pos, heading, vel = robot_path(t)
+        rel = to_body(y[None, None, :2], np.asarray(pos, float)[None], np.asarray([heading], float))
+        c, s = _rot(heading)
+        vb = np.array([[c * vel[0] + s * vel[1], -s * vel[0] + c * vel[1]]])
+        u = block.flow.lookup(rel, vb[:, None, :])
+        u_xy = to_world(u[..., :2], np.asarray([heading], float))[0, 0]
+        force = block.zeta * resist * (k * u_xy - y[2:])
+        return np.concatenate([y[2:], force / mass])
+
+    sol = solve_ivp(rhs, (0.0, t_end), np.concatenate([np.asarray(start, float), [0.0, 0.0]]), method="BDF",
+                    rtol=rtol, atol=atol, dense_output=True)
+    if not sol.success:
+        raise RuntimeError(f"inertial sphere integration failed: {sol.message}")
+    return sol.t, sol.y[:2].T
