@@ -117,3 +117,157 @@ def check_positive(name: str, value: float, allow_zero: bool = False) -> float:
     if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
         raise MagctlError(f"{name}={value!r} must be {'non-negative' if allow_zero else 'positive'} and finite")
     return v
+
+
+def rotate(v: np.ndarray, angle) -> np.ndarray:
+    """Rotate 2-vectors ``v`` (…, 2) by ``angle`` (scalar or per row) counter-clockwise."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """z-component of the 2-D cross product."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def around(robot: np.ndarray, obstacle: np.ndarray, target: np.ndarray, clearance, step=np.pi / 4) -> np.ndarray:
+    """Next waypoint from ``robot`` to ``target`` that keeps ``clearance`` from ``obstacle``.
+
+    Where the straight segment enters the disc of radius ``clearance`` around the
+    obstacle (and the target is outside it), the waypoint is on a slightly larger
+    circle, ``step`` radians further round from the robot's bearing, turning the short
+    way towards the target's bearing; otherwise the target itself. Stateless and
+    batched: called every frame it walks the robot round the disc (a minimal stand-in
+    for the paper's wavefront planner, §II).
+    """
+    d = target - robot
+    rel = obstacle - robot
+    dd = np.einsum("bi,bi->b", d, d)
+    t = np.clip(np.einsum("bi,bi->b", rel, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+    closest = norm(robot + t[:, None] * d - obstacle)
+    blocked = (closest < clearance) & (norm(target - obstacle) >= clearance)
+    a_r = np.arctan2(robot[:, 1] - obstacle[:, 1], robot[:, 0] - obstacle[:, 0])
+    a_t = np.arctan2(target[:, 1] - obstacle[:, 1], target[:, 0] - obstacle[:, 0])
+    diff = (a_t - a_r + np.pi) % (2 * np.pi) - np.pi
+    a = a_r + np.sign(diff) * np.minimum(np.abs(diff), step)
+    wp = obstacle + (1.08 * np.asarray(clearance))[..., None] * np.stack([np.cos(a), np.sin(a)], axis=-1)
+    return np.where(blocked[:, None], wp, target)
+
+
+# --- the batched attempt-level state machine shared by every push task ---------------------------
+START = 0
+DONE = 99
+
+
+class PushTask:
+    """Mix-in with the machinery every push task shares (ports, failures, hold, caching).
+
+    Subclasses are :class:`~magctl.core.block.Block` s that define ``PHASES`` and
+    ``_step(st, new, r, spheres, ok)``, which reads the frame's measurements and
+    writes the next phase, targets and law state into ``new`` (a shallow copy of the
+    state) for the trials in ``ok`` (running, tracked, sphere found).
+
+    Status handling: a trial whose tracker reports ``lost`` for more than
+    ``max_lost_frames`` consecutive frames ends with ``TRACKING_LOST``; one whose
+    sphere estimate is missing (non-finite) or beyond ``workspace`` from its goal ends
+    with ``SPHERE_LOST``; one stuck in a phase for ``phase_timeout_frames`` ends with
+    ``STALLED``. Finished trials hold the robot where it was.
+    """
+
+    def _ports(self, n_spheres: int):
+        from magctl.core.ports import Port
+
+        ins = [Port("robot_est", (2,), "m"), Port("spheres_est", (n_spheres, 2), "m"),
+               Port("lost", (), "1", "bool")]
+        outs = [Port("target", (2,), "m"), Port("speed_cap", (), "m/s"), Port("status", (), "1", "int64"),
+                Port("attempt", (), "1", "int64"), Port("phase", (), "1", "int64"),
+                Port("correction", (), "m")]
+        return ins, outs
+
+    def _common_state(self, batch: int) -> dict:
+        return {
+            "phase": np.full(batch, START, dtype=np.int64),
+            "status": np.full(batch, RUNNING, dtype=np.int64),
+            "attempt": np.zeros(batch, dtype=np.int64),
+            "frames": np.zeros(batch, dtype=np.int64),
+            "lost_frames": np.zeros(batch, dtype=np.int64),
+            "target": np.full((batch, 2), np.nan),
+            "speed": np.zeros(batch),
+            "law": self.law.initial_state(batch),
+        }
+
+    def output(self, state, u):
+        out, new = self._frame(state, u)
+        state["_cache"] = (u["robot_est"], u["spheres_est"], new)
+        return out
+
+    def update(self, state, u):
+        cache = state.pop("_cache", None)
+        if cache is not None and cache[0] is u["robot_est"] and cache[1] is u["spheres_est"]:
+            new = cache[2]
+        else:
+            new = self._frame(state, u)[1]
+        state.update(new)
+        return state
+
+    def _frame(self, state, u):
+        r = np.asarray(u["robot_est"], dtype=float)
+        spheres = np.asarray(u["spheres_est"], dtype=float)
+        lost = np.asarray(u["lost"], dtype=bool)
+        new = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in state.items() if k != "_cache"}
+        new["law"] = dict(state["law"])
+        running = new["status"] == RUNNING
+        new["lost_frames"] = np.where(running & lost, new["lost_frames"] + 1, 0)
+        new["frames"] = np.where(running, new["frames"] + 1, new["frames"])
+        self._fail(new, running & (new["lost_frames"] > self.max_lost_frames), TRACKING_LOST, r)
+        running = new["status"] == RUNNING
+        found = self._spheres_found(new, spheres)
+        self._fail(new, running & ~lost & ~found, SPHERE_LOST, r)
+        running = new["status"] == RUNNING
+        self._fail(new, running & (new["frames"] > self.phase_timeout_frames), STALLED, r)
+        ok = (new["status"] == RUNNING) & ~lost
+        if ok.any():
+            self._step(state, new, r, spheres, ok)
+        done = new["status"] != RUNNING
+        new["phase"] = np.where(done, DONE, new["phase"])
+        target = np.where(np.isnan(new["target"]), r, new["target"])
+        speed = np.where(done, 0.0, new["speed"])
+        out = {
+            "target": target, "speed_cap": speed, "status": new["status"].copy(),
+            "attempt": new["attempt"].copy(), "phase": new["phase"].copy(),
+            "correction": self.law.output(new["law"], {})["y"].copy(),
+        }
+        return out, new
+
+    def _fail(self, new, mask, code, r):
+        if mask.any():
+            new["status"] = np.where(mask, code, new["status"])
+            new["target"] = np.where(mask[:, None], r, new["target"])
+
+    def _spheres_found(self, new, spheres) -> np.ndarray:
+        idx = list(self.sphere_indices)
+        s = spheres[:, idx]
+        finite = np.isfinite(s).all(axis=(1, 2))
+        far = norm(spheres[:, idx[0]] - new["goal"]) > self.workspace if "goal" in new else False
+        return finite & ~far
+
+    def _enter(self, new, mask, phase):
+        new["phase"] = np.where(mask, phase, new["phase"])
+        new["frames"] = np.where(mask, 0, new["frames"])
+
+    def _finish_attempt(self, new, mask, converged):
+        """Count the attempt; converged or limit reached ends the trial. Returns trials that go on."""
+        new["attempt"] = np.where(mask, new["attempt"] + 1, new["attempt"])
+        conv = mask & converged
+        limit = mask & ~converged & (new["attempt"] >= self.max_attempts)
+        new["status"] = np.where(conv, CONVERGED, np.where(limit, ATTEMPT_LIMIT, new["status"]))
+        return mask & ~conv & ~limit
+
+
+STALLED = 5
+STATUS_NAMES[STALLED] = "stalled"
+
+
+def arrived(r: np.ndarray, target: np.ndarray, tol: float) -> np.ndarray:
+    """Robot within ``tol`` of its target."""
+    return norm(r - target) < tol
