@@ -1,0 +1,134 @@
+"""Run logs: crash safety, replay bit for bit, export, and the ``magctl log`` commands."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+
+import h5py
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from conftest import ROOT, magctl_cmd
+
+from magctl.cli import main
+from magctl.rig.log import LogError, RunLogWriter, columns, export, read_log, replay
+from magctl.rig.runtime import Runtime
+from magctl.rig.sim import SimRig
+
+
+@pytest.fixture(scope="module")
+def push_log(tmp_path_factory):
+    path = tmp_path_factory.mktemp("logs") / "push.jsonl"
+    report = Runtime(SimRig(n_spheres=1), "front-push", {}, log_path=path, realtime=False, max_ticks=900,
+                     quiet=True).run()
+    assert report.exit_status == "done"
+    return path
+
+
+def test_log_documents_in_order(push_log):
+    lines = [json.loads(x) for x in push_log.read_text().splitlines()]
+    kinds = [d["doc"] for d in lines]
+    assert kinds[0] == "start" and kinds[1] == "descriptor" and kinds[-1] == "stop"
+    assert set(kinds[2:-1]) == {"event"}
+    assert [d["seq"] for d in lines[2:-1]] == list(range(len(lines) - 3))
+    assert lines[-1]["exit_status"] == "done" and lines[-1]["n_events"] == len(lines) - 3
+    fields = lines[1]["fields"]
+    assert fields["obs.spheres_est_m"] == {"shape": [1, 2], "unit": "m"} and fields["cmd.b_osc_T"]["unit"] == "T"
+
+
+def test_replay_reproduces_the_commands_bit_for_bit(push_log):
+    res = replay(push_log)
+    assert res.identical and res.compared == 2 * res.events
+
+
+def test_replay_detects_a_one_ulp_change(push_log, tmp_path):
+    lines = push_log.read_text().splitlines()
+    ev = json.loads(lines[20])
+    ev["cmd"]["b_osc_T"] = float(np.nextafter(ev["cmd"]["b_osc_T"], 1.0))
+    lines[20] = json.dumps(ev)
+    bad = tmp_path / "tampered.jsonl"
+    bad.write_text("\n".join(lines) + "\n")
+    res = replay(bad)
+    assert not res.identical and res.mismatches == 1 and res.first_mismatch["seq"] == ev["seq"]
+
+
+def test_sigkill_mid_run_leaves_a_log_that_reads_back_to_the_last_flushed_frame(tmp_path):
+    log = tmp_path / "killed.jsonl"
+    proc = subprocess.Popen(magctl_cmd("rig", "run", "--rig", "sim", "--task", "goto", "--target-um", "4000", "0",
+                                       "--log", str(log), "--quiet"), cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and (not log.exists() or log.read_text().count('"event"') < 15):
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=10)
+    flushed = log.read_text()
+    n_lines = flushed.count("\n")
+    run = read_log(log)
+    assert run.crashed and run.stop is None
+    assert len(run.events) >= 15 and len(run.events) == n_lines - 2
+    assert [e["seq"] for e in run.events] == list(range(len(run.events)))
+    assert replay(log).identical
+
+
+def test_a_torn_last_line_is_dropped_and_the_rest_reads(push_log, tmp_path):
+    text = push_log.read_text()
+    lines = text.splitlines(keepends=True)
+    torn = tmp_path / "torn.jsonl"
+    torn.write_text("".join(lines[:12]) + lines[12][: len(lines[12]) // 2])
+    run = read_log(torn)
+    assert run.torn_tail and run.crashed and len(run.events) == 10
+
+
+def test_logs_are_never_overwritten_and_bad_logs_are_named(push_log, tmp_path):
+    with pytest.raises(LogError, match="never overwritten"):
+        RunLogWriter(push_log)
+    junk = tmp_path / "junk.jsonl"
+    junk.write_text('{"doc": "start", "format": "magctl-runlog/1"}\nnot json\n')
+    with pytest.raises(LogError, match="junk.jsonl:2"):
+        read_log(junk)
+    other = tmp_path / "other.jsonl"
+    other.write_text('{"hello": 1}\n')
+    with pytest.raises(LogError, match="not a magctl run log"):
+        read_log(other)
+
+
+@pytest.mark.parametrize("suffix", [".parquet", ".h5"])
+def test_export_keeps_every_value(push_log, tmp_path, suffix):
+    out = export(push_log, tmp_path / f"run{suffix}")
+    run = read_log(push_log)
+    if suffix == ".parquet":
+        table = pq.read_table(out)
+        got = {k: table.column(k).to_numpy() for k in table.column_names}
+        meta = json.loads(table.schema.metadata[b"start"])
+    else:
+        with h5py.File(out) as f:
+            got = {k: f["events"][k][()] for k in f["events"]}
+            meta = json.loads(f.attrs["start"])
+    assert meta["task"] == "front-push"
+    assert len(got["seq"]) == len(run.events)
+    np.testing.assert_array_equal(got["sphere0_x_m"], [e["obs"]["spheres_est_m"][0][0] for e in run.events])
+    np.testing.assert_array_equal(got["cmd_b_osc_T"], [e["cmd"]["b_osc_T"] for e in run.events])
+    assert set(got) == set(columns(run))
+    with pytest.raises(LogError, match="unknown export format"):
+        export(push_log, tmp_path / "run.csv")
+
+
+def test_log_commands(push_log, tmp_path, capsys):
+    def run(*args):
+        code = main(["log", *args])
+        cap = capsys.readouterr()
+        return code, cap.out, cap.err
+
+    code, out, _ = run("show", str(push_log), "--json")
+    doc = json.loads(out)
+    assert code == 0 and doc["exit_status"] == "done" and doc["task"] == "front-push"
+    code, out, _ = run("replay", str(push_log), "--json")
+    assert code == 0 and json.loads(out)["identical"] is True
+    code, out, _ = run("export", str(push_log), "--out", str(tmp_path / "x.parquet"), "--json")
+    assert code == 0 and (tmp_path / "x.parquet").exists()
+    code, _, err = run("show", str(tmp_path / "missing.jsonl"))
+    assert code == 2 and "no such run log" in err

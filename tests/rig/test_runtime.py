@@ -1,0 +1,124 @@
+"""The 30 Hz runtime: tasks converge, overruns are skipped not replayed, loss stops the robot, signals stop safely."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+
+import numpy as np
+import pytest
+from conftest import ROOT, magctl_cmd
+
+from magctl.config import load_model
+from magctl.rig.client import RigClient
+from magctl.rig.log import read_log, replay
+from magctl.rig.plant import Scene, build_sim_plant
+from magctl.rig.runtime import Runtime
+from magctl.rig.sim import SimRig
+from magctl.rig.tasks import TaskError
+
+PARAMS = load_model("rig")
+PERIOD = 1.0 / PARAMS.runtime.rate
+EPS_P = 75e-6  # paper §VI-A
+
+
+def test_goto_reaches_its_target_on_the_sim_rig():
+    rig = SimRig(n_spheres=0)
+    report = Runtime(rig, "goto", {"target_um": [800.0, -600.0]}, realtime=False, max_ticks=600, quiet=True).run()
+    assert report.exit_status == "done"
+    robot = np.array(report.final["robot_um"]) * 1e-6
+    assert np.hypot(*(robot - [800e-6, -600e-6])) < PARAMS.servo.arrive_tol
+    # 1 mm at no more than the speed limit takes at least 1 mm / v_max
+    assert report.ticks * PERIOD >= 1e-3 / PARAMS.servo.speed_max
+    assert rig.state.value == "inactive"
+
+
+def test_front_push_completes_through_the_server(start_server, tmp_path):
+    srv = start_server()
+    log = tmp_path / "push.jsonl"
+    rig = RigClient(srv.address, reset=True)
+    report = Runtime(rig, "front-push", {}, log_path=log, realtime=True, duration=20.0, quiet=True).run()
+    rig.close()
+    assert report.exit_status == "done", report.reason
+    # the paper's setting: goal 750 µm beyond the sphere that starts 1 mm ahead of the robot, ε_p = 75 µm
+    goal = np.array([1000e-6 + 750e-6, 0.0])
+    sphere = np.array(report.final["spheres_um"][0]) * 1e-6
+    assert np.hypot(*(sphere - goal)) < EPS_P
+    assert report.overruns == 0
+    assert replay(log).identical
+
+
+class SlowRig(SimRig):
+    """A real-time SimRig whose read stalls once, long enough to miss ticks."""
+
+    def __init__(self, stall_tick: int, stall: float):
+        super().__init__(n_spheres=0, realtime=True)
+        self.reads, self.stall_tick, self.stall = 0, stall_tick, stall
+
+    def _read(self):
+        self.reads += 1
+        if self.reads == self.stall_tick + 2:  # +1 for the runtime's first read, +1 for 1-based counting
+            time.sleep(self.stall)
+        return super()._read()
+
+
+def test_overruns_skip_ticks_count_them_and_never_replay(tmp_path, capsys):
+    log = tmp_path / "slow.jsonl"
+    # 1.6 frames: long enough to miss tick 6, short enough for the 100 ms watchdog
+    stall = 1.6 * PERIOD
+    rig = SlowRig(stall_tick=5, stall=stall)
+    report = Runtime(rig, "goto", {"target_um": [2000.0, 0.0]}, log_path=log, realtime=True, max_ticks=20).run()
+    events = read_log(log).events
+    sched = np.array([e["timing"]["scheduled_s"] for e in events])
+    k = np.rint(sched / PERIOD).astype(int)
+    # ticks stay on the grid t0 + k T; tick 5 ends after 6 T, so tick 6 is skipped, not run late
+    np.testing.assert_allclose(sched, k * PERIOD, atol=1e-9)
+    assert report.exit_status == "stopped" and report.overruns == 1
+    assert k[5] == 5 and k[6] == 7 and events[6]["timing"]["skipped"] == 1
+    assert len(events) == 20 and np.sum(np.diff(k) - 1) == report.overruns
+    assert "overrun" in capsys.readouterr().err
+
+
+def test_tracking_loss_stops_the_robot_and_ends_the_run(tmp_path):
+    scene = Scene(blackout=(0.5, 100.0))
+    rig = SimRig(lambda: build_sim_plant(0, scene), realtime=False)
+    log = tmp_path / "lost.jsonl"
+    report = Runtime(rig, "goto", {"target_um": [3000.0, 0.0]}, log_path=log, realtime=False, max_ticks=300,
+                     quiet=True).run()
+    assert report.exit_status == "tracking-lost"
+    events = read_log(log).events
+    lost = [e for e in events if e["obs"]["lost"]]
+    assert lost and all(e["cmd"]["b_osc_T"] == 0.0 and e["cmd"]["freq_Hz"] == 0.0 for e in lost)
+    moving = [e for e in events if not e["obs"]["lost"]]
+    assert any(e["cmd"]["b_osc_T"] > 0 for e in moving)
+    # stopped after lost_timeout of continuous loss, not earlier
+    assert lost[-1]["obs"]["t_s"] - lost[0]["obs"]["t_s"] == pytest.approx(PARAMS.runtime.lost_timeout, abs=PERIOD)
+    assert lost[-1]["outputs"]["status"] == 3.0
+
+
+def test_unknown_task_is_a_clear_error():
+    rig = SimRig(n_spheres=0)
+    with pytest.raises(TaskError, match="available: .*goto"):
+        Runtime(rig, "juggle", {}, realtime=False, quiet=True).run()
+    assert rig.state.value == "inactive"
+
+
+def test_sigterm_stops_the_run_safely_and_the_server_sees_the_coils_zeroed(start_server, tmp_path):
+    srv = start_server()
+    log = tmp_path / "term.jsonl"
+    proc = subprocess.Popen(magctl_cmd("rig", "run", "--rig", srv.address, "--reset", "--task", "goto",
+                                       "--target-um", "4000", "0", "--log", str(log), "--json", "--quiet"),
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and (not log.exists() or log.read_text().count('"event"') < 10):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=10)
+    doc = json.loads(out)
+    assert doc["exit_status"] == "aborted" and "SIGTERM" in doc["reason"]
+    run = read_log(log)
+    assert run.stop["exit_status"] == "aborted" and run.stop["n_events"] == len(run.events)
+    st = RigClient(srv.address).call("status")
+    assert st["state"] == "inactive" and st["coils_zero"] and st["watchdog_trips"] == 0
