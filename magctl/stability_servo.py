@@ -162,7 +162,8 @@ def analyse(kp: float, ki: float, delay_frames: int, dt: float = FRAME_PERIOD_S)
     cl = closed_loop(kp, ki, delay_frames, dt)
     poles = np.asarray(cl.poles(), dtype=complex)
     stable = bool(np.all(np.abs(poles) < 1.0 - 1e-12))
-    gm, pm, wpc, wgc = control.margin(loop_transfer(kp, ki, delay_frames, dt))
+    with np.errstate(divide="ignore", invalid="ignore"):  # frequency response at the integrator poles
+        gm, pm, wpc, wgc = control.margin(loop_transfer(kp, ki, delay_frames, dt))
     overshoot, settling = _step_metrics(cl, dt) if stable else (float("inf"), float("inf"))
     return ServoLoopReport(
         kp=float(kp), ki=float(ki), delay_frames=int(delay_frames), poles=poles, stable=stable,
@@ -224,6 +225,9 @@ def servo_step_diagram(servo, *, delay_frames: int, start=(1.0e-3, 1.0e-3), trac
         Camera latency.
     tracker_mode : {"raw", "kalman"}
         ``predict=True`` makes the Kalman tracker extrapolate across the latency.
+
+    The camera starts primed (the robot has been at rest at ``start``), as the linear
+    model's delay line starts at the initial position.
     """
     from magctl.control.tracker import Tracker
     from magctl.plant.camera import Camera
@@ -231,7 +235,8 @@ def servo_step_diagram(servo, *, delay_frames: int, start=(1.0e-3, 1.0e-3), trac
     n = int(np.asarray(spheres).reshape(-1, 2).shape[0])
     robot = KinematicRobot("robot", start=start, spheres=spheres, dt=dt)
     cam = Camera("camera", n_spheres=n, latency_frames=delay_frames, position_noise_px=position_noise_px,
-                 heading_noise=heading_noise, drop_probability=drop_probability, pixel_size=pixel_size, dt=dt)
+                 heading_noise=heading_noise, drop_probability=drop_probability, pixel_size=pixel_size,
+                 primed=(start, 0.0, robot.spheres), dt=dt)
     trk = Tracker("tracker", n_spheres=n, mode=tracker_mode, predict_frames=delay_frames if predict else 0,
                   pixel_size=pixel_size, position_noise_px=position_noise_px, dt=dt)
     conns = [("robot.position", "camera.position"), ("robot.heading", "camera.heading"),

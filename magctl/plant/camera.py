@@ -135,6 +135,9 @@ class Camera(Block):
         Pixel size in m.
     params : Params, optional
         Parsed ``models/camera.toml``.
+    primed : (position, heading, spheres), optional
+        The camera was already running with the plant at rest in this state: the
+        latency pipeline starts full of valid frames of it instead of empty.
 
     Ports
     -----
@@ -146,7 +149,8 @@ class Camera(Block):
     def __init__(self, name: str = "camera", *, n_spheres: int = 1, mode: str = "positions",
                  latency_frames: int | None = None, position_noise_px: float | None = None,
                  heading_noise: float | None = None, drop_probability: float | None = None,
-                 pixel_size: float | None = None, params: Params | None = None, dt: float = FRAME_PERIOD_S):
+                 pixel_size: float | None = None, params: Params | None = None, primed=None,
+                 dt: float = FRAME_PERIOD_S):
         if mode not in MODES:
             raise ParameterError(f"camera {name!r}: mode {mode!r} is not one of {MODES}")
         if int(n_spheres) != n_spheres or n_spheres < 0:
@@ -169,6 +173,11 @@ class Camera(Block):
                 f"camera {name!r}: need pixel_size > 0, noise ≥ 0 and 0 ≤ drop_probability < 1 "
                 f"(got {self.pixel}, {self.sigma_px}, {self.sigma_heading}, {self.p_drop})")
         n = self.n_spheres
+        self.primed = None
+        if primed is not None:
+            p_pos, p_head, p_sph = primed
+            self.primed = (np.asarray(p_pos, dtype=float).reshape(2), float(p_head),
+                           np.asarray(p_sph, dtype=float).reshape(n, 2))
         ins = [Port("position", (2,), "m"), Port("heading", (), "rad"), Port("spheres", (n, 2), "m")]
         if mode == "positions":
             outs = [Port("robot_meas", (2,), "m"), Port("heading_meas", (), "rad"), Port("spheres_meas", (n, 2), "m")]
@@ -191,6 +200,9 @@ class Camera(Block):
         st = {"rng": rng, "head": 0,
               "buf_pos": np.zeros((L, batch, 2)), "buf_head": np.zeros((L, batch)),
               "buf_sph": np.zeros((L, batch, n, 2)), "buf_full": np.zeros((L, batch), dtype=bool)}
+        if self.primed is not None:
+            st["buf_pos"][:], st["buf_head"][:], st["buf_sph"][:] = self.primed
+            st["buf_full"][:] = True
         if self.mode == "positions":
             st["last"] = (np.zeros((batch, 2)), np.zeros(batch), np.zeros((batch, n, 2)))
         return st
