@@ -19,6 +19,7 @@ larger than ``speed_max / Kp`` the simulated response departs from it.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import control
@@ -162,7 +163,8 @@ def analyse(kp: float, ki: float, delay_frames: int, dt: float = FRAME_PERIOD_S)
     cl = closed_loop(kp, ki, delay_frames, dt)
     poles = np.asarray(cl.poles(), dtype=complex)
     stable = bool(np.all(np.abs(poles) < 1.0 - 1e-12))
-    with np.errstate(divide="ignore", invalid="ignore"):  # frequency response at the integrator poles
+    with warnings.catch_warnings():  # python-control evaluates the response at the integrator poles
+        warnings.simplefilter("ignore", RuntimeWarning)
         gm, pm, wpc, wgc = control.margin(loop_transfer(kp, ki, delay_frames, dt))
     overshoot, settling = _step_metrics(cl, dt) if stable else (float("inf"), float("inf"))
     return ServoLoopReport(
