@@ -8,8 +8,8 @@ robot's flow:
     the paper's bounds and the fitted rotation rate of eq 5.
 ``accurate``
     the full resistance functions at every gap: Goldman, Cox & Brenner's (1967)
-    lubrication asymptotes for δ/a ≤ 0.02, the tabulated exact solution
-    (``models/wall_resistance.toml``) for 0.25 ≤ δ/a ≤ 9, the method-of-reflections
+    lubrication asymptotes for δ/a ≤ 0.01, the tabulated exact solution
+    (``models/wall_resistance.toml``) for 0.1 ≤ δ/a ≤ 9, the method-of-reflections
     far field (Faxén; Goldman et al.) beyond, blended smoothly in log(δ/a).
 
 Both treat the flow at the sphere centre ``U`` as a local shear ``U z / h`` (the
@@ -120,7 +120,7 @@ def accurate_coefficients(gap_ratio):
     mid = [s(np.clip(lx, x[0], x[-1])) for s in splines]
     near = lubrication_coefficients(d)
     far = far_coefficients(d)
-    w_near = 1.0 - _smoothstep(lx, np.log(0.02), x[0])      # lubrication → table
+    w_near = 1.0 - _smoothstep(lx, np.log(0.01), x[0])      # lubrication → table
     w_far = _smoothstep(lx, x[-2], x[-1] + np.log(1.5))      # table → far field
     return tuple((w_near * n + (1 - w_near) * m) * (1 - w_far) + w_far * f
                  for n, m, f in zip(near, mid, far, strict=True))
