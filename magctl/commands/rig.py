@@ -24,6 +24,8 @@ def register(sub) -> None:
     s.add_argument("--blackout-s", type=float, nargs=2, metavar=("T0", "T1"), default=None,
                    help="force tracking loss during [T0, T1) s (to exercise loss handling)")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--rt-priority", type=int, default=None, metavar="P",
+                   help="run under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
     s.set_defaults(func=cmd_serve_sim)
 
     r = rs.add_parser("run", help="run a task on a rig at 30 Hz")
@@ -38,6 +40,8 @@ def register(sub) -> None:
     r.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
     r.add_argument("--spheres", type=int, default=1, help="with --rig sim: number of spheres")
     r.add_argument("--fast", action="store_true", help="with --rig sim: run ticks back to back, not at 30 Hz")
+    r.add_argument("--rt-priority", type=int, default=None, metavar="P",
+                   help="run the loop under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
     r.add_argument("--reset", action="store_true", help="ask a simulated rig server to restart its scene")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--quiet", action="store_true")
@@ -65,13 +69,16 @@ def _scene(args):
 def cmd_serve_sim(args) -> int:
     from magctl.rig.interface import RigLimits
     from magctl.rig.plant import build_sim_plant
+    from magctl.rig.runtime import set_realtime_priority
     from magctl.rig.server import RigServer, announce
 
     scene, params = _scene(args)
     n = scene.spheres.shape[0]
+    sched = set_realtime_priority(args.rt_priority)
     server = RigServer(lambda: build_sim_plant(n, scene, params), args.bind, RigLimits.from_params(params),
                        params.watchdog.timeout, 1.0 / params.runtime.rate, seed=args.seed,
-                       describe={"kind": "serve-sim (kinematic stand-in plant)", **scene.to_dict()})
+                       describe={"kind": "serve-sim (kinematic stand-in plant)", "scheduling": sched,
+                                 **scene.to_dict()})
     try:
         return server.serve(ready=announce)
     except Exception as err:
@@ -83,8 +90,9 @@ def cmd_serve_sim(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from magctl.rig.runtime import Runtime
+    from magctl.rig.runtime import Runtime, set_realtime_priority
 
+    sched = set_realtime_priority(args.rt_priority)
     options = {}
     if args.target_um:
         options["target_um"] = list(args.target_um)
@@ -96,12 +104,12 @@ def cmd_run(args) -> int:
         from magctl.rig.sim import SimRig
 
         rig = SimRig(n_spheres=args.spheres, realtime=not args.fast, seed=args.seed)
-        desc = {"kind": "SimRig", "n_spheres": args.spheres, "realtime": not args.fast}
+        desc = {"kind": "SimRig", "n_spheres": args.spheres, "realtime": not args.fast, "scheduling": sched}
     else:
         from magctl.rig.client import RigClient
 
         rig = RigClient(args.rig, reset=args.reset)
-        desc = {"kind": "RigClient", "address": args.rig}
+        desc = {"kind": "RigClient", "address": args.rig, "scheduling": sched}
     runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not (args.rig == "sim" and args.fast),
                       max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,
                       rig_description=desc)

@@ -101,7 +101,7 @@ class Runtime:
         self.params = load_file(self.params_path)
         rt = self.params.runtime
         self.period = 1.0 / rt.rate
-        self.lost_timeout, self.warn_interval = rt.lost_timeout, rt.warn_interval
+        self.lost_timeout, self.warn_interval, self.spin = rt.lost_timeout, rt.warn_interval, rt.spin
         self.quiet = quiet
         self.rig_description = rig_description or {"kind": type(rig).__name__}
         self._stop_reason: str | None = None
@@ -192,9 +192,12 @@ class Runtime:
                 if self.duration is not None and sched - t0 >= self.duration:
                     return "stopped", f"duration {self.duration:g} s reached", ticks, overruns, final
                 if self.realtime:
-                    wait = sched - clock()
+                    # sleep to just before the tick, then spin: wake-up latency of sleep() would add jitter
+                    wait = sched - clock() - self.spin
                     if wait > 0:
                         time.sleep(wait)
+                    while clock() < sched:
+                        pass
                 start = clock()
                 obs = rig.read()
                 t_read = clock()
@@ -251,6 +254,23 @@ class Runtime:
         finally:
             gc.enable()
             gc.unfreeze()
+
+
+def set_realtime_priority(priority: int | None) -> str:
+    """Run this process under SCHED_FIFO at ``priority`` (Linux, needs CAP_SYS_NICE); returns what happened.
+
+    On a shared machine the tick jitter is dominated by other processes taking the CPU; a
+    real-time priority lets the 30 Hz loop (and the rig server) preempt them.
+    """
+    if not priority:
+        return "default scheduling"
+    import os
+
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
+    except (AttributeError, OSError) as err:
+        return f"SCHED_FIFO {priority} refused ({err}); default scheduling"
+    return f"SCHED_FIFO {priority}"
 
 
 def _scalar(v):

@@ -89,6 +89,33 @@ class ArrivalStatus(Block):
         return {"status": np.where(lost, float(LOST), np.where(arrived, float(DONE), float(RUNNING)))}
 
 
+class Patrol(Block):
+    """Cycle through waypoints forever: the target moves on when the robot is within ``tol`` of it.
+
+    Used for long runs (the soak benchmark); its ``status`` is always ``RUNNING``.
+    """
+
+    def __init__(self, name: str, waypoints, tol: float, dt: float = FRAME_PERIOD_S):
+        self.waypoints = np.asarray(waypoints, dtype=float).reshape(-1, 2)
+        self.tol = float(tol)
+        super().__init__(name, inputs=[Port("robot_est", (2,), "m")],
+                         outputs=[Port("target", (2,), "m"), Port("status", (), "1"), Port("lap", (), "1")],
+                         dt=dt, feedthrough=False)
+
+    def initial_state(self, batch, rng=None):
+        return {"i": np.zeros(batch, dtype=int), "lap": np.zeros(batch)}
+
+    def output(self, state, u):
+        return {"target": self.waypoints[state["i"]], "status": np.full(state["i"].shape, float(RUNNING)),
+                "lap": state["lap"].copy()}
+
+    def update(self, state, u):
+        arrived = _norm(u["robot_est"] - self.waypoints[state["i"]]) < self.tol
+        i = np.where(arrived, (state["i"] + 1) % len(self.waypoints), state["i"])
+        lap = state["lap"] + (arrived & (i == 0))
+        return {"i": i, "lap": lap}
+
+
 class StandinDrive(Block):
     """Speed and heading → field command at a fixed frequency.
 

@@ -32,6 +32,7 @@ from magctl.rig.standin_control import (
     RUNNING,
     STATUS_NAMES,
     ArrivalStatus,
+    Patrol,
     StandinDrive,
     StandinFrontPush,
     StandinServo,
@@ -170,6 +171,28 @@ def _goto(first_obs: Observation, options: dict, params: Params) -> Task:
                  "status": "status.status", "stopped": "guard.stopped"},
     )
     return Task("goto", d, {"target_m": target.tolist()})
+
+
+@register_task("patrol")
+def _patrol(first_obs: Observation, options: dict, params: Params) -> Task:
+    """Drive round a square of side ``side_um`` (default 1 mm) starting at the robot, forever."""
+    side = float(options.get("side_m", float(options.get("side_um", 1000.0)) * 1e-6))
+    if not np.isfinite(side) or side <= 0:
+        raise TaskError(f"patrol: side must be a positive length, got {side!r} m")
+    r0 = _xy(options, "origin", first_obs.robot_est)
+    square = r0 + side * np.array([[1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.0, 0.0]])
+    blocks, wires = _servo_drive(params)
+    tees = [Tee("robot_in", (2,), "m")]
+    d = Diagram(
+        "patrol",
+        [*tees, Patrol("patrol", square, 1.5 * params.servo.arrive_tol), *blocks],
+        connections=[("robot_in.y", "patrol.robot_est"), ("robot_in.y", "servo.robot_est"),
+                     ("patrol.target", "servo.target"), *wires],
+        inputs={"robot_est": "robot_in.u", "lost": "guard.lost"},
+        outputs={"b_static": "drive.b_static", "b_osc": "drive.b_osc", "freq": "drive.freq",
+                 "status": "patrol.status", "lap": "patrol.lap", "stopped": "guard.stopped"},
+    )
+    return Task("patrol", d, {"side_m": side, "origin_m": r0.tolist()})
 
 
 @register_task("front-push")
