@@ -1,0 +1,152 @@
+"""Servo study: the 30 Hz PI visual-servo loop, paper-like default vs tuned (paper §II, §VI-A).
+
+The paper's servo overshot the goal by about 100 µm (constant robot speed and
+image-processing lag). The study shows the step response of both settings in
+the linear model (python-control), around the kinematic stand-in robot, and
+around the drive → coils → robot chain with Monte Carlo camera noise, with the
+loop's poles and margins.
+"""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from magctl.control.servo import Servo, servo_params  # noqa: E402
+from magctl.control.tracker import Tracker  # noqa: E402
+from magctl.core import Constant, Diagram, simulate  # noqa: E402
+from magctl.plant.camera import Camera, camera_params  # noqa: E402
+from magctl.stability_servo import analyse, simulated_overshoot, step_report  # noqa: E402
+from magctl.studies import PaperRow, StudyContext, StudyResult  # noqa: E402
+
+NAME = "servo"
+TITLE = "PI visual servo: ~100 µm overshoot of §VI-A (default) vs tuned; poles and margins"
+ORDER = 12
+DEFAULT_TRIALS = 64
+
+STEP = 1.0e-3  # a 1 mm repositioning move
+STEPS = 240
+START = np.array([1.0e-3, 1.8e-3])
+PAPER_OVERSHOOT_UM = 100.0  # paper §VI-A
+
+
+def drive_chain_loop(servo: Servo, latency: int, noise_px: float) -> Diagram:
+    """Servo + raw tracker + camera (positions) around the drive → coils → robot chain, no spheres."""
+    from magctl.plant.drive import actuated_robot
+
+    plant = actuated_robot("plant", position=START, heading=0.0, variability=True)
+    cam = Camera("camera", n_spheres=0, latency_frames=latency, position_noise_px=noise_px,
+                 primed=(START, 0.0, np.zeros((0, 2))))
+    blocks = [plant, cam, Tracker("tracker", n_spheres=0, mode="raw"), servo,
+              Constant("spheres", np.zeros((0, 2)), shape=(0, 2), unit="m")]
+    conns = [("plant.position", "camera.position"), ("plant.heading", "camera.heading"),
+             ("spheres.y", "camera.spheres"), ("camera.robot_meas", "tracker.robot_meas"),
+             ("camera.heading_meas", "tracker.heading_meas"), ("camera.spheres_meas", "tracker.spheres_meas"),
+             ("camera.valid", "tracker.valid"), ("tracker.robot_est", "servo.robot_est"),
+             ("servo.speed", "plant.speed"), ("servo.heading", "plant.heading")]
+    return Diagram("loop", blocks, conns, inputs={"target": "servo.target"}, outputs={"position": "plant.position"})
+
+
+def run(ctx: StudyContext) -> StudyResult:
+    cam = camera_params().camera
+    latency, noise_px = int(cam.latency), float(cam.position_noise)
+    trials = ctx.n_trials(DEFAULT_TRIALS)
+    target = START + [STEP, 0.0]
+    results, curves, reports = {}, {}, {}
+    for setting in ("default", "tuned"):
+        servo = Servo("servo", params=servo_params(setting))
+        rep = analyse(servo.kp, servo.ki, latency)
+        kin = step_report(servo, delay_frames=latency, step=STEP, steps=STEPS, start=START)
+        mc = simulate(drive_chain_loop(servo, latency, noise_px), STEPS, batch=trials, seed=ctx.seed,
+                      inputs={"target": target})
+        over = simulated_overshoot(mc["position"], START, target) * 1e6
+        final = np.linalg.norm(mc["position"][:, -1] - target, axis=1) * 1e6
+        reports[setting] = rep
+        curves[setting] = (kin, (mc["position"][:, :, 0] - START[0]) * 1e6)
+        results[setting] = {
+            **rep.to_dict(STEP * 1e6),
+            "anti_windup": servo.anti_windup,
+            "kinematic_overshoot_um": kin["sim_overshoot_um"],
+            "drive_chain_overshoot_mean_um": float(over.mean()),
+            "drive_chain_overshoot_std_um": float(over.std()),
+            "drive_chain_final_error_mean_um": float(final.mean()),
+        }
+        results[setting]["linear_overshoot_um"] = results[setting].pop("overshoot_um")
+
+    figs = [_step_figure(ctx, curves), _pole_figure(ctx, reports)]
+    d, t = results["default"], results["tuned"]
+    summary = [
+        f"Step of {STEP * 1e3:g} mm, camera lag {latency} frames, speed cap 400 µm/s, {trials} Monte Carlo trials "
+        f"on the drive → coils → robot chain with {noise_px:g} px camera noise.",
+        "",
+        "| setting | kp 1/s | ki 1/s² | anti-windup | max pole magnitude | GM | PM ° | linear OS % | kinematic OS µm "
+        "| drive-chain OS µm |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in results.items():
+        zmax = max(p["abs"] for p in r["poles"])
+        summary.append(
+            f"| {name} | {r['kp_per_s']:g} | {r['ki_per_s2']:g} | {'yes' if r['anti_windup'] else 'no'} | {zmax:.3f} "
+            f"| {r['gain_margin']:.2f} | {r['phase_margin_deg']:.1f} | {r['overshoot_percent']:.1f} "
+            f"| {r['kinematic_overshoot_um']:.1f} | {r['drive_chain_overshoot_mean_um']:.1f} ± "
+            f"{r['drive_chain_overshoot_std_um']:.1f} |")
+    summary += ["", "The default's overshoot comes from the integral filling during the constant-speed (saturated) "
+                "approach plus the camera lag (≈ v/Kp + v·d·T); the linear model alone (no saturation) predicts a "
+                "different, step-dependent number. Tuned: P-only with conditional-integration anti-windup."]
+    paper = [
+        PaperRow("servo overshoot (default)", f"~{PAPER_OVERSHOOT_UM:.0f} µm (§VI-A)",
+                 f"{d['drive_chain_overshoot_mean_um']:.0f} µm", "drive → coils → robot chain, 1 mm step"),
+        PaperRow("servo overshoot (tuned)", "—", f"{t['drive_chain_overshoot_mean_um']:.1f} µm",
+                 "P-only, anti-windup"),
+        PaperRow("robot speed", "0.4 mm/s (§IV-C)", "400 µm/s cap", "servo speed limit"),
+    ]
+    results = {"step_um": STEP * 1e6, "delay_frames": latency, "trials": trials, "settings": results}
+    return StudyResult(NAME, results, figs, summary, paper)
+
+
+def _step_figure(ctx, curves):
+    fig, ax = plt.subplots(figsize=(7, 4))
+    colours = {"default": "tab:red", "tuned": "tab:blue"}
+    for name, (kin, mc) in curves.items():
+        t = kin["t_s"]
+        lo, hi = np.percentile(mc, [5, 95], axis=0)
+        ax.fill_between(t, lo, hi, color=colours[name], alpha=0.2, lw=0)
+        ax.plot(t, mc.mean(axis=0), color=colours[name], lw=2, label=f"{name}: drive chain (mean, 5–95 %)")
+        ax.plot(t, kin["sim_um"], color=colours[name], ls="--", lw=1, label=f"{name}: kinematic robot")
+        ax.plot(t, np.clip(kin["linear_um"], None, 1.6 * STEP * 1e6), color=colours[name], ls=":", lw=1,
+                label=f"{name}: linear model (no saturation)")
+    ax.axhline(STEP * 1e6, color="k", lw=0.8)
+    ax.axhline(STEP * 1e6 + PAPER_OVERSHOOT_UM, color="k", lw=0.8, ls="--")
+    ax.text(0.1, STEP * 1e6 + PAPER_OVERSHOOT_UM + 10, "paper §VI-A: ~100 µm overshoot", fontsize=8)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("position along the step (µm)")
+    ax.set_ylim(0, 1.25 * STEP * 1e6)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("1 mm servo step: paper-like default vs tuned")
+    path = ctx.figure_path("servo_step")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _pole_figure(ctx, reports):
+    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    th = np.linspace(0, 2 * np.pi, 200)
+    ax.plot(np.cos(th), np.sin(th), color="k", lw=0.8)
+    for (name, rep), c, m in zip(reports.items(), ("tab:red", "tab:blue"), ("x", "+"), strict=True):
+        ax.plot(rep.poles.real, rep.poles.imag, m, color=c, ms=9, mew=2,
+                label=f"{name}: GM {rep.gain_margin:.2f}, PM {rep.phase_margin_deg:.0f}°")
+    ax.set_aspect("equal")
+    ax.set_xlabel("Re z")
+    ax.set_ylabel("Im z")
+    ax.legend(fontsize=8, loc="lower left")
+    ax.set_title("closed-loop poles (30 Hz)")
+    path = ctx.figure_path("servo_poles")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
