@@ -157,12 +157,13 @@ class ImageTracker:
         Pixel size (m); pixel (i, j) is centred at (j·s, i·s).
     init_robot, init_heading, init_spheres : optional
         Prior positions (m) and heading; without them the first valid frame is searched.
-    seed : int
-        Seed of the particles' random stream.
+    seed : int or numpy.random.Generator
+        Seed of the particles' random stream, or the stream itself (the tracker block
+        passes each trial's own generator).
     """
 
     def __init__(self, params: Params, *, n_spheres: int, pixel: float, dt: float, init_robot=None,
-                 init_heading: float = 0.0, init_spheres=None, seed: int = 0):
+                 init_heading: float = 0.0, init_spheres=None, seed=0):
         r, tr = params.render, params.tracker
         self.render, self.pixel, self.n_spheres, self.dt = r, float(pixel), int(n_spheres), float(dt)
         self.threshold = float(tr.edge_threshold)

@@ -105,9 +105,9 @@ class Tracker(Block):
             ins = [Port("image", (h, w), DIMENSIONLESS)]
             from magctl.control.particle_filter import ImageTracker
 
-            self._pf_factory = lambda: ImageTracker(params, n_spheres=n, pixel=self.pixel, dt=dt,
-                                                    init_robot=init_robot, init_heading=init_heading,
-                                                    init_spheres=init_spheres)
+            self._pf_factory = lambda gen: ImageTracker(params, n_spheres=n, pixel=self.pixel, dt=dt,
+                                                        init_robot=init_robot, init_heading=init_heading,
+                                                        init_spheres=init_spheres, seed=gen)
         else:
             ins = [Port("robot_meas", (2,), "m"), Port("heading_meas", (), "rad"), Port("spheres_meas", (n, 2), "m")]
         ins.append(Port("valid", (), DIMENSIONLESS, "bool"))
@@ -121,8 +121,14 @@ class Tracker(Block):
         st = {"x": np.zeros((batch, M, 2, 2)), "P": np.zeros((batch, M, 2, 2)), "heading": np.zeros(batch),
               "init": np.zeros(batch, dtype=bool), "missed": np.zeros(batch, dtype=int)}
         if self.mode == "particle":
-            st["pf"] = [self._pf_factory() for _ in range(batch)]
+            gens = rng.generators if rng is not None else [np.random.default_rng(k) for k in range(batch)]
+            st["pf"] = [self._pf_factory(g) for g in gens]
         return st
+
+    @property
+    def uses_random(self) -> bool:
+        """Particle mode draws its particles from each trial's own stream."""
+        return self.mode == "particle"
 
     # --- Kalman / raw --------------------------------------------------------------------------
     def _posterior(self, state, u):

@@ -100,3 +100,13 @@ def test_bad_servo_parameters(kw, word):
 def test_unknown_setting():
     with pytest.raises(ParameterError, match="no setting"):
         servo_params("fastest")
+
+
+def test_noisy_loop_trial_does_not_depend_on_batch():
+    sv = Servo("servo", params=servo_params("default"), hold_input=True)
+    d = servo_step_diagram(sv, delay_frames=2, tracker_mode="kalman", predict=True, position_noise_px=0.5,
+                           drop_probability=0.05)
+    batch = simulate(d, 120, batch=4, seed=11, inputs={"target": [2e-3, 1e-3]})
+    alone = simulate(d, 120, batch=1, seed=11, trials=[3], inputs={"target": [2e-3, 1e-3]})
+    np.testing.assert_array_equal(alone["position"][0], batch["position"][3])
+    assert not np.array_equal(batch["position"][0], batch["position"][1])
