@@ -173,7 +173,9 @@ class Spheres(Block):
     def flow(self) -> RobotFlow:
         """The robot's cached flow at the sphere-centre height (solved on first use)."""
         if self._flow is None:
-            self._flow = robot_flow(self.geometry, self.viscosity, self.radius + self.roughness)
+            # sampled at the nominal centre height R + ε: a calibrated ε changes the lubrication
+            # mobility (eq 4), not where the flow is read
+            self._flow = robot_flow(self.geometry, self.viscosity, self.radius + self.params.roughness)
         return self._flow
 
     @property
@@ -211,7 +213,9 @@ class Spheres(Block):
         vb = np.stack([c * vel[:, 0] + s * vel[:, 1], -s * vel[:, 0] + c * vel[:, 1]], axis=-1)
         u = self.flow.lookup(rel, np.broadcast_to(vb[:, None, :], rel.shape))
         u_xy = to_world(u[..., :2], heading)
-        k = mobility(self.mode, self.radius, gap, self.roughness) * mult
+        # a sphere cannot outrun the fluid around it: the free-sphere limit V_p/U = 1 caps the
+        # mobility (eq 4's bounded coefficients exceed it away from contact, and so can scattered trials)
+        k = np.minimum(mobility(self.mode, self.radius, gap, self.roughness) * mult, 1.0)
         pull = np.where(gap <= self.params.adhesion_range, self.pull_off, 0.0)
         gap_rate = u[..., 2] - (self.buoyant_weight + pull) / self.zeta
         return k[..., None] * u_xy, gap_rate

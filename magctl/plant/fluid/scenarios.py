@@ -134,11 +134,12 @@ def contact_threshold(lo: float = 200e-6, hi: float = 650e-6, tol: float = 2e-6,
 
 
 def release_displacement(retract: float = 1.5e-3, speed: float = ROBOT_SPEED, batch: int = 1,
-                         seed: int | None = None, **block_kw) -> np.ndarray:
+                         seed: int | None = None, return_path: bool = False, **block_kw):
     """D_p,r: the sphere starts in the robot's concave front face; the robot backs away ``retract``.
 
     Returns the sphere's displacement along the retreat for each of ``batch`` trials [m]
-    (``seed`` draws per-trial variability when the sphere model has any).
+    (``seed`` draws per-trial variability when the sphere model has any). With
+    ``return_path`` also the robot's retreat ``(T,)`` and the sphere's displacement ``(T, B)``.
     """
     if retract <= 0 or speed <= 0:
         raise ValueError("retract distance and speed must be positive")
@@ -163,10 +164,14 @@ def release_displacement(retract: float = 1.5e-3, speed: float = ROBOT_SPEED, ba
     n = int(np.ceil(retract / step))
     start = state["xy"][:, 0, 0].copy()
     hd = np.zeros(batch)
+    path = [np.zeros(batch)]
     for k in range(n):
         p = np.zeros((batch, 2))
         p[:, 0] = -k * step
         v = np.zeros((batch, 2))
         v[:, 0] = -speed
         state = block.update(state, {"position": p, "heading": hd, "velocity": v})
-    return start - state["xy"][:, 0, 0]
+        path.append(start - state["xy"][:, 0, 0])
+    if return_path:
+        return path[-1], step * np.arange(n + 1), np.asarray(path)
+    return path[-1]
