@@ -34,7 +34,6 @@ import numpy as np
 from magctl.config import load_file, models_dir
 from magctl.rig.interface import Lifecycle, Rig, RigError
 from magctl.rig.log import RunLogWriter, descriptor_fields, limits_to_doc
-from magctl.rig.standin_control import DONE, FAILED, STATUS_NAMES
 from magctl.rig.tasks import Controller, Task, build_task
 
 
@@ -119,7 +118,8 @@ class Runtime:
         def on_term(signum, frame):
             self.request_stop(f"signal {signal.Signals(signum).name}")
 
-        return {signal.SIGTERM: signal.signal(signal.SIGTERM, on_term)}
+        # Ctrl-C too: stopping between ticks leaves no request half-way on the wire
+        return {s: signal.signal(s, on_term) for s in (signal.SIGTERM, signal.SIGINT)}
 
     def _warn(self, msg: str) -> None:
         if not self.quiet:
@@ -170,7 +170,7 @@ class Runtime:
                          {} if task is None else task.options)
 
     def _loop(self, ctrl: Controller, writer, jitter: list, compute: list):
-        rig, period = self.rig, self.period
+        rig, period, task = self.rig, self.period, ctrl.task
         clock = time.perf_counter if not self.realtime else time.monotonic
         activation = rig.activation
         lost_since = None
@@ -225,12 +225,10 @@ class Runtime:
                 pending_skips = 0
                 ticks += 1
                 self.ticks = ticks
-                final = {"status": STATUS_NAMES.get(st, str(st)), "robot_um": (obs.robot_est * 1e6).tolist(),
+                final = {"status": task.status_names.get(st, str(st)), "robot_um": (obs.robot_est * 1e6).tolist(),
                          "spheres_um": (obs.spheres_est * 1e6).tolist(), "outputs": out_doc}
-                if st == DONE:
-                    return "done", "task completed", ticks, overruns, final
-                if st == FAILED:
-                    return "failed", "task gave up", ticks, overruns, final
+                if st in task.outcomes:
+                    return (*task.outcomes[st], ticks, overruns, final)
                 if obs.lost:
                     lost_since = obs.t if lost_since is None else lost_since
                     if obs.t - lost_since >= self.lost_timeout:

@@ -64,11 +64,19 @@ class Task:
     options : dict
         Resolved options (JSON-able, SI in ``_m``-suffixed keys so that they round-trip exactly);
         rebuilding with them gives the same task.
+    outcomes : dict of int to (str, str)
+        Status codes that end the run → (exit status, reason). The defaults are the stand-in codes;
+        tasks with other codes (e.g. ``magctl.control.push``'s ``sphere_lost``, ``stalled``) list theirs.
+    status_names : dict of int to str
+        Names of the status codes, for logs and summaries.
     """
 
     name: str
     diagram: Diagram
     options: dict[str, Any] = field(default_factory=dict)
+    outcomes: dict[int, tuple[str, str]] = field(
+        default_factory=lambda: {DONE: ("done", "task completed"), FAILED: ("failed", "task gave up")})
+    status_names: dict[int, str] = field(default_factory=lambda: dict(STATUS_NAMES))
 
     def __post_init__(self):
         d = self.diagram

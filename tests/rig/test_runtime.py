@@ -105,7 +105,8 @@ def test_unknown_task_is_a_clear_error():
     assert rig.state.value == "inactive"
 
 
-def test_sigterm_stops_the_run_safely_and_the_server_sees_the_coils_zeroed(start_server, tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signals_stop_the_run_safely_and_the_server_sees_the_coils_zeroed(start_server, tmp_path, sig):
     srv = start_server()
     log = tmp_path / "term.jsonl"
     proc = subprocess.Popen(magctl_cmd("rig", "run", "--rig", srv.address, "--reset", "--task", "goto",
@@ -114,10 +115,10 @@ def test_sigterm_stops_the_run_safely_and_the_server_sees_the_coils_zeroed(start
     deadline = time.monotonic() + 20
     while time.monotonic() < deadline and (not log.exists() or log.read_text().count('"event"') < 10):
         time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(sig)
     out, err = proc.communicate(timeout=10)
     doc = json.loads(out)
-    assert doc["exit_status"] == "aborted" and "SIGTERM" in doc["reason"]
+    assert doc["exit_status"] == "aborted" and sig.name in doc["reason"]
     run = read_log(log)
     assert run.stop["exit_status"] == "aborted" and run.stop["n_events"] == len(run.events)
     st = RigClient(srv.address).call("status")
