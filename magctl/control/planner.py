@@ -133,6 +133,22 @@ def _shorten(points: np.ndarray, centres: np.ndarray, keep_out: float) -> np.nda
     return np.asarray(out)
 
 
+def _attach(grid: Grid, free: np.ndarray, p: np.ndarray, centres: np.ndarray, keep_out: float):
+    """The nearest free cell (within 3 cells) joined to ``p`` by a segment clear of every keep-out disc."""
+    c0 = grid.cell(p)
+    best, best_d = None, np.inf
+    for di in range(-3, 4):
+        for dj in range(-3, 4):
+            c = (c0[0] + di, c0[1] + dj)
+            if not (0 <= c[0] < grid.ny and 0 <= c[1] < grid.nx) or not free[c]:
+                continue
+            q = grid.centre(c)
+            d = float(np.linalg.norm(q - p))
+            if d < best_d and (not len(centres) or segment_clearance(p, q, centres).min() >= keep_out):
+                best, best_d = c, d
+    return best
+
+
 def plan_path(start, goal, spheres, *, bounds, keep_out: float = KEEP_OUT_M, cell: float = 25e-6) -> np.ndarray:
     """Waypoints (K, 2) in m from ``start`` to ``goal`` around the inflated spheres.
 
@@ -179,18 +195,17 @@ def plan_path(start, goal, spheres, *, bounds, keep_out: float = KEEP_OUT_M, cel
             head.append(escape)
             start = escape
     free = grid.free_mask(centres, keep_out)
-    gcell, scell = grid.cell(goal), grid.cell(start)
-    dist = wavefront(free, gcell)
-    if not free[gcell]:
+    gcell, scell = _attach(grid, free, goal, centres, keep_out), _attach(grid, free, start, centres, keep_out)
+    if gcell is None:
         raise PlanningError(f"goal {np.round(goal * 1e6, 1).tolist()} µm is too close to a sphere for the "
                             f"{cell * 1e6:.0f} µm grid")
-    if dist[scell] < 0:
+    dist = wavefront(free, gcell)
+    if scell is None or dist[scell] < 0:
         raise PlanningError(f"goal {np.round(goal * 1e6, 1).tolist()} µm is unreachable from "
                             f"{np.round(start * 1e6, 1).tolist()} µm: the keep-out discs "
                             f"({keep_out * 1e6:.0f} µm) and the workspace bounds cut it off")
     cells = _descend(dist, scell, goal, grid)
-    pts = np.array([start] + [grid.centre(c) for c in cells[1:-1]] + [goal]) if len(cells) > 1 \
-        else np.array([start, goal])
+    pts = np.array([start] + [grid.centre(c) for c in cells] + [goal])
     pts = _shorten(pts, centres, keep_out)
     return np.vstack([np.asarray(head[:-1]).reshape(-1, 2), pts]) if len(head) > 1 else pts
 
