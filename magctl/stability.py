@@ -27,7 +27,14 @@ import numpy as np
 from scipy.special import ndtr
 
 from magctl.control.learning import ATTEMPT, LearningLaw, front_push_law, side_push_law
-from magctl.control.push_common import UM, ExpSideModel, LinSideModel, check_positive, side_model
+from magctl.control.push_common import (
+    UM,
+    ExpSideModel,
+    LinSideModel,
+    TabulatedSideModel,
+    check_positive,
+    side_model,
+)
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.linear import Gain, Integrator, Sum
@@ -402,8 +409,9 @@ def local_ratio(d_act, model="lin", plant=None) -> np.ndarray:
     return model.slope(d_cmd) / plant.slope(d_act)
 
 
-def side_nonlinear_gain_range(model="lin", *, gains=None, e0=None, max_attempts: int = SIDE_MAX_ATTEMPTS,
-                              min_gap: float = MIN_GAP, eps: float = SIDE_EPS) -> dict:
+def side_nonlinear_gain_range(model="lin", *, plant=None, gains=None, e0=None,
+                              max_attempts: int = SIDE_MAX_ATTEMPTS, min_gap: float = MIN_GAP,
+                              eps: float = SIDE_EPS) -> dict:
     """Gains for which the nonlinear attempt map converges from every start in the operating range.
 
     The map (eq 22 plant) is run for every ``(K_s, e0)`` pair in one batch; a gain
@@ -418,7 +426,7 @@ def side_nonlinear_gain_range(model="lin", *, gains=None, e0=None, max_attempts:
     gains = np.round(np.arange(0.0, 6.0001, 0.02), 10) if gains is None else np.asarray(gains, dtype=float)
     e0 = np.linspace(10 * UM, SIDE_GOAL, 59) if e0 is None else np.asarray(e0, dtype=float)
     kk, ee = np.meshgrid(gains, e0, indexing="ij")
-    res = side_attempt_map(kk.ravel(), ee.ravel(), model=model, min_gap=min_gap, eps=eps,
+    res = side_attempt_map(kk.ravel(), ee.ravel(), model=model, plant=plant, min_gap=min_gap, eps=eps,
                            max_attempts=max_attempts)
     att = res["attempts"].reshape(kk.shape)
     ok = np.all(att >= 0, axis=1)
@@ -472,14 +480,33 @@ def front_report(kc: float, delta0_um: float = 0.0, trials: int = 20000, seed: i
     return doc
 
 
+def fluid_side_plant(gaps=None) -> TabulatedSideModel:
+    """The fluid model's side-push curve (Fig 6 simulation, ``magctl.plant.fluid``) as ``F_act``.
+
+    Runs the fluid scenario once per call (seconds); gaps default to 370–900 µm.
+    """
+    try:
+        from magctl.plant.fluid.scenarios import sidepush_curve
+    except ImportError as err:  # pragma: no cover - the fluid package is part of magctl
+        raise MagctlError(f"the fluid model is not available: {err}") from None
+    gaps = np.linspace(MIN_GAP, 900 * UM, 12) if gaps is None else np.asarray(gaps, dtype=float)
+    res = sidepush_curve(gaps)
+    d = np.abs(res.along)
+    keep = np.concatenate([[True], np.diff(d) < 0]) & (d > 0)
+    return TabulatedSideModel(tuple(gaps[keep]), tuple(d[keep]), name="fluid")
+
+
 def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM, goal_um: float = SIDE_GOAL / UM,
-                ratio: float | None = None) -> dict:
-    """Everything ``magctl stability side`` prints (µm in keys)."""
+                ratio: float | None = None, plant: str = "exp") -> dict:
+    """Everything ``magctl stability side`` prints (µm in keys); ``plant`` is ``exp`` (eq 22) or ``fluid``."""
     ks = _finite("--ks", ks)
     mdl = side_model(model)
     min_gap = check_positive("--min-gap-um", min_gap_um) * UM
     goal = check_positive("--goal-um", goal_um) * UM
-    plant = ExpSideModel()
+    if plant not in ("exp", "fluid"):
+        raise MagctlError(f"--plant {plant!r} is not known; use 'exp' (eq 22) or 'fluid' (the fluid model's curve)")
+    plant_name = "exp (eq 22)" if plant == "exp" else "fluid model (Fig 6 simulation)"
+    plant = ExpSideModel() if plant == "exp" else fluid_side_plant()
     d_max_model = float(mdl.displacement(min_gap))
     d_act_max = float(plant.displacement(max(float(mdl.gap(d_max_model)), min_gap)))
     d_range = np.linspace(SIDE_EPS, d_act_max, 200)
@@ -490,10 +517,10 @@ def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM,
     full_verdict, full_damping = classify(full_p)
     run = side_attempt_map(ks, goal, model=mdl, plant=plant, min_gap=min_gap)
     errs = run["error"][0]
-    nl = side_nonlinear_gain_range(mdl, min_gap=min_gap)
+    nl = side_nonlinear_gain_range(mdl, plant=plant, min_gap=min_gap)
     r_lo, r_hi = float(r_local.min()), float(r_local.max())
     return {
-        "loop": "side", "equations": "eq 16-20, 22-23", "ks": ks, "model": mdl.name, "plant": "exp (eq 22)",
+        "loop": "side", "equations": "eq 16-20, 22-23", "ks": ks, "model": mdl.name, "plant": plant_name,
         "min_gap_um": min_gap / UM, "goal_um": goal / UM, "eps_p_um": SIDE_EPS / UM,
         "paper_analysis": {
             "ratio": rho, "H_ol": _tf_doc(paper.open_loop), "H_cl": _tf_doc(paper.closed_loop),
@@ -541,6 +568,8 @@ def register_side(subparsers) -> None:
     p.add_argument("--ratio", type=float, default=None, help="model ratio F_lin/F_act for eq 19-20 (default 1)")
     p.add_argument("--min-gap-um", type=float, default=MIN_GAP / UM, help="minimum gap bound (default 370 um)")
     p.add_argument("--goal-um", type=float, default=SIDE_GOAL / UM, help="initial goal distance (default 300 um)")
+    p.add_argument("--plant", choices=["exp", "fluid"], default="exp",
+                   help="actual F_act: eq 22 (exp) or the fluid model's side-push curve (fluid, a few seconds)")
     add_json(p)
     p.set_defaults(func=cmd_side)
 
@@ -556,7 +585,8 @@ def cmd_front(args) -> int:
 def cmd_side(args) -> int:
     from magctl.commands import emit
 
-    doc = side_report(args.ks, args.model, min_gap_um=args.min_gap_um, goal_um=args.goal_um, ratio=args.ratio)
+    doc = side_report(args.ks, args.model, min_gap_um=args.min_gap_um, goal_um=args.goal_um, ratio=args.ratio,
+                      plant=args.plant)
     emit(args, doc, _side_summary)
     return 0
 
@@ -611,7 +641,7 @@ def _finite(name: str, value) -> float:
 
 
 __all__ = [
-    "LinSideModel", "LoopAnalysis", "classify", "front_attempt_map", "front_attempts_markov",
+    "LinSideModel", "LoopAnalysis", "fluid_side_plant", "classify", "front_attempt_map", "front_attempts_markov",
     "front_attempts_monte_carlo", "front_iteration_diagram", "front_loop", "front_report", "local_ratio",
     "side_attempt_map", "side_full_poles", "side_full_stable_range", "side_iteration_diagram", "side_loop",
     "side_nonlinear_gain_range", "side_report", "sweep", "register_front", "register_side", "cmd_front", "cmd_side",

@@ -82,6 +82,59 @@ class LinSideModel:
         return np.full_like(np.asarray(ds, dtype=float), self.slope_)
 
 
+@dataclass(frozen=True)
+class TabulatedSideModel:
+    """``D_s(D_g)`` from a table (e.g. the fluid model's Fig 6 curve), log-linear between points.
+
+    Beyond the table the end segments' exponential rates are extended. ``gap`` is the
+    exact inverse and ``slope`` is ``dF/dD_s`` of the segment in use.
+
+    Parameters
+    ----------
+    gaps, displacements : array_like
+        Increasing gaps and the (positive, decreasing) displacements they give (m).
+    """
+
+    gaps: tuple
+    displacements: tuple
+    name: str = "table"
+
+    def __post_init__(self):
+        g = np.asarray(self.gaps, dtype=float)
+        d = np.asarray(self.displacements, dtype=float)
+        if g.ndim != 1 or g.size < 2 or g.shape != d.shape:
+            raise MagctlError("side-push table needs at least two (gap, displacement) pairs of equal length")
+        if np.any(np.diff(g) <= 0) or np.any(d <= 0) or np.any(np.diff(d) >= 0):
+            raise MagctlError("side-push table: gaps must increase and displacements be positive and decreasing")
+        object.__setattr__(self, "gaps", tuple(g))
+        object.__setattr__(self, "displacements", tuple(d))
+
+    def _tab(self):
+        g = np.asarray(self.gaps)
+        ld = np.log(np.asarray(self.displacements))
+        return g, ld, np.diff(ld) / np.diff(g)
+
+    def displacement(self, dg):
+        g, ld, rate = self._tab()
+        dg = np.asarray(dg, dtype=float)
+        k = np.clip(np.searchsorted(g, dg) - 1, 0, g.size - 2)
+        return np.exp(ld[k] + rate[k] * (dg - g[k]))
+
+    def gap(self, ds):
+        g, ld, rate = self._tab()
+        ds = np.asarray(ds, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = np.log(np.where(ds > 0, ds, 1.0))
+            k = np.clip(np.searchsorted(-ld, -x) - 1, 0, g.size - 2)
+            return np.where(ds > 0, g[k] + (x - ld[k]) / rate[k], np.inf)
+
+    def slope(self, ds):
+        g, ld, rate = self._tab()
+        ds = np.asarray(ds, dtype=float)
+        k = np.clip(np.searchsorted(-ld, -np.log(ds)) - 1, 0, g.size - 2)
+        return 1.0 / (rate[k] * ds)
+
+
 def side_model(name: str):
     """``"exp"`` → eq 22, ``"lin"`` → eq 23."""
     if name == "exp":

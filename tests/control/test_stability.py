@@ -239,3 +239,19 @@ def test_stability_study_runs_and_reports(tmp_path):
     assert res.results["side_maps"]["lin, K_s=0.9, eq 18 as printed"]["attempts"] == -1
     json.dumps(__import__("magctl.commands", fromlist=["to_jsonable"]).to_jsonable(res.results))
     assert any("eq 18" in row.quantity for row in res.paper)
+
+
+def test_tabulated_plant_reproduces_eq_22_and_rejects_bad_tables():
+    from magctl.control.push_common import TabulatedSideModel
+
+    exp = ExpSideModel()
+    g = np.linspace(300, 900, 7) * UM
+    table = TabulatedSideModel(tuple(g), tuple(exp.displacement(g)))
+    a = S.side_attempt_map(np.array([0.0, 0.5, 0.9]), 300 * UM, model="lin", plant=table)
+    b = S.side_attempt_map(np.array([0.0, 0.5, 0.9]), 300 * UM, model="lin")
+    np.testing.assert_array_equal(a["attempts"], b["attempts"])
+    np.testing.assert_allclose(table.slope(np.array([5e-6, 50e-6])), exp.slope(np.array([5e-6, 50e-6])))
+    with pytest.raises(MagctlError, match="decreasing"):
+        TabulatedSideModel((1e-4, 2e-4), (1e-5, 2e-5))
+    with pytest.raises(MagctlError, match="--plant"):
+        S.side_report(0.9, "lin", plant="cfd")
