@@ -156,6 +156,7 @@ class Spheres(Block):
         self.footprint = self.geometry.footprint
         self.reach = float(np.linalg.norm(self.footprint, axis=1).max()) + r
         self._flow: RobotFlow | None = None
+        self._k_contact = float(mobility(self.mode, r, 0.0, self.roughness))   # V_p/U resting on the glass
 
     @staticmethod
     def _count(init) -> int:
@@ -215,7 +216,11 @@ class Spheres(Block):
         u_xy = to_world(u[..., :2], heading)
         # a sphere cannot outrun the fluid around it: the free-sphere limit V_p/U = 1 caps the
         # mobility (eq 4's bounded coefficients exceed it away from contact, and so can scattered trials)
-        k = np.minimum(mobility(self.mode, self.radius, gap, self.roughness) * mult, 1.0)
+        k = np.full(gap.shape, self._k_contact)
+        lifted = gap > 0
+        if lifted.any():
+            k[lifted] = mobility(self.mode, self.radius, gap[lifted], self.roughness)
+        k = np.minimum(k * mult, 1.0)
         pull = np.where(gap <= self.params.adhesion_range, self.pull_off, 0.0)
         gap_rate = u[..., 2] - (self.buoyant_weight + pull) / self.zeta
         return k[..., None] * u_xy, gap_rate

@@ -108,12 +108,14 @@ def blake_velocity(x: np.ndarray, y: np.ndarray, forces: np.ndarray, viscosity: 
 
 
 def regularized_blake_velocity(x: np.ndarray, y: np.ndarray, forces: np.ndarray, viscosity: float,
-                               eps: float, chunk: int = 1024) -> np.ndarray:
+                               eps: float, chunk: int = 2048) -> np.ndarray:
     """Velocity at ``x`` ``(P, 3)`` of regularised Blake Stokeslets ``forces`` ``(K, M, 3)`` at ``y``.
 
-    Same kernel as :func:`regularized_blake_tensor` applied to the forces directly
-    (no 3×3 tensors are formed), so maps of many points stay cheap. ``eps = 0`` gives
-    the singular Blake solution. Returns ``(K, P, 3)``.
+    Same kernel as :func:`regularized_blake_tensor` applied to the forces directly, so
+    maps of many points stay cheap: with ``r = x_p - y_m`` every sum over sources of the
+    form ``Σ_m w_pm r_pmi`` is ``x_pi Σ_m w_pm - (w @ y)_pi``, so all work is in (P, M)
+    scalars and matrix products. ``eps = 0`` gives the singular Blake solution.
+    Returns ``(K, P, 3)``.
     """
     x = np.asarray(x, float)
     y = np.asarray(y, float)
@@ -121,33 +123,37 @@ def regularized_blake_velocity(x: np.ndarray, y: np.ndarray, forces: np.ndarray,
     if f.ndim == 2:
         f = f[None]
     h = y[:, 2]
-    g = f * _M                                               # (K, M, 3) mirrored forces
-    out = np.empty((f.shape[0], len(x), 3))
+    ystar = y * _M                                           # mirror points (y1, y2, -h)
+    g = f * _M                                               # mirrored forces
+    yf = np.einsum("mi,kmi->km", y, f)
+    ysf = np.einsum("mi,kmi->km", ystar, f)
+    ysg = np.einsum("mi,kmi->km", ystar, g)
     e2 = eps * eps
+    out = np.empty((f.shape[0], len(x), 3))
     for s in range(0, len(x), chunk):
         xs = x[s:s + chunk]
-        r = xs[:, None, :] - y[None]                          # (P, M, 3)
-        rr = r.copy()
-        rr[..., 2] = xs[:, None, 2] + h[None]                 # R = x - y*, y* = (y1, y2, -h)
-        r2 = np.einsum("pmi,pmi->pm", r, r)
-        big2 = np.einsum("pmi,pmi->pm", rr, rr)
+        x2 = (xs * xs).sum(1)[:, None]
+        xy = xs @ y.T
+        r2 = np.maximum(x2 - 2 * xy + (y * y).sum(1)[None], 0.0)
+        big2 = np.maximum(x2 - 2 * (xs @ ystar.T) + (ystar * ystar).sum(1)[None], 0.0)
         d3 = (r2 + e2) ** 1.5
         ib = 1.0 / np.sqrt(big2)
-        ib3, ib5 = ib**3, ib**5
-        rf = np.einsum("pmi,kmi->kpm", r, f)
-        rrf = np.einsum("pmi,kmi->kpm", rr, f)
-        rrg = np.einsum("pmi,kmi->kpm", rr, g)
-        r3 = rr[..., 2]
-        # direct regularised Stokeslet and the mirrored Stokeslet
-        u = (np.einsum("pm,kmi->kpi", (r2 + 2 * e2) / d3, f) + np.einsum("kpm,pmi->kpi", rf / d3, r)
-             - np.einsum("pm,kmi->kpi", ib, f) - np.einsum("kpm,pmi->kpi", rrf * ib3, rr))
-        # Stokes-doublet and source-dipole images: 2h Σ_j D_ij g_j
-        c_g = 2 * h * (h * ib3 - r3 * ib3)                     # multiplies g_i
-        c_r = 2 * h * (-3 * h * ib5 + 3 * r3 * ib5)            # multiplies R_i (R·g)
-        u += np.einsum("pm,kmi->kpi", c_g, g) + np.einsum("kpm,pmi->kpi", c_r * rrg, rr)
-        u[..., 2] += np.einsum("pm,kpm->kp", 2 * h * ib3, rrg)          # e3 (R·g)/R³
-        u -= np.einsum("pm,km,pmi->kpi", 2 * h * ib3, g[..., 2], rr)    # R g_3 / R³
-        out[:, s:s + chunk] = u
+        ib3 = ib**3
+        ib5 = ib3 * ib * ib
+        r3 = xs[:, 2, None] + h[None]                         # R_3 = z + h
+        w_direct = (r2 + 2 * e2) / d3
+        c_g = 2 * h * (h - r3) * ib3
+        for k in range(f.shape[0]):
+            rf = xs @ f[k].T - yf[k][None]                    # r·f
+            rrf = xs @ f[k].T - ysf[k][None]                  # R·f
+            rrg = xs @ g[k].T - ysg[k][None]                  # R·g
+            w_r = rf / d3                                     # multiplies r_i
+            w_big = -rrf * ib3 + 6 * h * (r3 - h) * ib5 * rrg - 2 * h * ib3 * g[k][None, :, 2]   # multiplies R_i
+            u = w_direct @ f[k] - ib @ f[k] + c_g @ g[k]
+            u += xs * w_r.sum(1)[:, None] - w_r @ y
+            u += xs * w_big.sum(1)[:, None] - w_big @ ystar
+            u[:, 2] += (2 * h * ib3 * rrg).sum(1)
+            out[k, s:s + chunk] = u
     return out / (8.0 * np.pi * viscosity)
 
 
@@ -246,16 +252,23 @@ def regularized_blake_tensor(x: np.ndarray, y: np.ndarray, eps: float) -> np.nda
     """
     x = np.asarray(x, float)
     y = np.asarray(y, float)
-    g = blake_tensor(x, y)
-    r = x[:, None, :] - y[None, :, :]
+    h = y[None, :, 2]
+    r = x[:, None, :] - y[None]
+    big = x[:, None, :] - (y * _M)[None]
     r2 = np.einsum("pmi,pmi->pm", r, r)
-    eye = np.eye(3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / np.sqrt(r2)
-        s_sing = eye * inv[..., None, None] + r[..., :, None] * r[..., None, :] * (inv**3)[..., None, None]
-    s_sing = np.where(np.isfinite(s_sing), s_sing, 0.0)
+    ib = 1.0 / np.sqrt(np.einsum("pmi,pmi->pm", big, big))
+    ib3 = ib**3
     d3 = (r2 + eps * eps) ** 1.5
-    s_reg = (eye * (r2 + 2 * eps * eps)[..., None, None] + r[..., :, None] * r[..., None, :]) / d3[..., None, None]
-    # G was built with the singular S(r); swap it for the regularised one (drop NaNs at r = 0).
-    g_img = np.nan_to_num(np.transpose(g, (0, 2, 1, 3)) - s_sing, nan=0.0, posinf=0.0, neginf=0.0)
-    return np.transpose(g_img + s_reg, (0, 2, 1, 3))
+    r3 = big[..., 2]
+    # G_ij = S^ε_ij(r) - S_ij(R) + m_j [2h (h - R3)/R³ δ_ij + 6h (R3 - h)/R⁵ R_i R_j + 2h (δ_i3 R_j - R_i δ_3j)/R³]
+    eye = np.eye(3)
+    img = eye * (2 * h * (h - r3) * ib3)[..., None, None]
+    img += big[..., :, None] * (big * (6 * h * (r3 - h) * ib3 * ib * ib)[..., None])[..., None, :]
+    c = (2 * h * ib3)[..., None]
+    img[..., 2, :] += c * big
+    img[..., :, 2] -= c * big
+    img *= _M
+    img += eye * ((r2 + 2 * eps * eps) / d3 - ib)[..., None, None]
+    img += r[..., :, None] * (r / d3[..., None])[..., None, :]
+    img -= big[..., :, None] * (big * ib3[..., None])[..., None, :]
+    return np.transpose(img, (0, 2, 1, 3))
