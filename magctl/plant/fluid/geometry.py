@@ -102,8 +102,8 @@ class RobotGeometry:
         ``"front"`` or ``"rear"``: which end is lifted.
     clearance : float
         Height of the lowest edge above the glass [m].
-    spacing, source_offset : float
-        Collocation spacing and source depth of the flow solver [m].
+    spacing : float
+        Spacing of the regularised Stokeslets on the surface [m].
     """
 
     outline: np.ndarray = field(repr=False)
@@ -112,16 +112,14 @@ class RobotGeometry:
     raised_edge: str = "front"
     clearance: float = 2e-6
     spacing: float = 30e-6
-    source_offset: float = 28e-6
-    source_step_ratio: float = 1.4
 
     def __post_init__(self):
         if self.raised_edge not in ("front", "rear"):
             raise ParameterError(f"raised_edge must be 'front' or 'rear', got {self.raised_edge!r}")
         if not 0 <= self.tilt < np.pi / 2:
             raise ParameterError(f"tilt {self.tilt!r} rad must lie in [0, pi/2)")
-        if self.thickness <= 2 * self.source_offset:
-            raise ParameterError("source_offset must be less than half the thickness")
+        if not 0 < self.spacing < self.thickness:
+            raise ParameterError(f"surface spacing {self.spacing!r} m must be positive and below the thickness")
 
     @classmethod
     def from_params(cls, p: Params | None = None) -> RobotGeometry:
@@ -131,13 +129,12 @@ class RobotGeometry:
         outline = star_outline(o.length, o.width, o.front_notch_depth, o.front_notch_width, o.side_notch_depth,
                                o.rear_notch_depth, int(o.arc_points))
         d = p.discretisation
-        return cls(outline, o.thickness, p.pose.tilt, p.pose.raised_edge, p.pose.clearance, d.spacing,
-                   d.source_offset)
+        return cls(outline, o.thickness, p.pose.tilt, p.pose.raised_edge, p.pose.clearance, d.spacing)
 
     def key(self) -> tuple:
         """Hashable identity of the geometry (for flow caches)."""
         return (self.outline.round(12).tobytes(), self.thickness, self.tilt, self.raised_edge, self.clearance,
-                self.spacing, self.source_offset)
+                self.spacing)
 
     # --- body ↔ world (robot frame, origin at the footprint centre) ----------------------------
     @cached_property
@@ -210,18 +207,4 @@ class RobotGeometry:
         levels = np.linspace(0.0, t, max(int(np.ceil(t / h)), 1) + 1)
         body = [np.column_stack([face, np.zeros(len(face))]), np.column_stack([face, np.full(len(face), t)])]
         body += [np.column_stack([per, np.full(len(per), z)]) for z in levels]
-        return self.to_frame(np.vstack(body))
-
-    def source_points(self) -> np.ndarray:
-        """Stokeslet positions inside the robot (robot frame) ``(M, 3)``."""
-        d, t = self.source_offset, self.thickness
-        step = self.source_step_ratio * self.spacing
-        face = self._face_grid(step, d)
-        per, normal = self._perimeter(step)
-        inner = per - d * normal
-        dist, _ = polygon_distance(inner, self.outline)
-        inner = inner[points_in_polygon(inner, self.outline) & (dist >= 0.8 * d)]  # drop points past sharp tips
-        mid = np.linspace(d, t - d, 3)
-        body = [np.column_stack([face, np.full(len(face), d)]), np.column_stack([face, np.full(len(face), t - d)])]
-        body += [np.column_stack([inner, np.full(len(inner), z)]) for z in mid]
         return self.to_frame(np.vstack(body))
