@@ -23,6 +23,7 @@ import numpy as np
 from magctl.config import Params, load_model
 from magctl.core.diagram import Diagram
 from magctl.core.errors import WiringError
+from magctl.plant.robot import load_robot
 from magctl.rig.interface import CoilMap
 from magctl.rig.standin import StandinCoils, StandinRobot, StandinSpheres, StandinTracker
 
@@ -98,7 +99,7 @@ def build_sim_plant(n_spheres: int, scene: Scene | None = None, params: Params |
     start = scene.robot if robot_start is None else np.asarray(robot_start, dtype=float)
     sd = p.standin
     coils = StandinCoils("coils", CoilMap.from_params(p.coils))
-    robot = StandinRobot("robot", sd.step_per_cycle_at_max, p.limits.b_osc_max, start, scene.heading)
+    robot = StandinRobot("robot", load_robot(), start, scene.heading)
     spheres = StandinSpheres("spheres", scene.spheres, sd.robot_contact_radius + sd.sphere_radius)
     tracker = StandinTracker("tracker", n_spheres, sd.workspace_half, scene.blackout, start, scene.heading,
                              scene.spheres)

@@ -7,8 +7,8 @@ but not the physics of the paper:
 
 * coils: a linear field-to-current map with a current limit (no RL dynamics);
 * robot: the heading follows the static field instantly and the robot moves
-  along it at ``v = s · (b_osc / b_osc_max) · freq`` — a stick-slip step ``s``
-  per field cycle scaled by the oscillation amplitude (no tilt, no slip model);
+  along it at the steady stick-slip speed of ``magctl.plant.robot.steady_speed``
+  for the delivered field (no heading lag, no speed noise, no tilt output);
 * spheres: pushed by contact only — a sphere overlapping the robot's contact
   disc is moved out along the line of centres (no Stokes flow, no D_p,r, no
   side-pushing, no sphere–sphere contact);
@@ -68,23 +68,24 @@ class StandinCoils(Block):
 
 
 class StandinRobot(Block):
-    """Kinematic robot: heading along ``b_static``, speed ``s · (b_osc/b_ref) · freq`` along it.
+    """Kinematic robot: heading along ``b_static`` at once, steady stick-slip speed along it.
+
+    The speed is ``v = f·s(θ_a)`` of :func:`magctl.plant.robot.steady_speed` (the speed the
+    real robot block settles to for a held field), so the drive's inverse of that law commands
+    the intended speed.
 
     Parameters
     ----------
-    step_max : float
-        Stick-slip step per field cycle at ``b_osc = b_ref``, m.
-    b_ref : float
-        Oscillating amplitude giving the full step, T.
+    robot : StickSlipParams
+        Robot parameters (``magctl.plant.robot.load_robot()``).
     start : (2,) array
         Initial position, m.
     heading0 : float
         Initial heading, rad.
     """
 
-    def __init__(self, name: str, step_max: float, b_ref: float, start=(0.0, 0.0), heading0: float = 0.0,
-                 dt: float = FRAME_PERIOD_S):
-        self.step_max, self.b_ref = float(step_max), float(b_ref)
+    def __init__(self, name: str, robot, start=(0.0, 0.0), heading0: float = 0.0, dt: float = FRAME_PERIOD_S):
+        self.robot = robot
         self.start, self.heading0 = np.asarray(start, dtype=float), float(heading0)
         super().__init__(
             name,
@@ -104,10 +105,12 @@ class StandinRobot(Block):
                 "tilt": np.zeros_like(state["h"])}
 
     def update(self, state, u):
+        from magctl.plant.robot import steady_speed
+
         bs = u["b_static_delivered"]
-        has_field = np.any(bs != 0.0, axis=1)
-        h = np.where(has_field, np.arctan2(bs[:, 1], bs[:, 0]), state["h"])
-        speed = self.step_max * (u["b_osc_delivered"] / self.b_ref) * u["freq_delivered"]
+        b_xy = np.sqrt(np.einsum("bi,bi->b", bs, bs))
+        h = np.where(b_xy > 0, np.arctan2(bs[:, 1], bs[:, 0]), state["h"])
+        speed = np.where(b_xy > 0, steady_speed(self.robot, b_xy, u["b_osc_delivered"], u["freq_delivered"]), 0.0)
         v = speed[:, None] * np.stack([np.cos(h), np.sin(h)], axis=1)
         # new arrays: outputs handed out this step stay untouched
         return {"p": state["p"] + v * self.dt, "h": h, "v": v}

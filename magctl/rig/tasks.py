@@ -26,16 +26,14 @@ from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.linear import Constant
 from magctl.rig.interface import Command, Observation
-from magctl.rig.standin_control import (
+from magctl.rig.task_blocks import (
     DONE,
     FAILED,
+    LOST,
     RUNNING,
     STATUS_NAMES,
     ArrivalStatus,
     Patrol,
-    StandinDrive,
-    StandinFrontPush,
-    StandinServo,
     Tee,
     TrackingGuard,
 )
@@ -43,7 +41,7 @@ from magctl.rig.standin_control import (
 OBS_SIGNALS = ("robot_est", "heading_est", "spheres_est", "lost")
 COMMAND_SIGNALS = ("b_static", "b_osc", "freq")
 
-__all__ = ["DONE", "FAILED", "RUNNING", "STATUS_NAMES", "Controller", "Task", "TaskError", "available_tasks",
+__all__ = ["DONE", "FAILED", "LOST", "RUNNING", "STATUS_NAMES", "Controller", "Task", "TaskError", "available_tasks",
            "build_task", "register_task"]
 
 
@@ -138,7 +136,7 @@ class Controller:
         return cmd, outs
 
 
-# --- built-in tasks ------------------------------------------------------------------------------------
+# --- options ---------------------------------------------------------------------------------------------
 def _xy(options: dict, name: str, default_m) -> np.ndarray:
     """Option ``name`` as a point in m: from ``name_m`` (exact, as logged) or ``name_um`` (as typed)."""
     for key, scale in ((f"{name}_m", 1.0), (f"{name}_um", 1e-6)):
@@ -152,86 +150,183 @@ def _xy(options: dict, name: str, default_m) -> np.ndarray:
     return np.asarray(default_m, dtype=float)
 
 
-def _servo_drive(params: Params) -> tuple[list, list]:
-    s, dr, sd, lim = params.servo, params.drive, params.standin, params.limits
-    blocks = [
-        StandinServo("servo", s.kp, s.speed_max, s.arrive_tol),
-        TrackingGuard("guard"),
-        StandinDrive("drive", dr.b_static, dr.freq, sd.step_per_cycle_at_max, lim.b_osc_max, lim.b_osc_max),
-    ]
-    wires = [("servo.speed", "guard.speed"), ("guard.speed", "drive.speed"), ("servo.heading", "drive.heading")]
+def _num(options: dict, name: str, si_unit: str, user_unit: str, scale: float, default: float,
+         positive: bool = True) -> float:
+    """Option ``name`` in SI: from ``name_<si_unit>`` (exact, as logged) or ``name_<user_unit>`` (as typed)."""
+    for key, k in ((f"{name}_{si_unit}", 1.0), (f"{name}_{user_unit}", scale)):
+        if options.get(key) is None:
+            continue
+        try:
+            v = float(options[key]) * k
+        except (TypeError, ValueError):
+            raise TaskError(f"option {key} must be a number, got {options[key]!r}") from None
+        if not np.isfinite(v) or (positive and v <= 0):
+            raise TaskError(f"option {key} must be {'positive' if positive else 'finite'}, got {options[key]!r}")
+        return v
+    return float(default)
+
+
+def _float(options: dict, name: str, default: float) -> float:
+    v = options.get(name, default)
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        raise TaskError(f"option {name} must be a number, got {v!r}") from None
+    if not np.isfinite(v):
+        raise TaskError(f"option {name} must be finite, got {v!r}")
+    return v
+
+
+# --- the servo → guard → drive chain shared by every task ------------------------------------------------
+def _servo_drive(params: Params, options: dict, resolved: dict, speed_cap: bool) -> tuple[list, list]:
+    """The PI servo (``models/servo.toml``, setting ``servo``), the tracking guard and the drive.
+
+    The servo holds its integral while tracking is lost (``hold``) and the guard zeroes the speed, so
+    the drive commands no oscillation: the robot stops instead of driving blind.
+    """
+    from magctl.control.servo import Servo, servo_params
+    from magctl.plant.drive import Drive
+
+    setting = str(options.get("servo", params.tasks.servo_setting))
+    sp = servo_params(setting)
+    v_max = _num(options, "speed_max", "m_s", "um_s", 1e-6, sp.speed_max)
+    resolved |= {"servo": setting, "speed_max_m_s": v_max}
+    servo = Servo("servo", params=sp, speed_max=v_max, speed_cap_input=speed_cap, hold_input=True)
+    blocks = [servo, TrackingGuard("guard"), Drive("drive"), Tee("robot_in", (2,), "m"),
+              Tee("lost_in", (), "1", "bool")]
+    wires = [("robot_in.y", "servo.robot_est"), ("lost_in.y", "servo.hold"), ("lost_in.y", "guard.lost"),
+             ("servo.speed", "guard.speed"), ("guard.speed", "drive.speed"), ("servo.heading", "drive.heading")]
     return blocks, wires
 
 
+COMMAND_OUTPUTS = {"b_static": "drive.b_static", "b_osc": "drive.b_osc", "freq": "drive.freq",
+                   "stopped": "guard.stopped"}
+OBS_INPUTS = {"robot_est": "robot_in.u", "lost": "lost_in.u"}
+
+
+# --- built-in tasks ---------------------------------------------------------------------------------------
 @register_task("goto")
 def _goto(first_obs: Observation, options: dict, params: Params) -> Task:
-    """Servo the robot to ``target_um`` and stop there (status DONE on arrival)."""
+    """Servo the robot to ``target`` (default: where it is) and stop there: DONE on arrival."""
     target = _xy(options, "target", first_obs.robot_est)
-    blocks, wires = _servo_drive(params)
-    arrived = ArrivalStatus("status")
+    resolved = {"target_m": target.tolist()}
+    blocks, wires = _servo_drive(params, options, resolved, speed_cap=False)
     d = Diagram(
         "goto",
-        [Constant("target", target, shape=(2,), unit="m"), *blocks, arrived],
+        [Constant("target", target, shape=(2,), unit="m"), *blocks, ArrivalStatus("status")],
         connections=[("target.y", "servo.target"), *wires, ("servo.arrived", "status.arrived"),
-                     ("guard.stopped", "status.lost")],
-        inputs={"robot_est": "servo.robot_est", "lost": "guard.lost"},
-        outputs={"b_static": "drive.b_static", "b_osc": "drive.b_osc", "freq": "drive.freq",
-                 "status": "status.status", "stopped": "guard.stopped"},
+                     ("lost_in.y", "status.lost")],
+        inputs=OBS_INPUTS, outputs={**COMMAND_OUTPUTS, "status": "status.status"},
     )
-    return Task("goto", d, {"target_m": target.tolist()})
+    return Task("goto", d, resolved)
 
 
 @register_task("patrol")
 def _patrol(first_obs: Observation, options: dict, params: Params) -> Task:
-    """Drive round a square of side ``side_um`` (default 1 mm) starting at the robot, forever."""
-    side = float(options.get("side_m", float(options.get("side_um", 1000.0)) * 1e-6))
-    if not np.isfinite(side) or side <= 0:
-        raise TaskError(f"patrol: side must be a positive length, got {side!r} m")
+    """Drive round a square of side ``side`` (default 1 mm) starting at the robot, forever."""
+    side = _num(options, "side", "m", "um", 1e-6, 1e-3)
     r0 = _xy(options, "origin", first_obs.robot_est)
-    square = r0 + side * np.array([[1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.0, 0.0]])
-    blocks, wires = _servo_drive(params)
-    tees = [Tee("robot_in", (2,), "m")]
+    square = r0 + side * np.array([[0.0, 1.0], [-1.0, 1.0], [-1.0, 0.0], [0.0, 0.0]])
+    resolved = {"side_m": side, "origin_m": r0.tolist()}
+    blocks, wires = _servo_drive(params, options, resolved, speed_cap=False)
+    tol = 2.0 * blocks[0].arrive_tol
     d = Diagram(
         "patrol",
-        [*tees, Patrol("patrol", square, 1.5 * params.servo.arrive_tol), *blocks],
-        connections=[("robot_in.y", "patrol.robot_est"), ("robot_in.y", "servo.robot_est"),
-                     ("patrol.target", "servo.target"), *wires],
-        inputs={"robot_est": "robot_in.u", "lost": "guard.lost"},
-        outputs={"b_static": "drive.b_static", "b_osc": "drive.b_osc", "freq": "drive.freq",
-                 "status": "patrol.status", "lap": "patrol.lap", "stopped": "guard.stopped"},
+        [Patrol("patrol", square, tol), *blocks],
+        connections=[("robot_in.y", "patrol.robot_est"), ("patrol.target", "servo.target"), *wires],
+        inputs=OBS_INPUTS, outputs={**COMMAND_OUTPUTS, "status": "patrol.status", "lap": "patrol.lap"},
     )
-    return Task("patrol", d, {"side_m": side, "origin_m": r0.tolist()})
+    return Task("patrol", d, resolved)
+
+
+def _push_outcomes() -> tuple[dict, dict]:
+    from magctl.control import push
+
+    outcomes = {push.CONVERGED: ("done", "converged: the sphere is within ε_p of the goal"),
+                push.ATTEMPT_LIMIT: ("failed", "attempt limit reached"),
+                push.TRACKING_LOST: ("tracking-lost", "the task stopped on tracking loss"),
+                push.SPHERE_LOST: ("failed", "sphere lost"),
+                push.STALLED: ("failed", "a phase timed out (stalled)")}
+    return outcomes, dict(push.STATUS_NAMES)
+
+
+def _push_diagram(name: str, task_block, first_obs: Observation, options: dict, params: Params, resolved: dict):
+    blocks, wires = _servo_drive(params, options, resolved, speed_cap=True)
+    outcomes, names = _push_outcomes()
+    d = Diagram(
+        name.replace("-", "_"),
+        [task_block, *blocks],
+        connections=[("robot_in.y", "push.robot_est"), ("lost_in.y", "push.lost"), ("push.target", "servo.target"),
+                     ("push.speed_cap", "servo.speed_cap"), *wires],
+        inputs={**OBS_INPUTS, "spheres_est": "push.spheres_est"},
+        outputs={**COMMAND_OUTPUTS, "status": "push.status", "attempt": "push.attempt", "phase": "push.phase",
+                 "correction": "push.correction", "target": "push.target"},
+    )
+    return Task(name, d, resolved, outcomes, names)
+
+
+def _need_spheres(task: str, first_obs: Observation, n: int) -> int:
+    have = first_obs.spheres_est.shape[0]
+    if have < n:
+        raise TaskError(f"{task} needs at least {n} tracked sphere(s); the rig reports {have}")
+    return have
 
 
 @register_task("front-push")
 def _front_push(first_obs: Observation, options: dict, params: Params) -> Task:
-    """Front-push sphere 0 to ``goal_um`` (default: ``goal_distance`` beyond it, away from the robot)."""
-    n = first_obs.spheres_est.shape[0]
-    if n < 1:
-        raise TaskError("front-push needs at least one tracked sphere; the rig reports none")
-    fp, sd = params.front_push, params.standin
+    """Front-push sphere 0 to ``goal`` (default ``tasks.goal_distance`` beyond it, away from the robot), §V-A."""
+    from magctl.control.push_front import FrontPushTask
+
+    n = _need_spheres("front-push", first_obs, 1)
     ps, pr = first_obs.spheres_est[0], first_obs.robot_est
     away = ps - pr
     away = away / np.hypot(*away) if np.hypot(*away) > 0 else np.array([1.0, 0.0])
-    goal = _xy(options, "goal", ps + fp.goal_distance * away)
-    kc = float(options.get("kc", fp.kc))
-    delta0 = _xy(options, "delta0", np.zeros(2))
-    push = StandinFrontPush("push", n, goal, kc=kc, delta0=delta0, eps_p=fp.eps_p,
-                            contact=sd.robot_contact_radius + sd.sphere_radius, gap=fp.approach_gap,
-                            retreat=fp.retreat, tol=1.5 * params.servo.arrive_tol,
-                            max_attempts=int(fp.max_attempts))
-    blocks, wires = _servo_drive(params)
-    # tees fan one observation signal out to several blocks
-    tees = [Tee("robot_in", (2,), "m"), Tee("lost_in", (), "1", "bool")]
-    d = Diagram(
-        "front_push",
-        [*tees, push, *blocks],
-        connections=[("robot_in.y", "push.robot_est"), ("robot_in.y", "servo.robot_est"),
-                     ("lost_in.y", "push.lost"), ("lost_in.y", "guard.lost"), ("push.target", "servo.target"),
-                     *wires],
-        inputs={"robot_est": "robot_in.u", "spheres_est": "push.spheres_est", "lost": "lost_in.u"},
-        outputs={"b_static": "drive.b_static", "b_osc": "drive.b_osc", "freq": "drive.freq",
-                 "status": "push.status", "attempt": "push.attempt", "target": "push.target",
-                 "stopped": "guard.stopped"},
-    )
-    return Task("front-push", d, {"goal_m": goal.tolist(), "kc": kc, "delta0_m": delta0.tolist()})
+    goal = _xy(options, "goal", ps + params.tasks.goal_distance * away)
+    kc = _float(options, "kc", 1.0)
+    delta0 = _num(options, "delta0", "m", "um", 1e-6, 0.0, positive=False)
+    push_speed = _num(options, "push_speed", "m_s", "um_s", 1e-6, 0.4e-3)
+    travel_speed = _num(options, "travel_speed", "m_s", "um_s", 1e-6, 1.0e-3)
+    resolved = {"goal_m": goal.tolist(), "kc": kc, "delta0_m": delta0, "push_speed_m_s": push_speed,
+                "travel_speed_m_s": travel_speed}
+    try:
+        block = FrontPushTask("push", goal=goal, kc=kc, delta0=delta0, n_spheres=n, push_speed=push_speed,
+                              travel_speed=travel_speed)
+    except MagctlError as err:
+        raise TaskError(f"front-push: {err}") from None
+    return _push_diagram("front-push", block, first_obs, options, params, resolved)
+
+
+@register_task("side-push")
+def _side_push(first_obs: Observation, options: dict, params: Params) -> Task:
+    """Side-push sphere 0 to ``goal`` (default 300 µm beyond it, away from the robot; §VI), §V-B."""
+    from magctl.control.push_side import SidePushTask
+
+    n = _need_spheres("side-push", first_obs, 1)
+    ps, pr = first_obs.spheres_est[0], first_obs.robot_est
+    away = ps - pr
+    away = away / np.hypot(*away) if np.hypot(*away) > 0 else np.array([1.0, 0.0])
+    goal = _xy(options, "goal", ps + params.tasks.side_goal_distance * away)
+    ks = _float(options, "ks", 0.9)
+    model = str(options.get("model", "lin"))
+    resolved = {"goal_m": goal.tolist(), "ks": ks, "model": model}
+    try:
+        block = SidePushTask("push", goal=goal, ks=ks, model=model, n_spheres=n)
+    except MagctlError as err:
+        raise TaskError(f"side-push: {err}") from None
+    return _push_diagram("side-push", block, first_obs, options, params, resolved)
+
+
+@register_task("assemble")
+def _assemble(first_obs: Observation, options: dict, params: Params) -> Task:
+    """Assemble sphere 0 onto sphere 1 by side-pushing along the adjusted line (§V-C, eq 21)."""
+    from magctl.control.assembly import AssemblyTask
+
+    n = _need_spheres("assemble", first_obs, 2)
+    theta = _num(options, "theta_n", "rad", "deg", np.pi / 180.0, np.deg2rad(30.0), positive=False)
+    ks = _float(options, "ks", 0.9)
+    resolved = {"theta_n_rad": theta, "ks": ks}
+    try:
+        block = AssemblyTask("push", n_spheres=n, theta_n=theta, ks=ks)
+    except MagctlError as err:
+        raise TaskError(f"assemble: {err}") from None
+    return _push_diagram("assemble", block, first_obs, options, params, resolved)

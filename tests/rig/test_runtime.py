@@ -12,6 +12,7 @@ import pytest
 from conftest import ROOT, magctl_cmd
 
 from magctl.config import load_model
+from magctl.control.servo import servo_params
 from magctl.rig.client import RigClient
 from magctl.rig.log import read_log, replay
 from magctl.rig.plant import Scene, build_sim_plant
@@ -20,6 +21,7 @@ from magctl.rig.sim import SimRig
 from magctl.rig.tasks import TaskError
 
 PARAMS = load_model("rig")
+SERVO = servo_params(PARAMS.tasks.servo_setting)
 PERIOD = 1.0 / PARAMS.runtime.rate
 EPS_P = 75e-6  # paper §VI-A
 
@@ -29,9 +31,9 @@ def test_goto_reaches_its_target_on_the_sim_rig():
     report = Runtime(rig, "goto", {"target_um": [800.0, -600.0]}, realtime=False, max_ticks=600, quiet=True).run()
     assert report.exit_status == "done"
     robot = np.array(report.final["robot_um"]) * 1e-6
-    assert np.hypot(*(robot - [800e-6, -600e-6])) < PARAMS.servo.arrive_tol
+    assert np.hypot(*(robot - [800e-6, -600e-6])) < SERVO.arrive_tol
     # 1 mm at no more than the speed limit takes at least 1 mm / v_max
-    assert report.ticks * PERIOD >= 1e-3 / PARAMS.servo.speed_max
+    assert report.ticks * PERIOD >= 1e-3 / SERVO.speed_max
     assert rig.state.value == "inactive"
 
 
@@ -39,7 +41,8 @@ def test_front_push_completes_through_the_server(start_server, tmp_path):
     srv = start_server()
     log = tmp_path / "push.jsonl"
     rig = RigClient(srv.address, reset=True)
-    report = Runtime(rig, "front-push", {}, log_path=log, realtime=True, duration=20.0, quiet=True).run()
+    fast = {"speed_max_um_s": 1000.0, "push_speed_um_s": 1000.0, "travel_speed_um_s": 1000.0}
+    report = Runtime(rig, "front-push", fast, log_path=log, realtime=True, duration=20.0, quiet=True).run()
     rig.close()
     assert report.exit_status == "done", report.reason
     # the paper's setting: goal 750 µm beyond the sphere that starts 1 mm ahead of the robot, ε_p = 75 µm
