@@ -71,6 +71,7 @@ class Diagram(Block):
         outputs: Mapping[str, str] | None = None,
         dt: float = FRAME_PERIOD_S,
     ):
+        self.name = name  # set early: the port checks below name the diagram in their errors
         self.blocks: dict[str, Block] = {}
         for b in blocks:
             if not isinstance(b, Block):

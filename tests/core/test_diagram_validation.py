@@ -112,3 +112,14 @@ def test_missing_external_input_value():
         simulate(d, 3)
     res = simulate(d, 3, inputs={"r": 1.5})
     assert np.allclose(res["y"], 3.0)
+
+
+def test_exported_input_may_drive_several_ports():
+    from magctl.core import simulate
+
+    d = Diagram("fan", [Gain("a", 2.0), Gain("b", 3.0)], inputs={"x": ["a.u", "b.u"]},
+                outputs={"ya": "a.y", "yb": "b.y"})
+    res = simulate(d, 2, inputs={"x": 1.0})
+    assert np.allclose(res["ya"], 2.0) and np.allclose(res["yb"], 3.0)
+    with pytest.raises(WiringError, match=r"unit mismatch: fan\.x"):
+        Diagram("fan", [Gain("a", 2.0), Gain("b", 3.0, in_unit="m")], inputs={"x": ["a.u", "b.u"]})
