@@ -79,7 +79,10 @@ def soak(quick: bool, priority: int | None) -> dict:
 
         # scheduling is per thread on Linux: only the loop's thread gets the priority
         result["scheduling"] = set_realtime_priority(priority)
-        result["client"] = _soak_client(address, duration)
+        try:
+            result["client"] = _soak_client(address, duration)
+        except BaseException as err:  # noqa: BLE001 - handed to the calling thread
+            result["error"] = err
 
     try:
         t = threading.Thread(target=client_thread)
@@ -88,6 +91,8 @@ def soak(quick: bool, priority: int | None) -> dict:
     finally:
         server.terminate()
         server.wait(timeout=10)
+    if "error" in result:
+        raise result["error"]
     return _summarise(*result["client"], duration, result["scheduling"])
 
 
