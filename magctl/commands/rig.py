@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 from magctl.commands import add_json, emit
@@ -31,10 +33,12 @@ def register(sub) -> None:
     r = rs.add_parser("run", help="run a task on a rig at 30 Hz")
     r.add_argument("--rig", required=True, help="rig server address (tcp://HOST:PORT) or 'sim' for an in-process "
                                                  "simulated rig")
-    r.add_argument("--task", required=True, help="task name: goto, front-push (side-push, assemble when available)")
+    r.add_argument("--task", required=True, help="task name: goto, front-push, side-push, assemble, patrol")
     r.add_argument("--target-um", type=float, nargs=2, metavar=("X", "Y"), help="goto: target position in µm")
     r.add_argument("--goal-um", type=float, nargs=2, metavar=("X", "Y"), help="push tasks: goal of the sphere in µm")
     r.add_argument("--kc", type=float, default=None, help="front-push: learning gain K_c (eq 13)")
+    r.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="task option, e.g. push_speed_um_s=1000, ks=0.9, model=exp, servo=default (repeatable)")
     r.add_argument("--log", default=None, help="run log to create (JSON lines)")
     r.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     r.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
@@ -100,6 +104,14 @@ def cmd_run(args) -> int:
         options["goal_um"] = list(args.goal_um)
     if args.kc is not None:
         options["kc"] = args.kc
+    for item in args.option:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise MagctlError(f"--option {item!r}: write KEY=VALUE")
+        try:
+            options[key] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key] = value
     if args.rig == "sim":
         from magctl.rig.sim import SimRig
 

@@ -143,7 +143,10 @@ def _xy(options: dict, name: str, default_m) -> np.ndarray:
         v = options.get(key)
         if v is None:
             continue
-        arr = np.asarray(v, dtype=float).reshape(-1)
+        try:
+            arr = np.asarray(v, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            arr = np.full(0, np.nan)
         if arr.shape != (2,) or not np.all(np.isfinite(arr)):
             raise TaskError(f"option {key} must be two finite numbers, got {v!r}")
         return arr * scale

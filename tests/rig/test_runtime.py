@@ -126,3 +126,17 @@ def test_signals_stop_the_run_safely_and_the_server_sees_the_coils_zeroed(start_
     assert run.stop["exit_status"] == "aborted" and run.stop["n_events"] == len(run.events)
     st = RigClient(srv.address).call("status")
     assert st["state"] == "inactive" and st["coils_zero"] and st["watchdog_trips"] == 0
+
+
+@pytest.mark.parametrize("task, n_spheres, options, words", [
+    ("assemble", 1, {}, "needs at least 2 tracked sphere"),
+    ("front-push", 0, {}, "needs at least 1 tracked sphere"),
+    ("front-push", 1, {"goal_um": [1.0, "x"]}, "goal_um must be two finite numbers"),
+    ("goto", 0, {"speed_max_um_s": -5}, "speed_max_um_s must be positive"),
+    ("side-push", 1, {"model": "quadratic"}, "side-push"),
+])
+def test_bad_task_options_are_named(task, n_spheres, options, words):
+    rig = SimRig(n_spheres=n_spheres)
+    with pytest.raises(TaskError, match=words):
+        Runtime(rig, task, options, realtime=False, quiet=True).run()
+    assert rig.state.value == "inactive"
