@@ -102,6 +102,9 @@ class Runtime:
         self.period = 1.0 / rt.rate
         self.lost_timeout, self.warn_interval, self.spin = rt.lost_timeout, rt.warn_interval, rt.spin
         self.quiet = quiet
+        # a status line a second on an interactive stderr, to watch a run converge
+        self.progress = not quiet and sys.stderr.isatty()
+        self.progress_every = max(1, int(round(rt.rate)))
         self.rig_description = rig_description or {"kind": type(rig).__name__}
         self._stop_reason: str | None = None
         self.ticks = self.overruns = 0
@@ -120,6 +123,13 @@ class Runtime:
 
         # Ctrl-C too: stopping between ticks leaves no request half-way on the wire
         return {s: signal.signal(s, on_term) for s in (signal.SIGTERM, signal.SIGINT)}
+
+    def _progress(self, t: float, final: dict, outs: dict) -> None:
+        robot = ", ".join(f"{x:.0f}" for x in final["robot_um"])
+        spheres = " ".join("(" + ", ".join(f"{x:.0f}" for x in s) + ")" for s in final["spheres_um"])
+        extra = f" attempt {outs['attempt']:.0f}" if "attempt" in outs else ""
+        print(f"[{t:6.1f} s] {final['status']}{extra}  robot ({robot}) µm  spheres {spheres} µm",
+              file=sys.stderr, flush=True)
 
     def _warn(self, msg: str) -> None:
         if not self.quiet:
@@ -227,6 +237,8 @@ class Runtime:
                 self.ticks = ticks
                 final = {"status": task.status_names.get(st, str(st)), "robot_um": (obs.robot_est * 1e6).tolist(),
                          "spheres_um": (obs.spheres_est * 1e6).tolist(), "outputs": out_doc}
+                if self.progress and ticks % self.progress_every == 0:
+                    self._progress(ticks * period, final, out_doc)
                 if st in task.outcomes:
                     return (*task.outcomes[st], ticks, overruns, final)
                 if obs.lost:
