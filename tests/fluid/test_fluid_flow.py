@@ -86,3 +86,12 @@ def test_bad_parameters():
 
     with pytest.raises(ParameterError, match="raised_edge"):
         dataclasses.replace(g, raised_edge="left")
+
+
+def test_symmetric_solve_equals_the_full_solve(monkeypatch):
+    g = dataclasses.replace(RobotGeometry.from_params(), spacing=45e-6)
+    assert g.is_symmetric()
+    sym = RobotFlow(g, MU, H)
+    monkeypatch.setattr(RobotGeometry, "is_symmetric", lambda self: False)
+    full = RobotFlow(g, MU, H)
+    assert np.allclose(sym.forces, full.forces, rtol=1e-9, atol=1e-12 * np.abs(full.forces).max())

@@ -88,14 +88,49 @@ class RobotFlow:
     def _solve(self) -> None:
         pts = self.geometry.collocation_points()
         self.eps = EPS_RATIO * self.geometry.spacing
+        self.points = pts
+        if self.geometry.is_symmetric():
+            self.forces = self._solve_symmetric(pts, self.geometry.axis_count)
+            return
         a = regularized_blake_tensor(pts, pts, self.eps).reshape(3 * len(pts), 3 * len(pts))
         a /= 8.0 * np.pi * self.viscosity
         rhs = np.zeros((3 * len(pts), 2))
         rhs[0::3, 0] = 1.0
         rhs[1::3, 1] = 1.0
         sol = scipy.linalg.solve(a, rhs, assume_a="gen")
-        self.points = pts
         self.forces = sol.T.reshape(2, len(pts), 3)
+
+    def _solve_symmetric(self, pts: np.ndarray, n0: int) -> np.ndarray:
+        """Both unit motions using the robot's mirror symmetry about y = 0.
+
+        Points are ``[axis (n0), upper (n1), mirrored upper (n1)]``. Motion along body x is even:
+        a mirrored point carries ``(f_x, -f_y, f_z)`` of its partner and axis points have
+        ``f_y = 0``; motion along body y is odd: ``(-f_x, f_y, -f_z)`` and axis points only ``f_y``.
+        Imposing the boundary condition on the axis and upper points then fixes every point.
+        """
+        n1 = (len(pts) - n0) // 2
+        rows = pts[: n0 + n1]
+        g = regularized_blake_tensor(rows, pts, self.eps) / (8.0 * np.pi * self.viscosity)   # (R, 3, P, 3)
+        forces = np.zeros((2, len(pts), 3))
+        for k, (mirror, axis_comp) in enumerate((((1.0, -1.0, 1.0), [0, 2]), ((-1.0, 1.0, -1.0), [1]))):
+            folded = g[:, :, n0:n0 + n1, :] + g[:, :, n0 + n1:, :] * np.asarray(mirror)
+            cols = np.concatenate([g[:, :, :n0, axis_comp].reshape(len(rows), 3, -1),
+                                   folded.reshape(len(rows), 3, -1)], axis=2)
+            keep_rows = np.ones((len(rows), 3), bool)
+            keep_rows[:n0] = False
+            keep_rows[:n0, axis_comp] = True
+            a = cols[keep_rows]
+            rhs = np.zeros((len(rows), 3))
+            rhs[:, k] = 1.0
+            sol = scipy.linalg.solve(a, rhs[keep_rows], assume_a="gen")
+            na = n0 * len(axis_comp)
+            f_axis = np.zeros((n0, 3))
+            f_axis[:, axis_comp] = sol[:na].reshape(n0, len(axis_comp))
+            f_up = sol[na:].reshape(n1, 3)
+            forces[k, :n0] = f_axis
+            forces[k, n0:n0 + n1] = f_up
+            forces[k, n0 + n1:] = f_up * np.asarray(mirror)
+        return forces
 
     def velocity_exact(self, pts: np.ndarray) -> np.ndarray:
         """Flow ``(2, P, 3)`` at robot-frame points ``(P, 3)`` for unit body-x and body-y motion."""

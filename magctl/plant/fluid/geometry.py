@@ -18,10 +18,10 @@ from magctl.config import Params, load_model
 from magctl.core.errors import ParameterError
 
 
-def _arc(p0, p1, inward, sagitta, n):
-    """Points from ``p0`` to ``p1`` (excluding ``p1``) bulging by ``sagitta`` along ``inward``."""
+def _arc(p0, p1, inward, sagitta, n, endpoint=False):
+    """Points from ``p0`` to ``p1`` (``p1`` only with ``endpoint``) bulging by ``sagitta`` along ``inward``."""
     p0, p1, inward = (np.asarray(v, float) for v in (p0, p1, inward))
-    t = np.linspace(0.0, 1.0, n, endpoint=False)
+    t = np.linspace(0.0, 1.0, n + 1 if endpoint else n, endpoint=endpoint)
     chord = np.linalg.norm(p1 - p0)
     line = p0 + t[:, None] * (p1 - p0)
     if sagitta <= 0:
@@ -47,7 +47,7 @@ def star_outline(length, width, front_notch_depth, front_notch_width, side_notch
     n = int(arc_points)
     parts = [
         np.array([[lx, -wy]]),
-        _arc([lx, -cw], [lx, cw], [-1, 0], front_notch_depth, n),         # concave front face
+        _arc([lx, -cw], [lx, cw], [-1, 0], front_notch_depth, n, endpoint=True),   # concave front face
         _arc([lx, wy], [-lx, wy], [0, -1], side_notch_depth, n),          # left flank
         _arc([-lx, wy], [-lx, -wy], [1, 0], rear_notch_depth, n),         # rear
         _arc([-lx, -wy], [lx, -wy], [0, 1], side_notch_depth, n),         # right flank
@@ -200,11 +200,35 @@ class RobotGeometry:
         return np.vstack(pts), np.vstack(normals)
 
     def collocation_points(self) -> np.ndarray:
-        """Points on the robot's surface (robot frame) where no-slip is imposed ``(P, 3)``."""
+        """Points on the robot's surface (robot frame) ``(P, 3)``, mirror-symmetric about ``y = 0``.
+
+        Ordered as ``[on the axis (n0), y > 0 (n1), their mirror images (n1)]`` so solvers can
+        use the symmetry (:attr:`axis_count`).
+        """
         h, t = self.spacing, self.thickness
         face = self._face_grid(h, 0.0)
         per, _ = self._perimeter(h)
         levels = np.linspace(0.0, t, max(int(np.ceil(t / h)), 1) + 1)
         body = [np.column_stack([face, np.zeros(len(face))]), np.column_stack([face, np.full(len(face), t)])]
         body += [np.column_stack([per, np.full(len(per), z)]) for z in levels]
-        return self.to_frame(np.vstack(body))
+        pts = np.vstack(body)
+        tol = 1e-3 * h
+        axis, upper = pts[np.abs(pts[:, 1]) <= tol], pts[pts[:, 1] > tol]
+        axis = axis * [1.0, 0.0, 1.0]
+        return self.to_frame(np.vstack([axis, upper, upper * [1.0, -1.0, 1.0]]))
+
+    @property
+    def axis_count(self) -> int:
+        """Number of collocation points on the symmetry axis (the first ones)."""
+        h = self.spacing
+        face = self._face_grid(h, 0.0)
+        per, _ = self._perimeter(h)
+        levels = max(int(np.ceil(self.thickness / h)), 1) + 1
+        tol = 1e-3 * h
+        return int(2 * (np.abs(face[:, 1]) <= tol).sum() + levels * (np.abs(per[:, 1]) <= tol).sum())
+
+    def is_symmetric(self) -> bool:
+        """True when the outline is mirror-symmetric about the body x axis."""
+        mirrored = self.outline * [1.0, -1.0]
+        dist, _ = polygon_distance(mirrored, self.outline)
+        return bool(dist.max() < 1e-9)
