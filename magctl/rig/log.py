@@ -2,7 +2,7 @@
 
 A run log is one JSON document per line, in the spirit of Bluesky's event model:
 
-* ``start`` — task, resolved options, seed, parameters, limits, magctl version, rig description;
+* ``start`` — task, resolved options, seed, the text of every parameter file, limits, magctl version, rig;
 * ``descriptor`` — every event field with its shape and unit;
 * ``event`` — one per frame: observation, controller command (raw and as sent), task outputs, timing;
 * ``stop`` — exit status and counters. A log without ``stop`` is a run that crashed.
@@ -23,6 +23,7 @@ import json
 import os
 import time
 import uuid
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -227,19 +228,39 @@ def limits_to_doc(limits: RigLimits) -> dict:
             "k_z_T_per_A": limits.coils.k_z}
 
 
-def params_from_doc(start: dict):
-    """The rig parameters a run used, from the parameter file text kept in its start document."""
+def models_snapshot(folder) -> dict[str, str]:
+    """The text of every parameter file in ``folder`` (``name.toml`` → text), for the start document."""
+    return {f.name: f.read_text("utf-8") for f in sorted(Path(folder).glob("*.toml"))}
+
+
+@contextmanager
+def models_from_doc(start: dict):
+    """Parameter files of a run, restored from its start document into a temporary ``$MAGCTL_MODELS``.
+
+    Yields the rig parameters. Every ``load_model`` inside the block (servo, drive, push tasks) reads
+    the files the run used, so the rebuilt controller is the one that ran.
+    """
     import tempfile
 
     from magctl.config import load_file
 
-    text = start.get("params_toml")
-    if not isinstance(text, str):
-        raise LogError("start document has no params_toml; cannot rebuild the controller")
+    files = start.get("models_toml")
+    if not isinstance(files, dict) or "rig.toml" not in files:
+        raise LogError("start document has no models_toml with rig.toml; cannot rebuild the controller")
+    old = os.environ.get("MAGCTL_MODELS")
     with tempfile.TemporaryDirectory() as tmp:
-        f = Path(tmp) / "rig.toml"
-        f.write_text(text, encoding="utf-8")
-        return load_file(f)
+        for name, text in files.items():
+            if "/" in name or "\\" in name or not name.endswith(".toml"):
+                raise LogError(f"start document: bad parameter file name {name!r}")
+            (Path(tmp) / name).write_text(text, encoding="utf-8")
+        os.environ["MAGCTL_MODELS"] = tmp
+        try:
+            yield load_file(Path(tmp) / "rig.toml")
+        finally:
+            if old is None:
+                os.environ.pop("MAGCTL_MODELS", None)
+            else:
+                os.environ["MAGCTL_MODELS"] = old
 
 
 # --- export ------------------------------------------------------------------------------------------
@@ -340,7 +361,7 @@ def replay(log_path) -> ReplayResult:
     """Feed the logged observations through a freshly built controller; compare commands bit for bit.
 
     The controller is rebuilt from the start document (task, resolved options,
-    seed, parameters) and reset at every change of ``activation``, as the
+    seed, and the text of every parameter file the run used) and reset at every change of ``activation``, as the
     runtime did; both the raw controller command and the clipped command sent
     to the rig are compared with ``==`` on the float64 values.
     """
@@ -350,10 +371,10 @@ def replay(log_path) -> ReplayResult:
     st = log.start
     if not log.events:
         raise LogError(f"{log.path}: no events to replay")
-    params = params_from_doc(st)
     limits = limits_from_doc(st)
     first = event_observation(log.events[0])
-    task = build_task(st["task"], first, st["options"], params)
+    with models_from_doc(st) as params:
+        task = build_task(st["task"], first, st["options"], params)
     ctrl = Controller(task, seed=st.get("seed", 0))
     activation = log.events[0]["activation"]
     compared = mismatches = 0

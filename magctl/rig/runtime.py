@@ -33,7 +33,7 @@ import numpy as np
 
 from magctl.config import load_file, models_dir
 from magctl.rig.interface import Lifecycle, Rig, RigError
-from magctl.rig.log import RunLogWriter, descriptor_fields, limits_to_doc
+from magctl.rig.log import RunLogWriter, descriptor_fields, limits_to_doc, models_snapshot
 from magctl.rig.tasks import Controller, Task, build_task
 
 
@@ -131,6 +131,12 @@ class Runtime:
         print(f"[{t:6.1f} s] {final['status']}{extra}  robot ({robot}) µm  spheres {spheres} µm",
               file=sys.stderr, flush=True)
 
+    def _models_snapshot(self) -> dict[str, str]:
+        """Every parameter file of the models folder, with rig.toml as actually used by this run."""
+        files = models_snapshot(models_dir())
+        files["rig.toml"] = self.params_path.read_text("utf-8")
+        return files
+
     def _warn(self, msg: str) -> None:
         if not self.quiet:
             print(f"magctl rig: {msg}", file=sys.stderr, flush=True)
@@ -153,7 +159,7 @@ class Runtime:
             if self.log_path is not None:
                 writer = RunLogWriter(self.log_path)
                 writer.start(task=task.name, options=task.options, seed=self.seed, rig=self.rig_description,
-                             limits=limits_to_doc(rig.limits), params_toml=self.params_path.read_text("utf-8"),
+                             limits=limits_to_doc(rig.limits), models_toml=self._models_snapshot(),
                              params_file=str(self.params_path), period_s=self.period, realtime=self.realtime,
                              argv=sys.argv)
                 outs = {n: (p.shape, p.unit) for n, p in task.diagram.outputs.items()

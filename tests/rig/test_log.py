@@ -132,3 +132,30 @@ def test_log_commands(push_log, tmp_path, capsys):
     assert code == 0 and (tmp_path / "x.parquet").exists()
     code, _, err = run("show", str(tmp_path / "missing.jsonl"))
     assert code == 2 and "no such run log" in err
+
+
+def test_replay_uses_the_parameter_files_the_run_used(tmp_path, monkeypatch):
+    models = tmp_path / "models"
+    models.mkdir()
+    for f in (ROOT / "models").glob("*.toml"):
+        (models / f.name).write_text(f.read_text())
+    servo = (models / "servo.toml").read_text()
+    tuned = servo.index("[tuned]")
+    # a different servo gain for this run only
+    changed = servo[:tuned] + servo[tuned:].replace("kp_per_s = { value = 3.0,", "kp_per_s = { value = 5.0,", 1)
+    assert changed != servo
+    (models / "servo.toml").write_text(changed)
+    monkeypatch.setenv("MAGCTL_MODELS", str(models))
+    log = tmp_path / "run.jsonl"
+    Runtime(SimRig(n_spheres=0), "goto", {"target_um": [600.0, 300.0]}, log_path=log, realtime=False,
+            max_ticks=60, quiet=True).run()
+    monkeypatch.delenv("MAGCTL_MODELS")
+    assert replay(log).identical  # the logged files, not today's models/, rebuild the controller
+    # with the repository's servo.toml instead, the commands differ: the check can fail
+    lines = log.read_text().splitlines()
+    start = json.loads(lines[0])
+    start["models_toml"]["servo.toml"] = servo
+    lines[0] = json.dumps(start)
+    swapped = tmp_path / "swapped.jsonl"
+    swapped.write_text("\n".join(lines) + "\n")
+    assert replay(swapped).mismatches > 0
