@@ -127,3 +127,20 @@ def test_bad_inputs():
         Spheres(np.zeros((1, 2)), roughness=-1.0)
     with pytest.raises(ValueError, match="gaps"):
         sidepush_curve([-1e-6])
+
+
+def test_wires_to_the_actuated_robot():
+    # contract of docs/interfaces.md: the robot's position/heading/velocity ports drive the spheres
+    from magctl.plant.drive import actuated_robot
+
+    plant = actuated_robot("plant", position=(-1e-3, 0.0), heading=0.0, variability=False)
+    sph = Spheres(np.array([[0.0, 420e-6]]))
+    d = Diagram("rig", [plant, sph],
+                connections=[("plant.position", "spheres.position"), ("plant.heading", "spheres.heading"),
+                             ("plant.velocity", "spheres.velocity")],
+                inputs={"speed": "plant.speed", "heading": "plant.heading"},
+                outputs={"spheres": "spheres.spheres", "position": "plant.position"})
+    r = simulate(d, 120, batch=1, seed=1, inputs={"speed": 0.4e-3, "heading": 0.0})
+    moved = r.outputs["spheres"][0, -1, 0] - r.outputs["spheres"][0, 0, 0]
+    assert r.outputs["position"][0, -1, 0] > 0.5e-3     # the robot has passed the sphere
+    assert 10e-6 < moved[0] < 200e-6                    # dragged forward by the flow, no contact
