@@ -17,6 +17,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from magctl.plant.fluid.calibration import EQ22_A, EQ22_B, calibrate, eq22, eq23_gap  # noqa: E402
+from magctl.plant.fluid.flow import robot_flow  # noqa: E402
 from magctl.plant.fluid.scenarios import contact_threshold, sidepush_curve, sidepush_fit  # noqa: E402
 from magctl.studies import PaperRow, StudyContext, StudyResult  # noqa: E402
 
@@ -62,6 +63,8 @@ def run(ctx: StudyContext) -> StudyResult:
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
+    flow_path = _flow_figure(ctx)
+
     results = {
         "points": [{"gap_um": gg * um, "displacement_um": d * um, "along_um": al * um, "contact": bool(c)}
                    for gg, d, al, c in zip(gaps, res.displacement, res.along, res.contact, strict=True)],
@@ -94,4 +97,34 @@ def run(ctx: StudyContext) -> StudyResult:
         PaperRow("D_s at D_g = 500 µm", f"{eq22(500e-6) * um:.1f} µm (eq 22)", f"{ours[1] * um:.1f} µm",
                  "uncalibrated, ε = 25 nm"),
     ]
-    return StudyResult(NAME, results, [path], summary, paper)
+    return StudyResult(NAME, results, [path, flow_path], summary, paper)
+
+
+def _flow_figure(ctx: StudyContext):
+    """Top view of the robot's flow at the sphere-centre height (cf. the paper's Fig 5a)."""
+    flow = robot_flow()
+    speed = 0.4e-3
+    x = np.linspace(-900e-6, 900e-6, 181)
+    xx, yy = np.meshgrid(x, x)
+    xy = np.stack([xx, yy], -1)
+    u = flow.lookup(xy, np.broadcast_to([speed, 0.0], xy.shape))      # robot moving forward (+x)
+    mag = np.linalg.norm(u[..., :2], axis=-1) / speed
+    mag[flow.geometry.contains(np.concatenate([xy, np.full(xx.shape + (1,), flow.height)], -1))] = np.nan
+    fig, ax = plt.subplots(figsize=(6, 5))
+    um = 1e6
+    cs = ax.contourf(xx * um, yy * um, mag, levels=np.linspace(0, 1, 21), cmap="viridis")
+    k = slice(None, None, 12)
+    ax.quiver(xx[k, k] * um, yy[k, k] * um, u[k, k, 0], u[k, k, 1], color="w", scale=speed * 12)
+    foot = np.vstack([flow.geometry.footprint, flow.geometry.footprint[:1]])
+    ax.plot(foot[:, 0] * um, foot[:, 1] * um, "r-", lw=1)
+    fig.colorbar(cs, ax=ax, label="|u| / robot speed")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (µm), robot moving towards +x (concave face at +x)")
+    ax.set_ylabel("y (µm)")
+    ax.set_title(f"Flow at the sphere-centre height z = {flow.height * um:.0f} µm "
+                 "(red: footprint; white: solid at this height)", fontsize=9)
+    fig.tight_layout()
+    path = ctx.figure_path("flow_map")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
