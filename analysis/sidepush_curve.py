@@ -121,7 +121,7 @@ def _flow_figure(ctx: StudyContext):
     ax.set_aspect("equal")
     ax.set_xlabel("x (µm), robot moving towards +x (concave face at +x)")
     ax.set_ylabel("y (µm)")
-    ax.set_title(f"Flow at the sphere-centre height z = {flow.height * um:.0f} µm "
+    ax.set_title(f"Flow at the sphere-centre height z = {flow.height * um:.0f} µm\n"
                  "(red: footprint; white: solid at this height)", fontsize=9)
     fig.tight_layout()
     path = ctx.figure_path("flow_map")
