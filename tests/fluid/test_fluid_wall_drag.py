@@ -88,3 +88,12 @@ def test_modes_agree_at_contact_and_bad_mode():
         mobility("comsol", R, 0.0, EPS)
     with pytest.raises(ValueError, match="gap"):
         paper_coefficients(R, -1e-6, EPS)
+
+
+@pytest.mark.parametrize("ha, fs", GCB_SHEAR)
+def test_paper_shear_coefficient_against_gcb_table(ha, fs):
+    # eq 4's F*_shear = 1 + 0.7005 R/h, with h = R + delta + eps, against Goldman, Cox & Brenner (1967b)
+    gap = (ha - 1.0) * R - EPS
+    if gap < 0:
+        pytest.skip("gap below the roughness")
+    assert paper_coefficients(R, gap, EPS)[0] == pytest.approx(fs, rel=0.02)
