@@ -12,6 +12,7 @@ GEOM = RobotGeometry.from_params()
 coord = st.floats(-600e-6, 600e-6)
 
 
+@settings(deadline=None)
 @given(coord, coord, st.floats(-np.pi, np.pi), coord, coord)
 def test_body_frame_round_trip(x, y, heading, px, py):
     pts = np.array([[[x, y]]])
@@ -22,7 +23,7 @@ def test_body_frame_round_trip(x, y, heading, px, py):
     assert np.isclose(np.linalg.norm(rel), np.linalg.norm(pts - origin[:, None, :]))
 
 
-@settings(max_examples=200)
+@settings(max_examples=200, deadline=None)
 @given(coord, coord)
 def test_pushed_out_spheres_do_not_overlap_the_outline(x, y):
     fixed, touched = push_out_of_outline(np.array([[x, y]]), GEOM.footprint, R, iterations=6)
@@ -41,6 +42,7 @@ def test_sphere_in_the_concave_face_touches_both_sides():
     assert fixed[0, 0] < front + R          # it sits inside the notch, not in front of the face
 
 
+@settings(deadline=None)
 @given(st.lists(st.tuples(coord, coord), min_size=2, max_size=5))
 def test_separated_spheres_do_not_overlap(points):
     xy = np.array(points)[None] * 0.3

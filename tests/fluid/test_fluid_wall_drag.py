@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from magctl.plant.fluid.wall_drag import (
@@ -40,6 +40,7 @@ def test_paper_bounds_as_printed():
     assert paper_rotation_ratio(R, R) == pytest.approx(-2.375e-6 * np.exp(12.05) + 1.025 * np.exp(-0.1438))
 
 
+@settings(deadline=None)
 @given(st.floats(0, 50e-6), st.floats(-1e-3, 1e-3))
 def test_paper_mobility_zeroes_the_force(gap, u):
     k = paper_mobility(R, gap, EPS)
