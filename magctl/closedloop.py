@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magctl.config import load_model
 from magctl.control.assembly import AssemblyTask
 from magctl.control.push_common import RUNNING, STATUS_NAMES
 from magctl.control.push_front import FrontAssemblyTask, FrontPushTask
@@ -59,17 +60,22 @@ class Variability:
         the scatter of the release displacement D_p,r (paper: 300 ± 75 µm, §IV-D).
     sticky_probability : float
         Probability that a sphere sits on a sticky patch (§VI-B, "stuck on dirt").
+    calibrated : bool
+        Use the sphere–glass gap ε fitted to the measured D_p,r = 300 µm
+        (``models/sphere.toml`` [calibration]) instead of the measured 25 nm roughness.
     """
 
     camera_noise: bool = True
     robot_steps: bool = True
     release_scatter: float = 0.25
     sticky_probability: float = 0.0
+    calibrated: bool = False
 
     def describe(self) -> str:
         on = [name for name, v in (("camera noise", self.camera_noise), ("robot step variability", self.robot_steps),
                                    (f"release scatter ±{self.release_scatter:.0%}", self.release_scatter > 0),
-                                   (f"sticky patches p={self.sticky_probability:g}", self.sticky_probability > 0))
+                                   (f"sticky patches p={self.sticky_probability:g}", self.sticky_probability > 0),
+                                   ("D_p,r-calibrated sphere-glass gap", self.calibrated))
               if v]
         return ", ".join(on) if on else "none (deterministic)"
 
@@ -100,6 +106,11 @@ class Experiment:
     servo: str = "default"
     variability: Variability = Variability()
     label: str = ""
+
+
+def calibrated_roughness() -> float:
+    """The D_p,r-calibrated sphere–glass gap ε [m] from ``models/sphere.toml``."""
+    return float(load_model("sphere").calibration.release_roughness)
 
 
 def geometry(kind: str) -> dict:
@@ -142,7 +153,7 @@ def push_loop(exp: Experiment) -> Diagram:
     camera_kw = {} if var.camera_noise else {"position_noise_px": 0.0, "heading_noise": 0.0, "drop_probability": 0.0}
     blocks = [
         ActuatedRobot("plant", position=g["robot"], variability=var.robot_steps),
-        Spheres(g["spheres"], params=sp),
+        Spheres(g["spheres"], params=sp, roughness=calibrated_roughness() if var.calibrated else None),
         Camera(n_spheres=n, primed=(g["robot"], 0.0, g["spheres"]), **camera_kw),
         Tracker(n_spheres=n, init_robot=g["robot"], init_spheres=g["spheres"]),
         Servo(params=servo_params(exp.servo), speed_cap_input=True, hold_input=True),
