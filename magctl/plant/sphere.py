@@ -34,7 +34,7 @@ from magctl.core.errors import ParameterError, WiringError
 from magctl.core.ports import Port
 from magctl.plant.fluid import params as fluid_params
 from magctl.plant.fluid.flow import RobotFlow, robot_flow
-from magctl.plant.fluid.geometry import RobotGeometry, points_in_polygon, polygon_distance
+from magctl.plant.fluid.geometry import Polygon, RobotGeometry
 from magctl.plant.fluid.params import GRAVITY, SphereParams, fluid_viscosity, sphere_params
 from magctl.plant.fluid.surface import pull_off_range
 from magctl.plant.fluid.wall_drag import mobility
@@ -62,26 +62,48 @@ def to_world(v, heading):
                      s[:, None] * v[..., 0] + c[:, None] * v[..., 1]], axis=-1)
 
 
-def push_out_of_outline(rel: np.ndarray, outline: np.ndarray, radius: float, iterations: int = 3):
+def push_out_of_outline(rel: np.ndarray, outline, radius: float, iterations: int = 3):
     """Move circle centres ``rel (..., 2)`` (robot frame) so circles of ``radius`` do not overlap ``outline``.
 
+    ``outline`` is a ``(V, 2)`` polygon or a :class:`~magctl.plant.fluid.geometry.Polygon`.
     Returns the corrected centres and a bool array of which ones were in contact.
     Several passes settle a sphere wedged in the concave front face.
     """
-    touched = np.zeros(rel.shape[:-1], bool)
+    rel = np.asarray(rel, float)
+    x, y, touched = _push_out(rel[..., 0].ravel(), rel[..., 1].ravel(), outline, radius, iterations)
+    if touched.any():
+        rel = np.stack([x, y], axis=-1).reshape(rel.shape)
+    return rel, touched.reshape(rel.shape[:-1])
+
+
+def _push_out(x: np.ndarray, y: np.ndarray, outline, radius: float, iterations: int):
+    """:func:`push_out_of_outline` on flat coordinate arrays; returns new ``x, y`` and ``touched``.
+
+    A pass leaves centres it did not move as they were, so later passes only revisit the
+    centres moved by the pass before.
+    """
+    poly = outline if isinstance(outline, Polygon) else Polygon(outline)
+    touched = np.zeros(x.shape, bool)
+    idx = None                                     # centres still being settled (None: all)
     for _ in range(iterations):
-        dist, nearest = polygon_distance(rel, outline)
-        inside = points_in_polygon(rel, outline)
+        px, py = (x, y) if idx is None else (x[idx], y[idx])
+        dist, nx, ny = poly.distance(px, py)
+        inside = poly.contains(px, py)
         hit = inside | (dist < radius * (1 - 1e-9))
         if not hit.any():
             break
-        touched |= hit
-        d = rel[hit] - nearest[hit]
-        n = d / np.maximum(dist[hit], 1e-15)[:, None]
-        n[inside[hit]] *= -1.0
-        rel = rel.copy()
-        rel[hit] = nearest[hit] + n * radius
-    return rel, touched
+        rows = np.nonzero(hit)[0] if idx is None else idx[hit]
+        touched[rows] = True
+        d = np.maximum(dist[hit], 1e-15)
+        sign = np.where(inside[hit], -1.0, 1.0)
+        nhx, nhy = nx[hit], ny[hit]
+        ux, uy = (px[hit] - nhx) / d, (py[hit] - nhy) / d
+        if idx is None:
+            x, y = x.copy(), y.copy()
+        x[rows] = nhx + (ux * sign) * radius
+        y[rows] = nhy + (uy * sign) * radius
+        idx = rows
+    return x, y, touched
 
 
 def separate_spheres(xy: np.ndarray, radius: float, iterations: int = 3) -> np.ndarray:
@@ -154,6 +176,7 @@ class Spheres(Block):
         self.pull_off = pull_off_range(r).p_min if self.params.adhesion else 0.0    # P, eq 3 (low end)
         self.zeta = 6 * np.pi * self.viscosity * r                                    # eq 9 drag coefficient
         self.footprint = self.geometry.footprint
+        self._footprint = Polygon(self.footprint)
         self.reach = float(np.linalg.norm(self.footprint, axis=1).max()) + r
         self._flow: RobotFlow | None = None
         self._k_contact = float(mobility(self.mode, r, 0.0, self.roughness))   # V_p/U resting on the glass
@@ -209,54 +232,88 @@ class Spheres(Block):
     # --- physics ----------------------------------------------------------------------------
     def sphere_velocity(self, xy, gap, mult, pos, heading, vel):
         """In-plane sphere velocity ``(B, N, 2)`` and gap rate ``(B, N)`` for the robot state given."""
-        rel = to_body(xy, pos, heading)
-        c, s = _rot(heading)
-        vb = np.stack([c * vel[:, 0] + s * vel[:, 1], -s * vel[:, 0] + c * vel[:, 1]], axis=-1)
-        u = self.flow.lookup(rel, np.broadcast_to(vb[:, None, :], rel.shape))
-        u_xy = to_world(u[..., :2], heading)
+        c, s = _rot(np.asarray(heading, float))
+        vel = np.asarray(vel, float)
+        vbx, vby = c * vel[:, 0] + s * vel[:, 1], -s * vel[:, 0] + c * vel[:, 1]
+        vx, vy, gap_rate, k = self._rates(xy[..., 0], xy[..., 1], gap, self._capped(mult, gap), pos,
+                                          c[:, None], s[:, None], vbx[:, None], vby[:, None])
+        return np.stack([k * vx, k * vy], axis=-1), gap_rate
+
+    def _capped(self, mult, gap):
+        """Mobility V_p/U per sphere (eq 4), capped at the free-sphere limit 1."""
         # a sphere cannot outrun the fluid around it: the free-sphere limit V_p/U = 1 caps the
         # mobility (eq 4's bounded coefficients exceed it away from contact, and so can scattered trials)
         k = np.full(gap.shape, self._k_contact)
         lifted = gap > 0
         if lifted.any():
             k[lifted] = mobility(self.mode, self.radius, gap[lifted], self.roughness)
-        k = np.minimum(k * mult, 1.0)
-        pull = np.where(gap <= self.params.adhesion_range, self.pull_off, 0.0)
-        gap_rate = u[..., 2] - (self.buoyant_weight + pull) / self.zeta
-        return k[..., None] * u_xy, gap_rate
+        return np.minimum(k * mult, 1.0)
+
+    def _rates(self, x, y, gap, k, pos, c, s, vbx, vby):
+        """World-frame flow velocity ``(v_x, v_y)`` at the spheres ``(x, y)`` (B, N), the gap rate
+        (eq 8-9) and the mobility ``k`` passed through; ``c, s`` = cos/sin of the heading and
+        ``vbx, vby`` the robot's body-frame velocity, each (B, 1)."""
+        dx, dy = x - pos[:, 0, None], y - pos[:, 1, None]
+        rx, ry = c * dx + s * dy, -s * dx + c * dy                      # robot frame
+        ux, uy, uz = self.flow.lookup_components(rx, ry, vbx, vby)
+        wx, wy = c * ux - s * uy, s * ux + c * uy                       # back to the world frame
+        if self.pull_off:
+            pull = np.where(gap <= self.params.adhesion_range, self.pull_off, 0.0)
+            gap_rate = uz - (self.buoyant_weight + pull) / self.zeta
+        else:
+            gap_rate = uz - self.buoyant_weight / self.zeta
+        return wx, wy, gap_rate, k
 
     def update(self, state, u):
         pos = np.asarray(u["position"], float)
         heading = np.asarray(u["heading"], float)
         vel = np.asarray(u["velocity"], float)
-        xy, gap, mult = state["xy"].copy(), state["gap"].copy(), state["mobility"]
+        x, y = state["xy"][..., 0].copy(), state["xy"][..., 1].copy()
+        gap, mult = state["gap"].copy(), state["mobility"]
         n_sub = self.params.substeps
         tau = self.dt / n_sub
         contact = np.zeros(len(pos), bool)
+        # the robot's heading and velocity are held over the frame: rotate once
+        c, s = _rot(heading)
+        vbx = (c * vel[:, 0] + s * vel[:, 1])[:, None]
+        vby = (-s * vel[:, 0] + c * vel[:, 1])[:, None]
+        c, s = c[:, None], s[:, None]
+        k_rest = np.minimum(np.full(gap.shape, self._k_contact) * mult, 1.0)   # every sphere on the glass
         for k in range(n_sub):
             p_mid = pos + vel * (k + 0.5) * tau
-            v_xy, g_rate = self.sphere_velocity(xy, gap, mult, p_mid, heading, vel)
-            xy += v_xy * tau
+            k_now = self._capped(mult, gap) if (gap > 0).any() else k_rest
+            wx, wy, g_rate, k_now = self._rates(x, y, gap, k_now, p_mid, c, s, vbx, vby)
+            x += k_now * wx * tau
+            y += k_now * wy * tau
             gap = np.maximum(gap + g_rate * tau, 0.0)
             p_end = pos + vel * (k + 1) * tau
-            xy, touched = self._contacts(xy, p_end, heading)
+            x, y, touched = self._contacts(x, y, p_end, c, s)
             contact |= touched
-        return {"xy": xy, "gap": gap, "mobility": mult, "contact": contact}
+        return {"xy": np.stack([x, y], axis=-1), "gap": gap, "mobility": mult, "contact": contact}
 
-    def _contacts(self, xy, pos, heading):
-        touched = np.zeros(len(xy), bool)
-        near = np.linalg.norm(xy - pos[:, None, :], axis=-1) < self.reach
+    def _contacts(self, x, y, pos, c, s):
+        """Non-penetration of the robot's footprint and between spheres after a sub-step.
+
+        Only spheres within reach of the robot (per trial and sphere) are tested.
+        """
+        touched = np.zeros(len(x), bool)
+        dx, dy = x - pos[:, 0, None], y - pos[:, 1, None]
+        near = np.sqrt(dx * dx + dy * dy) < self.reach
         if near.any():
-            b = np.nonzero(near.any(axis=1))[0]
-            rel = to_body(xy[b], pos[b], heading[b])
-            rel2, hit = push_out_of_outline(rel, self.footprint, self.radius)
+            b, i = np.nonzero(near)
+            cb, sb, ndx, ndy = c[b, 0], s[b, 0], dx[b, i], dy[b, i]
+            rx, ry = cb * ndx + sb * ndy, -sb * ndx + cb * ndy
+            rx2, ry2, hit = _push_out(rx, ry, self._footprint, self.radius, 3)
             if hit.any():
-                xy = xy.copy()
-                xy[b] = pos[b, None, :] + to_world(rel2, heading[b])
-                touched[b] = hit.any(axis=1)
+                b, i, cb, sb, rx2, ry2 = b[hit], i[hit], cb[hit], sb[hit], rx2[hit], ry2[hit]
+                x, y = x.copy(), y.copy()
+                x[b, i] = pos[b, 0] + (cb * rx2 - sb * ry2)
+                y[b, i] = pos[b, 1] + (sb * rx2 + cb * ry2)
+                touched[b] = True
         if self.n > 1:
-            xy = separate_spheres(xy, self.radius)
-        return xy, touched
+            xy = separate_spheres(np.stack([x, y], axis=-1), self.radius)
+            x, y = xy[..., 0].copy(), xy[..., 1].copy()
+        return x, y, touched
 
 
 def integrate_inertial(block: Spheres, start: np.ndarray, robot_path: Callable[[float], tuple], t_end: float,

@@ -163,6 +163,15 @@ class RobotFlow:
         ins = inside.reshape(len(ypos), len(self.gx))
         self.inside = np.concatenate([ins[:0:-1], ins], axis=0)
 
+    def _flat_maps(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Both maps as one ``(ny·nx, 6)`` table (x-motion flow, then y-motion flow) and the grid spacings."""
+        flat = getattr(self, "_flat", None)
+        if flat is None:
+            m = self.maps
+            flat = np.ascontiguousarray(m.transpose(1, 2, 0, 3).reshape(m.shape[1] * m.shape[2], 6))
+            self._flat = flat = (flat, np.diff(self.gx), np.diff(self.gy))
+        return flat
+
     def lookup(self, xy: np.ndarray, v_body: np.ndarray) -> np.ndarray:
         """Flow ``(..., 3)`` [m/s] at robot-frame plane points ``xy (..., 2)`` for body velocity ``(..., 2)``.
 
@@ -170,27 +179,39 @@ class RobotFlow:
         """
         xy = np.asarray(xy, float)
         v_body = np.asarray(v_body, float)
-        x, y = xy[..., 0], xy[..., 1]
-        ix = np.clip(np.searchsorted(self.gx, x) - 1, 0, len(self.gx) - 2)
-        iy = np.clip(np.searchsorted(self.gy, y) - 1, 0, len(self.gy) - 2)
-        tx = (x - self.gx[ix]) / (self.gx[ix + 1] - self.gx[ix])
-        ty = (y - self.gy[iy]) / (self.gy[iy + 1] - self.gy[iy])
-        m = self.maps
-        w00, w01 = ((1 - tx) * (1 - ty))[..., None], (tx * (1 - ty))[..., None]
-        w10, w11 = ((1 - tx) * ty)[..., None], (tx * ty)[..., None]
-        out = np.zeros(xy.shape[:-1] + (3,))
-        for k in range(2):
-            mk = m[k]
-            uk = w00 * mk[iy, ix] + w01 * mk[iy, ix + 1] + w10 * mk[iy + 1, ix] + w11 * mk[iy + 1, ix + 1]
-            out += v_body[..., k, None] * uk
-        outside = (np.abs(x) > self.gx[-1]) | (np.abs(y) > self.gy[-1])
+        ux, uy, uz = self.lookup_components(xy[..., 0], xy[..., 1], v_body[..., 0], v_body[..., 1])
+        return np.stack([ux, uy, uz], axis=-1)
+
+    def lookup_components(self, x: np.ndarray, y: np.ndarray, vx: np.ndarray, vy: np.ndarray):
+        """:meth:`lookup` on coordinate arrays: points ``(x, y)`` and body velocity ``(vx, vy)``, all of one
+        shape (or broadcastable to the points'); returns the flow components ``(u_x, u_y, u_z)``."""
+        flat, dgx, dgy = self._flat_maps()
+        gx, gy = self.gx, self.gy
+        nx = len(gx)
+        # np.minimum/np.maximum and take: the same numbers as np.clip and fancy indexing, fewer layers
+        ix = np.minimum(np.maximum(np.searchsorted(gx, x) - 1, 0), nx - 2)
+        iy = np.minimum(np.maximum(np.searchsorted(gy, y) - 1, 0), len(gy) - 2)
+        tx = (x - gx.take(ix)) / dgx.take(ix)
+        ty = (y - gy.take(iy)) / dgy.take(iy)
+        sx, sy = 1 - tx, 1 - ty
+        i00 = iy * nx + ix
+        # the four corners of every cell in one table (same sum order as a corner-by-corner blend)
+        u = ((sx * sy)[..., None] * flat.take(i00, axis=0) + (tx * sy)[..., None] * flat.take(i00 + 1, axis=0)
+             + (sx * ty)[..., None] * flat.take(i00 + nx, axis=0)
+             + (tx * ty)[..., None] * flat.take(i00 + nx + 1, axis=0))
+        ux = vx * u[..., 0] + vy * u[..., 3]
+        uy = vx * u[..., 1] + vy * u[..., 4]
+        uz = vx * u[..., 2] + vy * u[..., 5]
+        outside = (np.abs(x) > gx[-1]) | (np.abs(y) > gy[-1])
         if np.any(outside):
-            far = xy[outside]
-            pts = np.column_stack([far, np.full(len(far), self.height)])
-            u = self.velocity_exact(pts)
-            vb = v_body[outside]
-            out[outside] = vb[:, 0, None] * u[0] + vb[:, 1, None] * u[1]
-        return out
+            vx, vy = np.broadcast_to(vx, x.shape), np.broadcast_to(vy, x.shape)
+            pts = np.column_stack([x[outside], y[outside], np.full(int(outside.sum()), self.height)])
+            far = self.velocity_exact(pts)
+            vbx, vby = vx[outside][:, None], vy[outside][:, None]
+            exact = vbx * far[0] + vby * far[1]
+            ux, uy, uz = ux.copy(), uy.copy(), uz.copy()
+            ux[outside], uy[outside], uz[outside] = exact[:, 0], exact[:, 1], exact[:, 2]
+        return ux, uy, uz
 
 
 _CACHE: dict[tuple, RobotFlow] = {}

@@ -55,35 +55,75 @@ def star_outline(length, width, front_notch_depth, front_notch_width, side_notch
     return np.vstack(parts)
 
 
-def points_in_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Even-odd test of points ``(..., 2)`` against a closed polygon ``(V, 2)``."""
-    x, y = pts[..., 0, None], pts[..., 1, None]
-    x0, y0 = poly[:, 0], poly[:, 1]
-    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
-    crosses = (y0 > y) != (y1 > y)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xint = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
-    return (crosses & (x < xint)).sum(axis=-1) % 2 == 1
+class Polygon:
+    """A closed polygon ``(V, 2)`` with its edge data computed once, for repeated point queries.
+
+    Queries take points as coordinate arrays ``x, y`` of any common shape and give the
+    same numbers as the array forms :func:`points_in_polygon` and :func:`polygon_distance`
+    (the same operations in the same order, only without rebuilding the edges per call).
+    """
+
+    def __init__(self, vertices: np.ndarray):
+        v = np.array(vertices, dtype=float)
+        if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3:
+            raise ParameterError(f"a polygon needs (V >= 3, 2) vertices, got shape {v.shape}")
+        v.setflags(write=False)
+        self.vertices = v
+        self.x0, self.y0 = v[:, 0], v[:, 1]
+        nxt = np.roll(v, -1, axis=0)
+        self.x1, self.y1 = nxt[:, 0], nxt[:, 1]
+        self.dx, self.dy = self.x1 - self.x0, self.y1 - self.y0     # edge vectors (also ab of the distance)
+        self.ab2 = self.dx * self.dx + self.dy * self.dy
+
+    def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Even-odd test of points ``(x, y)``."""
+        x, y = x[..., None], y[..., None]
+        crosses = (self.y0 > y) != (self.y1 > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xint = self.x0 + (y - self.y0) * self.dx / self.dy
+        return (crosses & (x < xint)).sum(axis=-1) % 2 == 1
+
+    def distance(self, x: np.ndarray, y: np.ndarray):
+        """Distance from points ``(x, y)`` to the boundary, and the nearest boundary point ``(nx, ny)``."""
+        shape = np.shape(x)
+        x, y = np.ravel(x)[:, None], np.ravel(y)[:, None]
+        apx, apy = x - self.x0, y - self.y0
+        t = np.minimum(np.maximum((apx * self.dx + apy * self.dy) / self.ab2, 0.0), 1.0)
+        px, py = self.x0 + t * self.dx, self.y0 + t * self.dy
+        ex, ey = x - px, y - py
+        d2 = ex * ex + ey * ey
+        # nearest edge of each point, gathered from the flattened (points × edges) tables
+        k = np.argmin(d2, axis=-1) + np.arange(0, d2.size, d2.shape[1])
+        dist = np.sqrt(d2.take(k))
+        return dist.reshape(shape), px.take(k).reshape(shape), py.take(k).reshape(shape)
 
 
-def polygon_distance(pts: np.ndarray, poly: np.ndarray):
+def _polygon(poly) -> Polygon:
+    return poly if isinstance(poly, Polygon) else Polygon(poly)
+
+
+def points_in_polygon(pts: np.ndarray, poly) -> np.ndarray:
+    """Even-odd test of points ``(..., 2)`` against a closed polygon ``(V, 2)`` or :class:`Polygon`."""
+    pts = np.asarray(pts, float)
+    return _polygon(poly).contains(pts[..., 0], pts[..., 1])
+
+
+def polygon_distance(pts: np.ndarray, poly):
     """Distance from points ``(..., 2)`` to the polygon boundary and the nearest boundary point.
+
+    Parameters
+    ----------
+    pts : ndarray (..., 2)
+    poly : ndarray (V, 2) or Polygon
 
     Returns
     -------
     dist : ndarray (...)
     nearest : ndarray (..., 2)
     """
-    a = poly
-    b = np.roll(poly, -1, axis=0)
-    ab = b - a
-    ap = pts[..., None, :] - a
-    t = np.clip((ap * ab).sum(-1) / (ab * ab).sum(-1), 0.0, 1.0)
-    proj = a + t[..., None] * ab
-    d2 = ((pts[..., None, :] - proj) ** 2).sum(-1)
-    k = np.argmin(d2, axis=-1)
-    nearest = np.take_along_axis(proj, k[..., None, None], axis=-2)[..., 0, :]
-    return np.sqrt(np.take_along_axis(d2, k[..., None], axis=-1)[..., 0]), nearest
+    pts = np.asarray(pts, float)
+    dist, nx, ny = _polygon(poly).distance(pts[..., 0], pts[..., 1])
+    return dist, np.stack([nx, ny], axis=-1)
 
 
 @dataclass(frozen=True)
