@@ -100,7 +100,9 @@ def build_sim_plant(n_spheres: int, scene: Scene | None = None, params: Params |
     sd = p.standin
     coils = StandinCoils("coils", CoilMap.from_params(p.coils))
     robot = StandinRobot("robot", load_robot(), start, scene.heading)
-    spheres = StandinSpheres("spheres", scene.spheres, sd.robot_contact_radius + sd.sphere_radius)
+    spheres = StandinSpheres("spheres", scene.spheres, sd.robot_contact_radius + sd.sphere_radius,
+                             release_mean=sd.release_mean, release_std=sd.release_std, side_range=sd.side_range,
+                             start_robot=start)
     tracker = StandinTracker("tracker", n_spheres, sd.workspace_half, scene.blackout, start, scene.heading,
                              scene.spheres)
     return Diagram(

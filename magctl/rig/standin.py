@@ -9,9 +9,10 @@ but not the physics of the paper:
 * robot: the heading follows the static field instantly and the robot moves
   along it at the steady stick-slip speed of ``magctl.plant.robot.steady_speed``
   for the delivered field (no heading lag, no speed noise, no tilt output);
-* spheres: pushed by contact only — a sphere overlapping the robot's contact
-  disc is moved out along the line of centres (no Stokes flow, no D_p,r, no
-  side-pushing, no sphere–sphere contact);
+* spheres: pushed by contact (moved out of the robot's contact disc), plus two
+  empirical fluid effects instead of the Stokes-flow model — the side-pass
+  displacement of eq 22 and the release displacement D_p,r ~ N(300, 75²) µm
+  measured in §IV-D; no sphere–sphere contact;
 * tracker: exact positions one frame late; ``lost`` outside the field of view
   or during a configured blackout.
 
@@ -117,7 +118,20 @@ class StandinRobot(Block):
 
 
 class StandinSpheres(Block):
-    """Spheres moved by contact only: overlap with the robot's contact disc is removed along the line of centres.
+    """Spheres moved by contact and by two empirical fluid effects of the paper.
+
+    Per frame, with the robot moving from ``r₀`` (last frame) to ``r`` along ``d``:
+
+    1. **side pass** (eq 22): a sphere the robot passes on a straight path at lateral
+       centre distance ``D_g`` (contact < D_g < ``side_range``) — its along-track
+       coordinate changes sign — moves ``D_s = 1755 µm · exp(−0.009042 D_g/µm)`` along ``d``;
+    2. **release** (§IV-D, Fig 1d): when the robot moves away from a sphere it was pushing,
+       the sphere follows it for ``D_p,r ~ N(μ, σ²)`` (the experiments' 300 ± 75 µm),
+       at most the robot's step per frame;
+    3. **contact**: a sphere closer than ``contact_distance`` to ``r`` is pushed out along the
+       line of centres.
+
+    No sphere–sphere contact. Its motion lags the robot's by one frame.
 
     Parameters
     ----------
@@ -125,11 +139,23 @@ class StandinSpheres(Block):
         Initial sphere centres, m.
     contact_distance : float
         Robot contact radius plus sphere radius, m.
+    release_mean, release_std : float
+        Mean and standard deviation of ``D_p,r``, m.
+    side_range : float
+        Lateral distance beyond which a pass leaves the sphere alone, m.
     """
 
-    def __init__(self, name: str, start, contact_distance: float, dt: float = FRAME_PERIOD_S):
+    # eq 22: D_s = A exp(−k D_g)
+    SIDE_A = 1755e-6
+    SIDE_K = 0.009042e6
+
+    def __init__(self, name: str, start, contact_distance: float, *, release_mean: float = 0.0,
+                 release_std: float = 0.0, side_range: float = 0.0, start_robot=(0.0, 0.0), dt: float = FRAME_PERIOD_S):
         self.start = np.asarray(start, dtype=float).reshape(-1, 2)
         self.contact_distance = float(contact_distance)
+        self.release_mean, self.release_std = float(release_mean), float(release_std)
+        self.side_range = float(side_range)
+        self.start_robot = np.asarray(start_robot, dtype=float)
         n = self.start.shape[0]
         super().__init__(
             name,
@@ -138,25 +164,63 @@ class StandinSpheres(Block):
             dt=dt, feedthrough=False,
         )
 
+    @property
+    def uses_random(self) -> bool:
+        return True
+
     def initial_state(self, batch, rng=None):
-        return {"s": np.broadcast_to(self.start, (batch, *self.start.shape)).copy(),
-                "contact": np.zeros(batch, dtype=bool)}
+        n = self.start.shape[0]
+        return {"s": np.broadcast_to(self.start, (batch, n, 2)).copy(), "contact": np.zeros(batch, dtype=bool),
+                "r": np.broadcast_to(self.start_robot, (batch, 2)).copy(), "dir": np.zeros((batch, 2)),
+                "attached": np.zeros((batch, n), dtype=bool), "pending": np.zeros((batch, n)),
+                "passed": np.zeros((batch, n), dtype=bool), "rng": rng}
 
     def output(self, state, u):
         return {"spheres": state["s"], "contact": state["contact"]}
 
     def update(self, state, u):
         s = state["s"]
+        r0, r = state["r"], u["position"]
+        draw = state["rng"].standard_normal(()) if state["rng"] is not None else np.zeros(r.shape[0])
         if s.shape[1] == 0:
-            return state
-        # the robot's position at the end of this frame: where it is now plus this frame's step
-        r = (u["position"] + u["velocity"] * self.dt)[:, None, :]
-        d = s - r
-        dist = np.sqrt(np.einsum("bni,bni->bn", d, d))
+            return {**state, "r": r.copy()}
+        step = r - r0
+        size = np.sqrt(np.einsum("bi,bi->b", step, step))
+        moving = size > 1e-12
+        d = np.where(moving[:, None], step / np.where(moving, size, 1.0)[:, None], 0.0)
+        straight = moving & (np.einsum("bi,bi->b", d, state["dir"]) > np.cos(np.deg2rad(1.0)))
+        passed = state["passed"] & straight[:, None]  # one displacement per straight pass
+        dd = d[:, None, :]
+
+        # 1. side pass, eq 22
+        rel0 = s - r0[:, None, :]
+        a0 = np.einsum("bni,bni->bn", rel0, np.broadcast_to(dd, rel0.shape))
+        a1 = np.einsum("bni,bni->bn", s - r[:, None, :], np.broadcast_to(dd, rel0.shape))
+        lat = np.abs(dd[..., 0] * rel0[..., 1] - dd[..., 1] * rel0[..., 0])
+        cross = (straight[:, None] & ~passed & (a0 > 0) & (a1 <= 0) & (lat > self.contact_distance)
+                 & (lat < self.side_range))
+        s = s + (cross * self.SIDE_A * np.exp(-self.SIDE_K * lat))[..., None] * dd
+        passed = passed | cross
+
+        # 2. release: the sphere follows a robot that moves away from it
+        away = moving[:, None] & (np.einsum("bni,bni->bn", s - r[:, None, :], np.broadcast_to(dd, s.shape)) < 0)
+        release = state["attached"] & away
+        amount = np.maximum(0.0, self.release_mean + self.release_std * draw)[:, None]
+        pending = np.where(release, amount, state["pending"])
+        follow = np.where(away, np.minimum(pending, size[:, None]), 0.0)
+        s = s + follow[..., None] * dd
+        pending = pending - follow
+        attached = state["attached"] & ~release
+
+        # 3. contact
+        rel = s - r[:, None, :]
+        dist = np.sqrt(np.einsum("bni,bni->bn", rel, rel))
         over = dist < self.contact_distance
-        safe = np.where(dist > 0, dist, 1.0)
-        pushed = r + d * (self.contact_distance / safe)[..., None]
-        return {"s": np.where(over[..., None], pushed, s), "contact": over.any(axis=1)}
+        pushed = r[:, None, :] + rel * (self.contact_distance / np.where(dist > 0, dist, 1.0))[..., None]
+        s = np.where(over[..., None], pushed, s)
+        return {"s": s, "contact": over.any(axis=1), "r": r.copy(), "dir": np.where(moving[:, None], d, state["dir"]),
+                "attached": attached | over, "pending": np.where(over, 0.0, pending), "passed": passed,
+                "rng": state["rng"]}
 
 
 class StandinTracker(Block):

@@ -41,8 +41,9 @@ def test_front_push_completes_through_the_server(start_server, tmp_path):
     srv = start_server()
     log = tmp_path / "push.jsonl"
     rig = RigClient(srv.address, reset=True)
-    fast = {"speed_max_um_s": 1000.0, "push_speed_um_s": 1000.0, "travel_speed_um_s": 1000.0}
-    report = Runtime(rig, "front-push", fast, log_path=log, realtime=True, duration=20.0, quiet=True).run()
+    # the paper's model-based feed-forward δ(0) ≈ D_p,r (§V-A) keeps the run to a few seconds
+    report = Runtime(rig, "front-push", {"delta0_um": 300.0}, log_path=log, realtime=True, duration=30.0,
+                     quiet=True).run()
     rig.close()
     assert report.exit_status == "done", report.reason
     # the paper's setting: goal 750 µm beyond the sphere that starts 1 mm ahead of the robot, ε_p = 75 µm
@@ -142,3 +143,28 @@ def test_bad_task_options_are_named(task, n_spheres, options, words):
     with pytest.raises(TaskError, match=words):
         Runtime(rig, task, options, realtime=False, quiet=True).run()
     assert rig.state.value == "inactive"
+
+
+def test_front_push_needs_the_learning_law_on_the_sim_rig():
+    """Paper §VI-A: with K_c = 0 and δ(0) = 0 the release D_p,r leaves the sphere short; K_c = 1 converges."""
+    runs = {}
+    for kc in (0.0, 1.0):
+        rig = SimRig(n_spheres=1)
+        runs[kc] = Runtime(rig, "front-push", {"kc": kc}, realtime=False, max_ticks=4000, quiet=True).run()
+    goal = np.array([1750e-6, 0.0])
+    naive, learning = runs[0.0], runs[1.0]
+    assert naive.exit_status == "failed" and naive.final["outputs"]["attempt"] == 10
+    # short of the goal by about D_p,r (300 ± 75 µm) plus the ε_p stop of eq 11
+    short = goal[0] - naive.final["spheres_um"][0][0] * 1e-6
+    assert 200e-6 < short < 500e-6
+    assert learning.exit_status == "done" and 1 <= learning.final["outputs"]["attempt"] < 10
+    assert np.hypot(*(np.array(learning.final["spheres_um"][0]) * 1e-6 - goal)) < EPS_P
+
+
+def test_side_push_converges_on_the_sim_rig():
+    """Paper §VI-B: the model-based learning controller converges within 10 attempts (ε_p = 7.5 µm)."""
+    rig = SimRig(n_spheres=1)
+    report = Runtime(rig, "side-push", {}, realtime=False, max_ticks=20000, quiet=True).run()
+    assert report.exit_status == "done" and report.final["outputs"]["attempt"] < 10
+    goal = np.array(report.task_options["goal_m"])
+    assert np.hypot(*(np.array(report.final["spheres_um"][0]) * 1e-6 - goal)) < 7.5e-6
