@@ -11,7 +11,7 @@ import h5py
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
-from conftest import ROOT, magctl_cmd
+from rig_helpers import ROOT, magctl_cmd
 
 from magctl.cli import main
 from magctl.rig.log import LogError, RunLogWriter, columns, export, read_log, replay

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import ROOT, magctl_cmd
+from rig_helpers import ROOT, magctl_cmd
 
 from magctl.config import load_model
 from magctl.control.servo import servo_params
