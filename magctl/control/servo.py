@@ -126,12 +126,23 @@ class Servo(Block):
         heading = np.where(mag > 0, np.arctan2(raw[:, 1], raw[:, 0]), state["heading"])
         return e, ok, arrived, speed, heading, sat & moving
 
+    def _law_cached(self, state, u):
+        # output() and update() of one step see the same input arrays: evaluate the law once
+        key = (state["I"], state["heading"], *u.values())
+        cache = state.get("_law")
+        if cache is not None and len(cache[0]) == len(key) and all(a is b for a, b in zip(cache[0], key, strict=True)):
+            return cache[1]
+        law = self._law(state, u)
+        state["_law"] = (key, law)
+        return law
+
     def output(self, state, u):
-        _, ok, arrived, speed, heading, sat = self._law(state, u)
+        _, ok, arrived, speed, heading, sat = self._law_cached(state, u)
         return {"speed": speed, "heading": heading, "arrived": arrived & ok, "saturated": sat}
 
     def update(self, state, u):
-        e, ok, arrived, _, heading, sat = self._law(state, u)
+        e, ok, arrived, _, heading, sat = self._law_cached(state, u)
+        state.pop("_law", None)
         integrate = ok & ~arrived
         if self.anti_windup:
             integrate &= ~sat

@@ -279,15 +279,17 @@ class Spheres(Block):
         vby = (-s * vel[:, 0] + c * vel[:, 1])[:, None]
         c, s = c[:, None], s[:, None]
         k_rest = np.minimum(np.full(gap.shape, self._k_contact) * mult, 1.0)   # every sphere on the glass
+        # robot positions at the middle and the end of every sub-step, (B, n_sub, 2)
+        steps = np.arange(n_sub, dtype=float)
+        p_mid = pos[:, None, :] + vel[:, None, :] * (steps + 0.5)[None, :, None] * tau
+        p_end = pos[:, None, :] + vel[:, None, :] * (steps + 1)[None, :, None] * tau
         for k in range(n_sub):
-            p_mid = pos + vel * (k + 0.5) * tau
             k_now = self._capped(mult, gap) if (gap > 0).any() else k_rest
-            wx, wy, g_rate, k_now = self._rates(x, y, gap, k_now, p_mid, c, s, vbx, vby)
+            wx, wy, g_rate, k_now = self._rates(x, y, gap, k_now, p_mid[:, k], c, s, vbx, vby)
             x += k_now * wx * tau
             y += k_now * wy * tau
             gap = np.maximum(gap + g_rate * tau, 0.0)
-            p_end = pos + vel * (k + 1) * tau
-            x, y, touched = self._contacts(x, y, p_end, c, s)
+            x, y, touched = self._contacts(x, y, p_end[:, k], c, s)
             contact |= touched
         return {"xy": np.stack([x, y], axis=-1), "gap": gap, "mobility": mult, "contact": contact}
 
