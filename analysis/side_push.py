@@ -37,7 +37,7 @@ CONTROLLERS = {
 
 
 def experiments() -> dict[str, Experiment]:
-    return {label: Experiment("side", task=dict(kw, eps=EPS_UM * UM, max_attempts=MAX_ATTEMPTS), max_frames=11000,
+    return {label: Experiment("side", task=dict(kw, eps=EPS_UM * UM, max_attempts=MAX_ATTEMPTS), max_frames=14000,
                               variability=PLANT, label=label)
             for label, kw in CONTROLLERS.items()}
 

@@ -13,6 +13,7 @@ import control
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
+from magctl.core.batched import rows_times
 from magctl.core.block import Block, as_batch
 from magctl.core.errors import WiringError
 from magctl.core.nonlinear import vector_norm
@@ -77,7 +78,7 @@ class Gain(Block):
 
     def output(self, state, u):
         x = u["u"]
-        return {"y": x * self.k if self.k.ndim == 0 else x @ self.k.T}
+        return {"y": x * self.k if self.k.ndim == 0 else rows_times(x, self.k.T)}
 
     def to_control(self):
         n = _size(self.inputs["u"].shape)
@@ -299,13 +300,13 @@ class StateSpace(Block):
         return {"x": np.broadcast_to(self.x0, (batch, self.x0.size)).copy()}
 
     def output(self, state, u):
-        y = state["x"] @ self.C.T
+        y = rows_times(state["x"], self.C.T)
         if self.feedthrough:
-            y = y + u["u"] @ self.D.T
+            y = y + rows_times(u["u"], self.D.T)
         return {"y": y}
 
     def update(self, state, u):
-        state["x"] = state["x"] @ self.A.T + u["u"] @ self.B.T
+        state["x"] = rows_times(state["x"], self.A.T) + rows_times(u["u"], self.B.T)
         return state
 
     def to_control(self):

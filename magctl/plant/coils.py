@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
+from magctl.core.batched import rows_times
 from magctl.core.block import Block
 from magctl.core.ports import Port
 from magctl.plant._coilfield import Coil, CoilSet, load_coils
@@ -103,11 +104,11 @@ class CoilActuator(Block):
         u = {"b_static": np.atleast_2d(np.asarray(b_static, float)), "b_osc": np.atleast_1d(np.asarray(b_osc, float)),
              "freq": np.atleast_1d(np.asarray(freq, float))}
         i_s, _, s_osc, _, sat = self._solve({"i": 0.0}, u)
-        return i_s @ self._A_xy, u["b_osc"] * s_osc, sat
+        return rows_times(i_s, self._A_xy), u["b_osc"] * s_osc, sat
 
     def _solve(self, state, u):
         # hot path: one vectorised op per line; see the module docstring for the steps
-        i_s = u["b_static"] @ self._p_xy
+        i_s = rows_times(u["b_static"], self._p_xy)
         if self._clamped:
             i_s += self._i_clamp
         ai = np.abs(i_s)
@@ -149,7 +150,7 @@ class CoilActuator(Block):
         _, i_avg, s_osc, freq, sat = self._solved(state, u)
         return {
             "currents": i_avg,
-            "b_static_delivered": i_avg @ self._A_xy,
+            "b_static_delivered": rows_times(i_avg, self._A_xy),
             "b_osc_delivered": u["b_osc"] * s_osc,
             "freq_delivered": freq,
             "saturated": sat,

@@ -18,6 +18,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.config import load_model, require
+from magctl.core.batched import rows_times
 from magctl.core.block import Block
 from magctl.core.diagram import Diagram
 from magctl.core.errors import ParameterError
@@ -213,7 +214,7 @@ class ActuatedRobot(Block):
         co = self.coils
         cmd = self.drive.output(None, u)
         i_s, i_avg, s_osc, freq, sat = co._solve(state["coils"], cmd)
-        delivered = {"b_static_delivered": i_avg @ co._A_xy, "b_osc_delivered": cmd["b_osc"] * s_osc,
+        delivered = {"b_static_delivered": rows_times(i_avg, co._A_xy), "b_osc_delivered": cmd["b_osc"] * s_osc,
                      "freq_delivered": freq}
         i_next = i_s + (state["coils"]["i"] - i_s) * co.decay
         return {"coils": {"i": i_next}, "robot": self.robot.update(state["robot"], delivered), "saturated": sat}

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
+from magctl.core.batched import rows_times
 from magctl.core.block import Block
 from magctl.core.errors import WiringError
 from magctl.core.ports import Port
@@ -137,8 +138,8 @@ class StickSlipRobot(Block):
             v *= np.maximum(1.0 + self.cv * state["rng"].standard_normal(), 0.0)
         # Simpson's rule over the frame for ∫ v e^{iψ} dt, weights 1, 4, 1
         vel = np.empty((v.shape[0], 2))
-        vel[:, 0] = np.cos(psis) @ self._simpson
-        vel[:, 1] = np.sin(psis) @ self._simpson
+        vel[:, 0] = rows_times(np.cos(psis), self._simpson)
+        vel[:, 1] = rows_times(np.sin(psis), self._simpson)
         vel *= v[:, None]
         psi1 = np.remainder(psis[:, 2] + np.pi, 2.0 * np.pi) - np.pi
         return {"pos": state["pos"] + vel * h, "psi": psi1, "vel": vel, "tilt": theta * (2.0 / np.pi),
