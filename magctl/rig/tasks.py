@@ -5,9 +5,10 @@ A task diagram's exported inputs are a subset of the observation's signals
 and its exported outputs include the drive's field command (``b_static`` (2,) T,
 ``b_osc`` T, ``freq`` 1/s) and a ``status`` code (:data:`STATUS_NAMES`).
 
-Tasks register themselves with :func:`register_task`; ``front-push``,
-``side-push`` and ``assemble`` built from ``magctl.control.push`` plug in the
-same way. A builder receives the first observation (to resolve defaults such
+Tasks register themselves with :func:`register_task`: ``goto``, ``patrol``, and
+``front-push``, ``side-push``, ``assemble`` from ``magctl.control.push``, each
+behind ``magctl.control.servo.Servo``, the rig's tracking guard and
+``magctl.plant.drive.Drive``. A builder receives the first observation (to resolve defaults such
 as the goal) and the user's options, and returns a :class:`Task` whose
 ``options`` are fully resolved — they go into the run log so that a replay
 rebuilds the identical controller.
@@ -63,7 +64,7 @@ class Task:
         Resolved options (JSON-able, SI in ``_m``-suffixed keys so that they round-trip exactly);
         rebuilding with them gives the same task.
     outcomes : dict of int to (str, str)
-        Status codes that end the run → (exit status, reason). The defaults are the stand-in codes;
+        Status codes that end the run → (exit status, reason). The defaults are the goto/patrol codes;
         tasks with other codes (e.g. ``magctl.control.push``'s ``sphere_lost``, ``stalled``) list theirs.
     status_names : dict of int to str
         Names of the status codes, for logs and summaries.
