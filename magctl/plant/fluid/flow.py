@@ -172,6 +172,10 @@ class RobotFlow:
             self._flat = flat = (flat, np.diff(self.gx), np.diff(self.gy))
         return flat
 
+    @staticmethod
+    def _corner_offsets(nx: int) -> np.ndarray:
+        return np.array([0, 1, nx, nx + 1])
+
     def lookup(self, xy: np.ndarray, v_body: np.ndarray) -> np.ndarray:
         """Flow ``(..., 3)`` [m/s] at robot-frame plane points ``xy (..., 2)`` for body velocity ``(..., 2)``.
 
@@ -194,16 +198,15 @@ class RobotFlow:
         tx = (x - gx.take(ix)) / dgx.take(ix)
         ty = (y - gy.take(iy)) / dgy.take(iy)
         sx, sy = 1 - tx, 1 - ty
-        i00 = iy * nx + ix
-        # the four corners of every cell in one table (same sum order as a corner-by-corner blend)
-        u = ((sx * sy)[..., None] * flat.take(i00, axis=0) + (tx * sy)[..., None] * flat.take(i00 + 1, axis=0)
-             + (sx * ty)[..., None] * flat.take(i00 + nx, axis=0)
-             + (tx * ty)[..., None] * flat.take(i00 + nx + 1, axis=0))
-        ux = vx * u[..., 0] + vy * u[..., 3]
-        uy = vx * u[..., 1] + vy * u[..., 4]
-        uz = vx * u[..., 2] + vy * u[..., 5]
-        outside = (np.abs(x) > gx[-1]) | (np.abs(y) > gy[-1])
-        if np.any(outside):
+        # the four corners of every cell from one table, blended in the order w00, w01, w10, w11
+        corners = flat.take((iy * nx + ix)[..., None] + self._corner_offsets(nx), axis=0)      # (..., 4, 6)
+        w = np.stack([sx * sy, tx * sy, sx * ty, tx * ty], axis=-1)
+        u = (w[..., None] * corners).sum(axis=-2)
+        u = u[..., :3] * vx[..., None] + u[..., 3:] * vy[..., None]
+        ux, uy, uz = u[..., 0], u[..., 1], u[..., 2]
+        lim_x, lim_y = gx[-1], gy[-1]
+        if np.abs(x).max(initial=0.0) > lim_x or np.abs(y).max(initial=0.0) > lim_y:
+            outside = (np.abs(x) > lim_x) | (np.abs(y) > lim_y)
             vx, vy = np.broadcast_to(vx, x.shape), np.broadcast_to(vy, x.shape)
             pts = np.column_stack([x[outside], y[outside], np.full(int(outside.sum()), self.height)])
             far = self.velocity_exact(pts)
