@@ -88,6 +88,9 @@ class RigClient(Rig):
             reply = P.decode(raw)
         except P.ProtocolError as err:
             raise RigError(f"bad reply from {self.address}: {err}") from None
+        if reply.get("protocol") != P.PROTOCOL or reply.get("version") != P.VERSION:
+            raise RigError(f"rig server at {self.address} speaks {reply.get('protocol')!r} version "
+                           f"{reply.get('version')!r}; this client speaks {P.PROTOCOL!r} version {P.VERSION}")
         if reply.get("id") != self._id:
             raise RigError(f"reply id {reply.get('id')!r} does not match request id {self._id}")
         if not reply.get("ok"):

@@ -143,3 +143,25 @@ def test_killing_the_server_stops_the_client_with_a_clear_error(start_server):
     with pytest.raises(RigError):
         rig.write(Command.zero())
     rig.close()
+
+
+def test_client_refuses_a_server_of_another_protocol_version():
+    """A stand-alone REP socket answering as a version-2 server."""
+    import threading
+
+    ctx = zmq.Context.instance()
+    rep = ctx.socket(zmq.REP)
+    port = rep.bind_to_random_port("tcp://127.0.0.1")
+
+    def serve_once():
+        req = json.loads(rep.recv())
+        rep.send(json.dumps({"protocol": "magctl-rig", "version": 2, "id": req["id"], "ok": True}).encode())
+
+    t = threading.Thread(target=serve_once)
+    t.start()
+    rig = RigClient(f"tcp://127.0.0.1:{port}", timeout=2.0)
+    with pytest.raises(RigError, match="version 2"):
+        rig.configure()
+    t.join()
+    rig.close()
+    rep.close(0)
