@@ -143,7 +143,7 @@ class Tracker(Block):
             return xn, P, init | valid
         # predict (trials not yet initialised are overwritten below)
         xp = np.einsum("ij,bmaj->bmai", self.F, x)
-        Pp = np.einsum("ij,bmjk,lk->bmil", self.F, P, self.F) + self.Q
+        Pp = self.F @ P @ self.F.T + self.Q                         # F P Fᵀ + Q (matmul: a 3-operand einsum is slow)
         # update, H = [1, 0]: S = P00 + R, K = P[:, 0] / S
         S = Pp[..., 0, 0] + self.R                                  # (B, M)
         K = Pp[..., :, 0] / S[..., None]                            # (B, M, 2)
