@@ -196,7 +196,7 @@ def around(robot: np.ndarray, obstacle: np.ndarray, target: np.ndarray, clearanc
     d = target - robot
     rel = obstacle - robot
     dd = np.einsum("bi,bi->b", d, d)
-    t = np.clip(np.einsum("bi,bi->b", rel, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+    t = np.minimum(np.maximum(np.einsum("bi,bi->b", rel, d) / np.where(dd > 0, dd, 1.0), 0.0), 1.0)   # clip
     closest = norm(robot + t[:, None] * d - obstacle)
     blocked = (closest < clearance) & (norm(target - obstacle) >= clearance)
     a_r = np.arctan2(robot[:, 1] - obstacle[:, 1], robot[:, 0] - obstacle[:, 0])
