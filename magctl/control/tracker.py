@@ -150,7 +150,10 @@ class Tracker(Block):
         innov = z - xp[..., 0]                                      # (B, M, 2 axes)
         xu = xp + K[:, :, None, :] * innov[..., None]
         Pu = Pp - K[..., :, None] * Pp[..., 0, :][..., None, :]
-        upd = (valid & init)[:, None, None, None]
+        upd = valid & init
+        if upd.all():                       # the usual frame: every trial tracked and measured
+            return xu, Pu, init | valid
+        upd = upd[:, None, None, None]
         xn = np.where(upd, xu, xp)
         Pn = np.where(upd, Pu, Pp)
         start = (valid & ~init)[:, None, None, None]
