@@ -5,7 +5,7 @@ pushes sphere 1 into sphere 2 and retracts; the fluid drags sphere 1 back by D_p
 and the pair separates (Fig 3). The side-push method (§V-C) moves along a motion line
 parallel to the adjusted line at θ_n = 30° and repeats until eq 21 holds
 (|P_s2 − P_s1| ≤ R₁ + R₂ + ε_as). The plant is the experiment-like one of the
-front-push study (D_p,r calibrated to 300 µm, ±25 % scatter, camera noise,
+front-push study (D_p,r calibrated to 300 µm, ±10 % mobility scatter, camera noise,
 stick-slip variability).
 """
 
@@ -22,7 +22,7 @@ NAME = "assembly"
 TITLE = "Figs 3, 9, 15 — two-sphere assembly: front push vs side push"
 ORDER = 53
 DEFAULT_TRIALS = 100
-PLANT = Variability(calibrated=True, release_scatter=0.25)
+PLANT = Variability(calibrated=True, release_scatter=0.1)
 EPS_AS_UM = 10.0
 
 

@@ -7,7 +7,7 @@ learning K_s = 0.5 and 0.9; ε_p = 7.5 µm (one pixel), at most 30 attempts,
 repositioning at ≥ 650 µm from the sphere to 1 mm behind it. The plant is the
 fluid model itself (uncalibrated, ε = 25 nm), so the controllers' eq 22/23 — fitted
 to the paper's COMSOL curve — are a mismatched model of it, as in the paper; camera
-noise, stick-slip step variability, a ±25 % per-trial scatter of the sphere's
+noise, stick-slip step variability, a ±10 % per-trial scatter of the sphere's
 mobility and a 10 % chance of a sticky patch (§VI-B) make trials differ.
 """
 
@@ -24,7 +24,7 @@ DEFAULT_TRIALS = 100
 EPS_UM = 7.5
 MAX_ATTEMPTS = 30
 UM = 1e-6
-PLANT = Variability(release_scatter=0.25, sticky_probability=0.1)
+PLANT = Variability(release_scatter=0.1, sticky_probability=0.1)
 
 CONTROLLERS = {
     "D_g=370 µm fixed": dict(fixed_gap=370 * UM, ks=0.0),

@@ -26,7 +26,7 @@ def test_a_trial_does_not_depend_on_its_batch():
 
 @pytest.fixture(scope="module")
 def front_runs():
-    plant = Variability(calibrated=True, release_scatter=0.25)
+    plant = Variability(calibrated=True, release_scatter=0.1)
     runs = {}
     for label, kc, d0 in (("naive", 0.0, 0.0), ("kc1_model", 1.0, 100 * UM)):
         exp = Experiment("front", task=dict(kc=kc, delta0=d0, max_attempts=6), max_frames=2600, variability=plant)
