@@ -118,7 +118,9 @@ def separate_spheres(xy: np.ndarray, radius: float, iterations: int = 3) -> np.n
         overlap = 2 * radius - dist
         if not np.any(overlap > 0):
             break
-        unit = d / np.maximum(dist, 1e-15)[..., None]
+        # centres closer than a picometre have no usable centre line: part them along x
+        apart = dist > 1e-12
+        unit = np.where(apart[..., None], d / np.where(apart, dist, 1.0)[..., None], (1.0, 0.0))
         corr = 0.5 * np.where(overlap > 0, overlap, 0.0)[..., None] * unit
         xy = xy.copy()
         np.add.at(xy, (slice(None), i), -corr)
