@@ -19,10 +19,13 @@ def register(sub) -> None:
     s = rs.add_parser("serve-sim", help="serve a simulated rig (protocol v1, docs/rig-protocol.md)")
     s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ endpoint (default tcp://127.0.0.1:5555)")
     s.add_argument("--spheres", type=int, default=1, help="number of spheres in the scene (default 1)")
+    s.add_argument("--plant", choices=("physics", "standin"), default="physics",
+                   help="physics: the plant blocks (coils, stick-slip robot, Stokes-flow spheres, camera, Kalman "
+                        "tracker; default); standin: the fast kinematic stand-in")
     s.add_argument("--robot-um", type=float, nargs=2, metavar=("X", "Y"), default=None,
-                   help="robot start position in µm (default origin)")
+                   help="robot start position in µm (default models/rig.toml [scene], inside the camera field)")
     s.add_argument("--sphere-um", type=float, nargs=2, metavar=("X", "Y"), action="append", default=None,
-                   help="a sphere's position in µm (repeat per sphere; default: on the +x axis every 1 mm)")
+                   help="a sphere's position in µm (repeat per sphere; default: ahead of the robot every 1 mm)")
     s.add_argument("--blackout-s", type=float, nargs=2, metavar=("T0", "T1"), default=None,
                    help="force tracking loss during [T0, T1) s (to exercise loss handling)")
     s.add_argument("--seed", type=int, default=0)
@@ -44,6 +47,8 @@ def register(sub) -> None:
     r.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
     r.add_argument("--spheres", type=int, default=1, help="with --rig sim: number of spheres")
     r.add_argument("--fast", action="store_true", help="with --rig sim: run ticks back to back, not at 30 Hz")
+    r.add_argument("--plant", choices=("physics", "standin"), default="physics",
+                   help="with --rig sim: the plant blocks (default) or the fast kinematic stand-in")
     r.add_argument("--rt-priority", type=int, default=None, metavar="P",
                    help="run the loop under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
     r.add_argument("--reset", action="store_true", help="ask a simulated rig server to restart its scene")
@@ -60,11 +65,14 @@ def _scene(args):
     if args.sphere_um:
         if len(args.sphere_um) != args.spheres and args.spheres != 1:
             raise MagctlError(f"--spheres {args.spheres} but {len(args.sphere_um)} --sphere-um given")
-        scene = Scene(spheres=np.asarray(args.sphere_um, dtype=float) * 1e-6)
+        scene = Scene(robot=Scene.default(0, params).robot, spheres=np.asarray(args.sphere_um, dtype=float) * 1e-6)
     else:
         scene = Scene.default(args.spheres, params)
     if args.robot_um:
-        scene.robot = np.asarray(args.robot_um, dtype=float) * 1e-6
+        shift = np.asarray(args.robot_um, dtype=float) * 1e-6 - scene.robot
+        scene.robot = scene.robot + shift
+        if not args.sphere_um:  # default spheres keep their place ahead of the robot
+            scene.spheres = scene.spheres + shift
     if args.blackout_s:
         scene.blackout = tuple(args.blackout_s)
     return scene, params
@@ -79,10 +87,15 @@ def cmd_serve_sim(args) -> int:
     scene, params = _scene(args)
     n = scene.spheres.shape[0]
     sched = set_realtime_priority(args.rt_priority)
-    server = RigServer(lambda: build_sim_plant(n, scene, params), args.bind, RigLimits.from_params(params),
-                       params.watchdog.timeout, 1.0 / params.runtime.rate, seed=args.seed,
-                       describe={"kind": "serve-sim (kinematic stand-in plant)", "scheduling": sched,
-                                 **scene.to_dict()})
+    kind = {"physics": "physical plant blocks", "standin": "kinematic stand-in plant"}[args.plant]
+    try:
+        build_sim_plant(n, scene, params, plant=args.plant)  # a bad scene is an error before serving
+    except MagctlError as err:
+        raise MagctlError(f"serve-sim: {err}") from None
+    server = RigServer(lambda: build_sim_plant(n, scene, params, plant=args.plant), args.bind,
+                       RigLimits.from_params(params), params.watchdog.timeout, 1.0 / params.runtime.rate,
+                       seed=args.seed, describe={"kind": f"serve-sim ({kind})", "plant": args.plant,
+                                                 "scheduling": sched, **scene.to_dict()})
     try:
         return server.serve(ready=announce)
     except Exception as err:
@@ -115,8 +128,9 @@ def cmd_run(args) -> int:
     if args.rig == "sim":
         from magctl.rig.sim import SimRig
 
-        rig = SimRig(n_spheres=args.spheres, realtime=not args.fast, seed=args.seed)
-        desc = {"kind": "SimRig", "n_spheres": args.spheres, "realtime": not args.fast, "scheduling": sched}
+        rig = SimRig(n_spheres=args.spheres, realtime=not args.fast, seed=args.seed, plant=args.plant)
+        desc = {"kind": "SimRig", "plant": args.plant, "n_spheres": args.spheres, "realtime": not args.fast,
+                "scheduling": sched}
     else:
         from magctl.rig.client import RigClient
 

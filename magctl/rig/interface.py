@@ -142,35 +142,76 @@ class Observation:
 
 
 class CoilMap:
-    """Linear map from a field command to the peak currents of the six coils.
+    """Field command → coil currents by the six-coil actuator's own allocation (``magctl.plant.coils``).
 
-    Coils are ordered +x, −x, +y, −y, +z, −z. A pair produces a field along its
-    axis with each coil carrying ``B / (2 k)``, where ``k`` is one coil's field
-    per ampere; the oscillating field is applied by the z pair. The peak
-    current of a coil is what the amplifier must deliver.
+    The static field ``[b_x, b_y, 0, G_clamp]`` and the oscillation ``[0, 0, b_osc, 0]`` get the
+    minimum-norm currents ``i = A⁺ b`` of the actuation matrix ``A`` (4 × 6, from the coil geometry
+    in ``models/coils.toml``), exactly as :class:`~magctl.plant.coils.CoilActuator` allocates them.
+    A coil's amplifier must deliver the peak ``|i_s| + |i_o|``, which must stay within that coil's
+    ``current_limit`` (the same rule at which the actuator starts to saturate).
 
     Parameters
     ----------
-    current_max : float
-        Amplifier current limit per coil, A.
-    k_xy, k_z : float
-        Field per ampere of one in-plane / out-of-plane coil at the workspace centre, T/A.
+    pinv : (6, 4) array
+        ``A⁺``, A per (T, T, T, T/m).
+    current_limit : (6,) array
+        Continuous current rating of each coil, A.
+    clamp_gradient : float
+        ``G_clamp`` of the static command, T/m.
+    names : sequence of str, optional
+        Coil names (``models/coils.toml`` order).
     """
 
-    def __init__(self, current_max: float, k_xy: float, k_z: float):
-        self.current_max, self.k_xy, self.k_z = float(current_max), float(k_xy), float(k_z)
+    def __init__(self, pinv, current_limit, clamp_gradient: float = 0.0, names=None):
+        self.pinv = np.asarray(pinv, dtype=float)
+        self.current_limit = np.asarray(current_limit, dtype=float).reshape(-1)
+        if self.pinv.shape != (self.current_limit.size, 4) or np.any(self.current_limit <= 0):
+            raise RigError(f"coil map needs a (n, 4) allocation and n positive current limits, got "
+                           f"{self.pinv.shape} and {self.current_limit.tolist()}")
+        self.clamp_gradient = float(clamp_gradient)
+        self.names = list(names) if names is not None else [f"coil{i}" for i in range(self.current_limit.size)]
+        self._i_clamp = self.clamp_gradient * self.pinv[:, 3]
+        self._per_tesla_xy = self.pinv[:, :2]
+        self._per_tesla_osc = np.abs(self.pinv[:, 2])
 
     @classmethod
-    def from_params(cls, coils: Params) -> CoilMap:
-        i = coils.current_max
-        return cls(i, coils.xy_pair_field_at_max / (2 * i), coils.z_pair_field_at_max / (2 * i))
+    def from_coils(cls, coils=None) -> CoilMap:
+        """The map of a :class:`~magctl.plant.coils.CoilSet` (``load_coils()`` when omitted)."""
+        from magctl.plant.coils import load_coils
+
+        coils = load_coils() if coils is None else coils
+        return cls(np.linalg.pinv(coils.actuation_matrix()), coils.current_limit, coils.clamp_gradient,
+                   [c.name for c in coils.coils])
+
+    @property
+    def current_max(self) -> float:
+        """The smallest coil rating, A (for summaries; the check is per coil)."""
+        return float(self.current_limit.min())
+
+    def static_currents(self, b_static: np.ndarray) -> np.ndarray:
+        """Signed static currents ``(B, n)`` A for ``b_static`` ``(B, 2)`` T."""
+        return b_static @ self._per_tesla_xy.T + self._i_clamp
+
+    def osc_currents(self, b_osc: np.ndarray) -> np.ndarray:
+        """Current amplitudes ``(B, n)`` A of the oscillation ``b_osc`` ``(B,)`` T."""
+        return np.abs(b_osc)[:, None] * self._per_tesla_osc
 
     def currents(self, b_static: np.ndarray, b_osc: np.ndarray) -> np.ndarray:
-        """Peak currents ``(B, 6)`` A for fields ``b_static`` ``(B, 2)`` T and ``b_osc`` ``(B,)`` T."""
-        ix = b_static[:, 0] / (2 * self.k_xy)
-        iy = b_static[:, 1] / (2 * self.k_xy)
-        iz = np.abs(b_osc) / (2 * self.k_z)
-        return np.stack([ix, ix, iy, iy, iz, iz], axis=1)
+        """Peak current magnitudes ``|i_s| + |i_o|`` ``(B, n)`` A each amplifier must deliver."""
+        return np.abs(self.static_currents(b_static)) + self.osc_currents(b_osc)
+
+    def static_headroom(self, b_static: np.ndarray) -> float:
+        """Largest ``s`` with ``s·b_static`` within every coil's rating (ignoring the clamp term)."""
+        need = np.abs(self.static_currents(b_static[None, :]) - self._i_clamp)[0]
+        room = self.current_limit - np.abs(self._i_clamp)
+        with np.errstate(divide="ignore", over="ignore"):
+            return float(np.min(np.where(need > 0, room / need, np.inf)))
+
+    def osc_headroom(self, b_static: np.ndarray) -> float:
+        """Largest ``b_osc`` (T) the coils can add to ``b_static`` within their ratings."""
+        left = self.current_limit - np.abs(self.static_currents(b_static[None, :]))[0]
+        carry = self._per_tesla_osc > 1e-9 * self._per_tesla_osc.max()
+        return float(max(0.0, np.min(left[carry] / self._per_tesla_osc[carry])))
 
 
 @dataclass(frozen=True)
@@ -184,8 +225,7 @@ class RigLimits:
     freq_max : float
         Largest accepted frequency, 1/s (the smallest is 0).
     coils : CoilMap
-        Field-to-current map; the peak current of every coil must stay within
-        ``coils.current_max``.
+        The actuator's allocation; every coil's peak current must stay within its rating.
     """
 
     b_static_max: float
@@ -194,16 +234,18 @@ class RigLimits:
     coils: CoilMap
 
     @classmethod
-    def from_params(cls, rig: Params | None = None) -> RigLimits:
+    def from_params(cls, rig: Params | None = None, coils=None) -> RigLimits:
+        """Field limits from ``models/rig.toml`` [limits], current limits and allocation from
+        ``models/coils.toml`` (or the given :class:`~magctl.plant.coils.CoilSet`)."""
         rig = rig or load_model("rig")
         lim = rig.limits
-        return cls(lim.b_static_max, lim.b_osc_max, lim.freq_max, CoilMap.from_params(rig.coils))
+        return cls(lim.b_static_max, lim.b_osc_max, lim.freq_max, CoilMap.from_coils(coils))
 
     def currents(self, cmd: Command) -> np.ndarray:
         return self.coils.currents(cmd.b_static[None, :], np.array([cmd.b_osc]))[0]
 
     def check(self, cmd: Command) -> np.ndarray:
-        """Raise :class:`CommandRejected` naming the violated limit; return the coil currents."""
+        """Raise :class:`CommandRejected` naming the violated limit; return the coils' peak currents."""
         tol = 1e-12
         if not (np.all(np.isfinite(cmd.b_static)) and math.isfinite(cmd.b_osc) and math.isfinite(cmd.freq)):
             raise CommandRejected(f"command is not finite: b_static={cmd.b_static}, b_osc={cmd.b_osc}, freq={cmd.freq}")
@@ -216,27 +258,31 @@ class RigLimits:
         if not 0.0 <= cmd.freq <= self.freq_max * (1 + 1e-9):
             raise CommandRejected(f"freq = {cmd.freq:.4g} Hz is outside [0, {self.freq_max:.4g}] Hz")
         cur = self.currents(cmd)
-        peak = float(np.max(np.abs(cur)))
-        if peak > self.coils.current_max * (1 + 1e-9):
+        over = cur - self.coils.current_limit * (1 + 1e-9)
+        if np.any(over > 0):
+            k = int(np.argmax(over))
             raise CommandRejected(
-                f"coil current {peak:.4g} A exceeds the amplifier limit {self.coils.current_max:.4g} A"
+                f"coil {self.coils.names[k]} current {cur[k]:.4g} A exceeds its limit "
+                f"{self.coils.current_limit[k]:.4g} A"
             )
         return cur
 
     def clip(self, cmd: Command) -> Command:
-        """The nearest command within the limits: field magnitudes scaled down, frequency clipped."""
+        """The nearest command within the limits: field magnitudes scaled down, frequency clipped.
+
+        The static field is scaled (direction kept) into the field and current limits; the
+        oscillation then gets at most the current the coils have left.
+        """
         bs = cmd.b_static
         bmag = math.hypot(*bs)
-        peak = max(abs(bs[0]), abs(bs[1]))
-        # the current limit on the in-plane pairs bounds each component
-        i_lim = self.coils.current_max * 2 * self.coils.k_xy
         scale = 1.0
         if bmag > self.b_static_max:
             scale = self.b_static_max / bmag
-        if peak * scale > i_lim:
-            scale = i_lim / peak
-        bo_max = min(self.b_osc_max, self.coils.current_max * 2 * self.coils.k_z)
-        return Command(bs * scale, min(max(cmd.b_osc, 0.0), bo_max), min(max(cmd.freq, 0.0), self.freq_max))
+        # a hair inside the ratings so that rounding never turns a clipped command into a rejected one
+        scale = min(scale, self.coils.static_headroom(bs) * (1 - 1e-9))
+        bs = bs * scale
+        bo_max = min(self.b_osc_max, self.coils.osc_headroom(bs) * (1 - 1e-9))
+        return Command(bs, min(max(cmd.b_osc, 0.0), bo_max), min(max(cmd.freq, 0.0), self.freq_max))
 
 
 class Rig:

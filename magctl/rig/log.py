@@ -217,15 +217,24 @@ def event_observation(ev: dict) -> Observation:
 
 
 def limits_from_doc(doc: dict) -> RigLimits:
+    """The limits a run used, from its start document (the coil allocation is stored in full)."""
     lim = doc["limits"]
-    coils = CoilMap(lim["current_max_A"], lim["k_xy_T_per_A"], lim["k_z_T_per_A"])
+    if "coil_pinv" in lim:
+        coils = CoilMap(lim["coil_pinv"], lim["coil_current_limit_A"], lim["clamp_gradient_T_m"], lim["coil_names"])
+    else:  # logs written before the map came from the actuator: one pair per axis, half the field each
+        kxy, kz = lim["k_xy_T_per_A"], lim["k_z_T_per_A"]
+        pinv = np.zeros((6, 4))
+        pinv[0:2, 0] = pinv[2:4, 1] = 1.0 / (2 * kxy)
+        pinv[4:6, 2] = 1.0 / (2 * kz)
+        coils = CoilMap(pinv, np.full(6, lim["current_max_A"]))
     return RigLimits(lim["b_static_max_T"], lim["b_osc_max_T"], lim["freq_max_Hz"], coils)
 
 
 def limits_to_doc(limits: RigLimits) -> dict:
+    c = limits.coils
     return {"b_static_max_T": limits.b_static_max, "b_osc_max_T": limits.b_osc_max, "freq_max_Hz": limits.freq_max,
-            "current_max_A": limits.coils.current_max, "k_xy_T_per_A": limits.coils.k_xy,
-            "k_z_T_per_A": limits.coils.k_z}
+            "current_max_A": c.current_max, "coil_names": list(c.names), "coil_pinv": c.pinv.tolist(),
+            "coil_current_limit_A": c.current_limit.tolist(), "clamp_gradient_T_m": c.clamp_gradient}
 
 
 def models_snapshot(folder) -> dict[str, str]:

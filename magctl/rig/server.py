@@ -96,7 +96,8 @@ class RigServer:
                 "frame_period_s": self.period, "watchdog_s": self.watchdog,
                 "n_spheres": None if self.plant is None else self.plant.n_spheres,
                 "limits": {"b_static_max_T": lim.b_static_max, "b_osc_max_T": lim.b_osc_max,
-                           "freq_max_Hz": lim.freq_max, "current_max_A": lim.coils.current_max},
+                           "freq_max_Hz": lim.freq_max, "current_max_A": lim.coils.current_max,
+                           "coil_names": lim.coils.names, "coil_current_limit_A": lim.coils.current_limit.tolist()},
                 "scene": self.describe}
 
     def _op_configure(self, doc):

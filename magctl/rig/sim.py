@@ -118,6 +118,8 @@ class SimRig(Rig):
         Plant factory; ``build_sim_plant(n_spheres)`` by default.
     n_spheres : int
         Spheres in the default scene.
+    plant : {"physics", "standin"}
+        Plant of the default factory: the physical plant blocks or the fast kinematic stand-in.
     realtime : bool
         False: every ``read()`` advances the plant by exactly one frame and the
         rig clock is ``frame · period`` (as fast as possible, deterministic).
@@ -127,10 +129,10 @@ class SimRig(Rig):
     """
 
     def __init__(self, factory: PlantFactory | None = None, *, n_spheres: int = 1, realtime: bool = False,
-                 seed: int = 0, limits: RigLimits | None = None, params=None):
+                 seed: int = 0, limits: RigLimits | None = None, params=None, plant: str = "physics"):
         params = params or load_model("rig")
         super().__init__(limits or RigLimits.from_params(params))
-        self.factory = factory or (lambda: build_sim_plant(n_spheres, params=params))
+        self.factory = factory or (lambda: build_sim_plant(n_spheres, params=params, plant=plant))
         self.realtime = realtime
         self.seed = seed
         self.watchdog = params.watchdog.timeout

@@ -5,7 +5,7 @@ built and tested before the physical plant blocks of ``magctl.plant`` are
 wired in. They honour the port names, shapes and units of docs/interfaces.md
 but not the physics of the paper:
 
-* coils: a linear field-to-current map with a current limit (no RL dynamics);
+* coils: the actuator's field-to-current allocation with its current limits (no RL dynamics);
 * robot: the heading follows the static field instantly and the robot moves
   along it at the steady stick-slip speed of ``magctl.plant.robot.steady_speed``
   for the delivered field (no heading lag, no speed noise, no tilt output);
@@ -16,8 +16,8 @@ but not the physics of the paper:
 * tracker: exact positions one frame late; ``lost`` outside the field of view
   or during a configured blackout.
 
-At integration :func:`magctl.rig.plant.build_sim_plant` swaps these for the
-real blocks; nothing else in :mod:`magctl.rig` depends on this module.
+They are the fast option (``--plant standin``) of :func:`magctl.rig.plant.build_sim_plant`,
+whose default is the physical plant; nothing else in :mod:`magctl.rig` depends on this module.
 """
 
 from __future__ import annotations
@@ -33,10 +33,11 @@ FIELD_IN = [Port("b_static", (2,), "T"), Port("b_osc", (), "T"), Port("freq", ()
 
 
 class StandinCoils(Block):
-    """Field command → coil currents with the amplifier limit (stand-in for ``magctl.plant.coils``).
+    """Field command → coil currents with the amplifier limits, no RL dynamics (stand-in for ``magctl.plant.coils``).
 
-    A command whose peak current exceeds the limit is scaled down (static and
-    oscillating parts separately) and flagged ``saturated``.
+    Currents come from the actuator's allocation (:class:`~magctl.rig.interface.CoilMap`). A static
+    field that would exceed a coil's rating is scaled down (direction kept), the oscillation takes
+    at most the current left, and the command is flagged ``saturated``.
     """
 
     def __init__(self, name: str, coils: CoilMap, dt: float = FRAME_PERIOD_S):
@@ -49,18 +50,20 @@ class StandinCoils(Block):
                      Port("saturated", (), "1", "bool")],
             dt=dt, feedthrough=True,
         )
+        per_t = coils.osc_currents(np.ones(1))[0]
+        self._osc_coils = per_t > 1e-9 * per_t.max()
+        self._osc_per_t = per_t[self._osc_coils]
 
     def output(self, state, u):
         bs, bo = u["b_static"], np.abs(u["b_osc"])
-        i_max = self.coils.current_max
-        bs_lim = i_max * 2 * self.coils.k_xy
-        bo_lim = i_max * 2 * self.coils.k_z
-        peak = np.max(np.abs(bs), axis=1)
-        s = np.minimum(1.0, bs_lim / np.maximum(peak, 1e-300))
-        bs_d = bs * s[:, None]
-        bo_d = np.minimum(bo, bo_lim)
+        lim = self.coils.current_limit
+        i_s = self.coils.static_currents(bs)
+        s = np.minimum(1.0, np.min(lim / np.maximum(np.abs(i_s), 1e-300), axis=1))
+        bs_d, i_s = bs * s[:, None], i_s * s[:, None]
+        bo_lim = np.min((lim - np.abs(i_s))[:, self._osc_coils] / self._osc_per_t, axis=1)
+        bo_d = np.minimum(bo, np.maximum(bo_lim, 0.0))
         return {
-            "currents": self.coils.currents(bs_d, bo_d),
+            "currents": i_s,
             "b_static_delivered": bs_d,
             "b_osc_delivered": bo_d,
             "freq_delivered": u["freq"].copy(),

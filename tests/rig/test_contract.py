@@ -61,30 +61,34 @@ def test_lifecycle_gates_reads_and_writes(rig):
 def test_a_command_moves_the_robot_along_the_static_field(rig):
     rig.configure()
     rig.activate()
-    start = rig.read().robot_est
     lim = PARAMS.limits
     heading = np.deg2rad(30.0)
-    cmd = Command(3e-3 * np.array([np.cos(heading), np.sin(heading)]), 0.5 * lim.b_osc_max, 50.0)
+    cmd = Command(2.5e-3 * np.array([np.cos(heading), np.sin(heading)]), 0.5 * lim.b_osc_max, 50.0)
+    # the robot turns onto the field within a few frames (and the camera lags): take the direction after that
+    mid = frames(rig, 8, cmd).robot_est
     obs = frames(rig, 12, cmd)
-    step = obs.robot_est - start
+    step = obs.robot_est - mid
     assert np.hypot(*step) > 50e-6
-    assert np.arctan2(step[1], step[0]) == pytest.approx(heading, abs=1e-6)
-    assert np.max(np.abs(obs.currents)) > 0
-    # currents follow the coil map: each x coil carries B_x / (2 k)
-    k = PARAMS.coils.xy_pair_field_at_max / (2 * PARAMS.coils.current_max)
-    assert obs.currents[0] == pytest.approx(cmd.b_static[0] / (2 * k), rel=1e-9)
+    # the tracker reports pixel-quantised positions (7.5 µm, paper §VI-B): the direction is known to ~2 px / step
+    pixel = load_model("camera").camera.pixel_size
+    assert np.arctan2(step[1], step[0]) == pytest.approx(heading, abs=2 * pixel / np.hypot(*step) + 1e-6)
+    # the coils carry the actuator's allocation A⁺ b (models/coils.toml), settled after the RL transient
+    expected = rig.limits.coils.static_currents(cmd.b_static[None, :])[0]
+    assert np.max(np.abs(expected)) > 0.5
+    np.testing.assert_allclose(obs.currents, expected, rtol=1e-6, atol=1e-12)
 
 
 def test_an_error_zeroes_the_coils_and_leaves_the_rig_inactive_until_reactivated(rig):
     rig.configure()
     rig.activate()
-    rig.write(Command(np.array([3e-3, 0.0]), 3e-3, 50.0))
+    rig.write(Command(np.array([2.5e-3, 0.0]), 3e-3, 50.0))
     frames(rig, 2)
     with pytest.raises(CommandRejected, match="b_static"):
         rig.write(Command(np.array([1.0, 0.0]), 0.0, 0.0))  # 1 T: far beyond every limit
     assert rig.state is Lifecycle.INACTIVE and "b_static" in rig.last_error
     obs = frames(rig, 3)
-    np.testing.assert_array_equal(obs.currents, 0.0)
+    # zeroed: the coil current decays with τ = L/R ≈ 2 ms (models/coils.toml), so 3 frames leave < 1 nA
+    np.testing.assert_allclose(obs.currents, 0.0, atol=1e-9)
     with pytest.raises(RigStateError):
         rig.write(Command.zero())
     rig.activate()

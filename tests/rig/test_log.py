@@ -57,7 +57,7 @@ def test_replay_detects_a_one_ulp_change(push_log, tmp_path):
 
 def test_sigkill_mid_run_leaves_a_log_that_reads_back_to_the_last_flushed_frame(tmp_path):
     log = tmp_path / "killed.jsonl"
-    proc = subprocess.Popen(magctl_cmd("rig", "run", "--rig", "sim", "--task", "goto", "--target-um", "4000", "0",
+    proc = subprocess.Popen(magctl_cmd("rig", "run", "--rig", "sim", "--task", "goto", "--target-um", "4000", "1800",
                                        "--log", str(log), "--quiet"), cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 20

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from magctl.plant.coils import CoilActuator, load_coils
 from magctl.rig import protocol as P
 from magctl.rig.interface import CoilMap, Command, CommandRejected, Observation, RigLimits
 
@@ -78,15 +79,54 @@ def test_observation_round_trips_bit_for_bit(r, h, n, lost):
 
 
 # --- limits -------------------------------------------------------------------------------------------
-# A coil giving 1 mT/A with a 2 A amplifier: the pair delivers 4 mT, so with a 6 mT field limit the
-# current limit binds first.
-LIM = RigLimits(b_static_max=6e-3, b_osc_max=6e-3, freq_max=200.0, coils=CoilMap(2.0, 1e-3, 1e-3))
+# A hand-made map: one coil pair per axis, each coil giving 1 mT/A, 2 A amplifiers. The pair delivers
+# 4 mT, so with a 6 mT field limit the current limit binds first.
+K = 1e-3
+PAIR_PINV = np.zeros((6, 4))
+PAIR_PINV[0:2, 0] = PAIR_PINV[2:4, 1] = PAIR_PINV[4:6, 2] = 1.0 / (2 * K)
+LIM = RigLimits(b_static_max=6e-3, b_osc_max=6e-3, freq_max=200.0, coils=CoilMap(PAIR_PINV, np.full(6, 2.0)))
+MU0 = 4e-7 * np.pi
 
 
 def test_coil_map_splits_each_axis_over_its_pair():
     cur = LIM.currents(Command(np.array([2e-3, -1e-3]), 3e-3, 10.0))
-    # B = 2 k I per pair with k = 1 mT/A
-    np.testing.assert_allclose(cur, [1.0, 1.0, -0.5, -0.5, 1.5, 1.5])
+    # B = 2 k I per pair with k = 1 mT/A; the amplifier's peak is |static| + oscillation amplitude
+    np.testing.assert_allclose(cur, [1.0, 1.0, 0.5, 0.5, 1.5, 1.5])
+
+
+def thick_coil_on_axis(turns, length, r_in, r_out, z):
+    """Closed-form on-axis field per ampere (T/A) of a uniform thick solenoid, ``z`` from its centre."""
+    def term(zz):
+        return zz * np.log((r_out + np.hypot(r_out, zz)) / (r_in + np.hypot(r_in, zz)))
+    return MU0 * turns / (2 * length * (r_out - r_in)) * (term(z + length / 2) - term(z - length / 2))
+
+
+def test_the_rig_limits_use_the_actuator_of_models_coils():
+    """The server's map is the actuator's: for B_x each x coil carries B / (2 k) with k the closed-form
+    field of one winding of models/coils.toml at the workspace centre (magpylib's filaments: within 2 %)."""
+    coils = load_coils()
+    lim = RigLimits.from_params()
+    xp = next(c for c in coils.coils if c.name == "xp")
+    k = thick_coil_on_axis(xp.turns, xp.length, xp.radius - xp.depth / 2, xp.radius + xp.depth / 2,
+                           np.linalg.norm(xp.position))
+    i = lim.coils.static_currents(np.array([[1e-3, 0.0]]))[0]
+    names = lim.coils.names
+    np.testing.assert_allclose(abs(i[names.index("xp")]), 1e-3 / (2 * k), rtol=0.02)
+    np.testing.assert_allclose(i[names.index("xp")], -i[names.index("xn")], rtol=1e-9)
+    np.testing.assert_allclose(lim.coils.current_limit, coils.current_limit)
+    # the map agrees with the actuator block: an accepted command is delivered unsaturated
+    act = CoilActuator("coils", coils)
+    cmd = Command(np.array([2.5e-3, -1.0e-3]), 1.45e-3, 20.0)
+    lim.check(cmd)
+    b, bo, sat = act.deliver(cmd.b_static, cmd.b_osc, cmd.freq)
+    np.testing.assert_allclose(b[0], cmd.b_static, rtol=1e-9)
+    assert not sat[0]
+    # just above a coil's rating: rejected by the server, saturated by the actuator
+    scale = 1.001 * lim.coils.static_headroom(np.array([1e-3, 0.0]))
+    big = Command(np.array([scale * 1e-3, 0.0]), 0.0, 0.0)
+    with pytest.raises(CommandRejected, match="coil x. current"):
+        RigLimits(1.0, 1.0, 200.0, lim.coils).check(big)
+    assert act.deliver(big.b_static, 0.0, 0.0)[2][0]
 
 
 @pytest.mark.parametrize("cmd, words", [
