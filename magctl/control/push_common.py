@@ -227,6 +227,27 @@ class PushTask:
     ``STALLED``. Finished trials hold the robot where it was.
     """
 
+    def _check_common(self, what: str, name: str, *, goal, n_spheres, sphere, eps, max_attempts, clearance,
+                      arrive_tol, travel_speed, settle_frames, max_lost_frames, phase_timeout_frames, workspace):
+        """Validate and store the parameters every push task shares; errors name the task and the parameter."""
+        if not 0 <= int(sphere) < int(n_spheres):
+            raise MagctlError(f"{what} {name!r}: sphere index {sphere} not in 0..{int(n_spheres) - 1}")
+        if int(max_attempts) < 1:
+            raise MagctlError(f"{what} {name!r}: max_attempts={max_attempts} must be at least 1")
+        self.goal = np.asarray(goal, dtype=float)
+        if self.goal.shape[-1:] != (2,) or self.goal.ndim > 2 or not np.all(np.isfinite(self.goal)):
+            raise MagctlError(f"{what} {name!r}: goal must be finite, shaped (2,) or (B, 2); got {goal!r}")
+        self.sphere_indices = (int(sphere),)
+        self.eps = check_positive("eps", eps)
+        self.max_attempts = int(max_attempts)
+        self.clearance = check_positive("clearance", clearance, allow_zero=True)
+        self.arrive_tol = check_positive("arrive_tol", arrive_tol)
+        self.travel_speed = check_positive("travel_speed", travel_speed)
+        self.settle_frames = int(settle_frames)
+        self.max_lost_frames = int(max_lost_frames)
+        self.phase_timeout_frames = int(phase_timeout_frames)
+        self.workspace = check_positive("workspace", workspace)
+
     def _ports(self, n_spheres: int):
         from magctl.core.ports import Port
 

@@ -76,29 +76,16 @@ class FrontPushTask(PushTask, Block):
                  arrive_tol: float = 10 * UM, push_speed: float = 0.4e-3, travel_speed: float = 1.0e-3,
                  settle_frames: int = 10, max_lost_frames: int = 30, phase_timeout_frames: int = 3000,
                  workspace: float = 5e-3):
-        if not 0 <= int(sphere) < int(n_spheres):
-            raise MagctlError(f"front push {name!r}: sphere index {sphere} not in 0..{int(n_spheres) - 1}")
-        if int(max_attempts) < 1:
-            raise MagctlError(f"front push {name!r}: max_attempts={max_attempts} must be at least 1")
-        self.goal = np.asarray(goal, dtype=float)
-        if self.goal.shape[-1:] != (2,) or self.goal.ndim > 2 or not np.all(np.isfinite(self.goal)):
-            raise MagctlError(f"front push {name!r}: goal must be finite, shaped (2,) or (B, 2); got {goal!r}")
+        self._check_common("front push", name, goal=goal, n_spheres=n_spheres, sphere=sphere, eps=eps,
+                           max_attempts=max_attempts, clearance=clearance, arrive_tol=arrive_tol,
+                           travel_speed=travel_speed, settle_frames=settle_frames, max_lost_frames=max_lost_frames,
+                           phase_timeout_frames=phase_timeout_frames, workspace=workspace)
         self.law = law if law is not None else front_push_law(kc, delta0)
-        self.sphere_indices = (int(sphere),)
-        self.eps = check_positive("eps", eps)
         self.push_tol = self.eps if push_tol is None else check_positive("push_tol", push_tol)
-        self.max_attempts = int(max_attempts)
         self.contact = check_positive("contact", contact)
         self.approach = check_positive("approach", approach)
         self.retract = check_positive("retract", retract)
-        self.clearance = check_positive("clearance", clearance, allow_zero=True)
-        self.arrive_tol = check_positive("arrive_tol", arrive_tol)
         self.push_speed = check_positive("push_speed", push_speed)
-        self.travel_speed = check_positive("travel_speed", travel_speed)
-        self.settle_frames = int(settle_frames)
-        self.max_lost_frames = int(max_lost_frames)
-        self.phase_timeout_frames = int(phase_timeout_frames)
-        self.workspace = check_positive("workspace", workspace)
         ins, outs = self._ports(n_spheres)
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
 

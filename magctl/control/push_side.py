@@ -35,7 +35,6 @@ from magctl.control.push_common import (
     unit,
 )
 from magctl.core.block import Block
-from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
 
 REPOSITION, PASS, SETTLE = 1, 2, 3
@@ -78,31 +77,18 @@ class SidePushTask(PushTask, Block):
                  arrive_tol: float = 10 * UM, pass_speed: float = 0.4e-3, travel_speed: float = 1.0e-3,
                  settle_frames: int = 10, max_lost_frames: int = 30, phase_timeout_frames: int = 3000,
                  workspace: float = 5e-3):
-        if not 0 <= int(sphere) < int(n_spheres):
-            raise MagctlError(f"side push {name!r}: sphere index {sphere} not in 0..{int(n_spheres) - 1}")
-        if int(max_attempts) < 1:
-            raise MagctlError(f"side push {name!r}: max_attempts={max_attempts} must be at least 1")
-        self.goal = np.asarray(goal, dtype=float)
-        if self.goal.shape[-1:] != (2,) or self.goal.ndim > 2 or not np.all(np.isfinite(self.goal)):
-            raise MagctlError(f"side push {name!r}: goal must be finite, shaped (2,) or (B, 2); got {goal!r}")
+        self._check_common("side push", name, goal=goal, n_spheres=n_spheres, sphere=sphere, eps=eps,
+                           max_attempts=max_attempts, clearance=clearance, arrive_tol=arrive_tol,
+                           travel_speed=travel_speed, settle_frames=settle_frames, max_lost_frames=max_lost_frames,
+                           phase_timeout_frames=phase_timeout_frames, workspace=workspace)
         self.model = side_model(model) if isinstance(model, str) else model
         self.law = law if law is not None else side_push_law(ks)
         self.fixed_gap = None if fixed_gap is None else check_positive("fixed_gap", fixed_gap)
         self.min_gap = check_positive("min_gap", min_gap)
         self.d_max = float(self.model.displacement(self.min_gap))
-        self.sphere_indices = (int(sphere),)
-        self.eps = check_positive("eps", eps)
-        self.max_attempts = int(max_attempts)
         self.behind = check_positive("behind", behind)
         self.ahead = check_positive("ahead", ahead)
-        self.clearance = check_positive("clearance", clearance, allow_zero=True)
-        self.arrive_tol = check_positive("arrive_tol", arrive_tol)
         self.pass_speed = check_positive("pass_speed", pass_speed)
-        self.travel_speed = check_positive("travel_speed", travel_speed)
-        self.settle_frames = int(settle_frames)
-        self.max_lost_frames = int(max_lost_frames)
-        self.phase_timeout_frames = int(phase_timeout_frames)
-        self.workspace = check_positive("workspace", workspace)
         ins, outs = self._ports(n_spheres)
         outs.append(Port("gap", (), "m"))
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)

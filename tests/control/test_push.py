@@ -153,34 +153,12 @@ def test_bad_task_parameters_are_named():
 @pytest.mark.slow
 def test_front_push_runs_on_the_plant_blocks():
     """The task closes the loop through the real drive/coils/robot, fluid spheres, camera, tracker and servo."""
-    try:
-        from magctl.control.servo import Servo, servo_params
-        from magctl.control.tracker import Tracker
-        from magctl.plant.camera import Camera
-        from magctl.plant.drive import ActuatedRobot
-        from magctl.plant.sphere import Spheres
-    except ImportError as err:  # pragma: no cover - only before the plant blocks land
-        pytest.skip(f"plant blocks not available: {err}")
-    o = np.array([2.0e-3, 1.8e-3])  # inside the camera's field
-    r0 = o + (-1e-3, 0.0)
-    task = FrontPushTask("task", goal=o + (750 * UM, 0.0), kc=1.0, delta0=127 * UM, max_attempts=3,
-                         arrive_tol=20 * UM)
-    blocks = [ActuatedRobot("plant", position=r0), Spheres([o]), Camera(n_spheres=1, primed=(r0, 0.0, [o])),
-              Tracker(n_spheres=1, init_robot=r0, init_spheres=[o]),
-              Servo(params=servo_params("tuned"), speed_cap_input=True, hold_input=True), task]
-    conn = [("plant.position", "spheres.position"), ("plant.heading", "spheres.heading"),
-            ("plant.velocity", "spheres.velocity"), ("plant.position", "camera.position"),
-            ("plant.heading", "camera.heading"), ("spheres.spheres", "camera.spheres"),
-            ("camera.robot_meas", "tracker.robot_meas"), ("camera.heading_meas", "tracker.heading_meas"),
-            ("camera.spheres_meas", "tracker.spheres_meas"), ("camera.valid", "tracker.valid"),
-            ("tracker.robot_est", "task.robot_est"), ("tracker.spheres_est", "task.spheres_est"),
-            ("tracker.lost", "task.lost"), ("task.target", "servo.target"), ("tracker.robot_est", "servo.robot_est"),
-            ("task.speed_cap", "servo.speed_cap"), ("tracker.lost", "servo.hold"), ("servo.speed", "plant.speed"),
-            ("servo.heading", "plant.heading")]
-    res = simulate(Diagram("loop", blocks, conn), 1500, batch=2, seed=0,
-                   record=["task.status", "task.attempt", "spheres.spheres"])
+    from magctl.closedloop import Experiment, geometry, push_loop
+
+    exp = Experiment("front", task=dict(kc=1.0, delta0=127 * UM, max_attempts=3, arrive_tol=20 * UM), servo="tuned")
+    res = simulate(push_loop(exp), 1500, batch=2, seed=0, record=["task.status", "task.attempt", "spheres.spheres"])
     status = res["task.status"][:, -1]
     assert set(status) <= {CONVERGED, ATTEMPT_LIMIT}
     assert np.all(res["task.attempt"][:, -1] >= 1)
-    err = np.linalg.norm(res["spheres.spheres"][:, -1, 0] - (o + (750 * UM, 0.0)), axis=1)
+    err = np.linalg.norm(res["spheres.spheres"][:, -1, 0] - geometry("front")["goal"], axis=1)
     assert np.all(err[status == CONVERGED] < 75 * UM + 20 * UM)  # eq 12 on the estimate; tracker error margin
