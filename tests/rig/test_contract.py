@@ -16,10 +16,12 @@ PARAMS = load_model("rig")
 PERIOD = 1.0 / PARAMS.runtime.rate
 
 
-@pytest.fixture(params=["sim", "client"])
+@pytest.fixture(params=["sim", "sim-standin", "client"])
 def rig(request):
     if request.param == "sim":
         r = SimRig(n_spheres=1)
+    elif request.param == "sim-standin":
+        r = SimRig(n_spheres=1, plant="standin")
     else:
         r = RigClient(request.getfixturevalue("server").address, reset=True)
     yield r

@@ -13,6 +13,7 @@ from rig_helpers import ROOT, magctl_cmd
 
 from magctl.config import load_model
 from magctl.control.servo import servo_params
+from magctl.core.errors import WiringError
 from magctl.rig.client import RigClient
 from magctl.rig.log import read_log, replay
 from magctl.rig.plant import Scene, build_sim_plant
@@ -177,3 +178,26 @@ def test_side_push_converges_on_the_sim_rig():
     assert report.exit_status == "done" and report.final["outputs"]["attempt"] <= 30
     goal = np.array(report.task_options["goal_m"])
     assert np.hypot(*(np.array(report.final["spheres_um"][0]) * 1e-6 - goal)) < 7.5e-6
+
+
+def test_the_scene_must_start_in_the_camera_field():
+    """Camera of models/camera.toml: 640 × 480 pixels of 7.5 µm, field [0, 4792.5] × [0, 3592.5] µm."""
+    scene = Scene(robot=np.array([1e-3, 1.8e-3]), spheres=np.array([[4.9e-3, 1.8e-3]]))
+    with pytest.raises(WiringError, match=r"outside the camera's field of view \[0, 4792\] × \[0, 3592\] µm"):
+        build_sim_plant(1, scene)
+    build_sim_plant(1, scene, plant="standin")  # the stand-in tracker sees a 10 mm square around the origin
+    with pytest.raises(WiringError, match="plant 'kinematic' is not one of physics, standin"):
+        build_sim_plant(1, plant="kinematic")
+
+
+def test_the_physical_plant_starts_tracked_where_the_scene_puts_it():
+    """Camera and tracker are primed with the scene: frame 0 reports it (to the 7.5 µm pixel), not lost."""
+    plant = build_sim_plant(2)
+    state = plant.initial_state(1, seed=0)
+    u = {"b_static": np.zeros((1, 2)), "b_osc": np.zeros(1), "freq": np.zeros(1)}
+    out = plant.output(state, u)
+    scene = Scene.default(2)
+    pixel = load_model("camera").camera.pixel_size
+    assert not out["lost"][0]
+    np.testing.assert_allclose(out["robot_est"][0], scene.robot, atol=pixel)
+    np.testing.assert_allclose(out["spheres_est"][0], scene.spheres, atol=pixel)
