@@ -179,6 +179,7 @@ class Spheres(Block):
         self.zeta = 6 * np.pi * self.viscosity * r                                    # eq 9 drag coefficient
         self.footprint = self.geometry.footprint
         self._footprint = Polygon(self.footprint)
+        self._box = np.abs(self.footprint).max(axis=0) + r
         self.reach = float(np.linalg.norm(self.footprint, axis=1).max()) + r
         self._flow: RobotFlow | None = None
         self._k_contact = float(mobility(self.mode, r, 0.0, self.roughness))   # V_p/U resting on the glass
@@ -311,6 +312,10 @@ class Spheres(Block):
         if near.any():
             b, i = np.nonzero(near)
             rel = d[b, i] * turn[b, 0].conj()
+            # beyond the footprint's bounding box grown by R a sphere can neither touch nor overlap it
+            box = (np.abs(rel.real) < self._box[0]) & (np.abs(rel.imag) < self._box[1])
+            if not box.all():
+                b, i, rel = b[box], i[box], rel[box]
             rx2, ry2, hit = _push_out(rel.real, rel.imag, self._footprint, self.radius, 3)
             if hit.any():
                 b, i = b[hit], i[hit]
