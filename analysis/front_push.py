@@ -17,7 +17,14 @@ import numpy as np
 from magctl.closedloop import Experiment, Variability, geometry
 from magctl.control.push_common import ATTEMPT_LIMIT
 from magctl.plant.fluid.scenarios import release_displacement
-from magctl.push_report import animate_one, plot_convergence, plot_errors, run_experiment, summarise
+from magctl.push_report import (
+    animate_one,
+    controller_table,
+    plot_convergence,
+    plot_errors,
+    run_experiment,
+    summarise,
+)
 from magctl.studies import PaperRow, StudyContext, StudyResult
 
 NAME = "front-push"
@@ -76,13 +83,8 @@ def run(ctx: StudyContext) -> StudyResult:
         f"{n} trials per controller; plant: {PLANT.describe()}.",
         f"Model δ(0) = {d_model * 1e6:.0f} µm (the fluid model's D_p,r; paper's simulation: 127 µm).",
         "",
-        "| controller | converged | N_p (converged) | mean attempts (failures at 10) | error after 10 (µm) |",
-        "|---|---|---|---|---|",
+        *controller_table(summaries, MAX_ATTEMPTS, ("final error (µm, median)", "final_error_um_median")),
     ]
-    for label, s in summaries.items():
-        n_p = s["mean_attempts_converged"]
-        summary.append(f"| {label} | {s['converged_fraction']:.0%} | {n_p if n_p is None else f'{n_p:.2f}'} | "
-                       f"{s['mean_attempts_all']:.2f} | {s['mean_error_um_by_attempt'][-1]:.0f} |")
     summary += ["", f"Naïve controller's steady error: {steady_naive:.0f} µm (paper: about 200 µm)."]
     paper = [
         PaperRow("front push: naïve (K_c=0, δ(0)=0) steady error", "≈ 200 µm, never within ε_p",

@@ -14,7 +14,15 @@ mobility and a 10 % chance of a sticky patch (§VI-B) make trials differ.
 from __future__ import annotations
 
 from magctl.closedloop import Experiment, Variability, geometry
-from magctl.push_report import animate_one, plot_convergence, plot_errors, run_experiment, summarise
+from magctl.push_report import (
+    animate_one,
+    controller_table,
+    overshoot_fraction,
+    plot_convergence,
+    plot_errors,
+    run_experiment,
+    summarise,
+)
 from magctl.studies import PaperRow, StudyContext, StudyResult
 
 NAME = "side-push"
@@ -42,26 +50,13 @@ def experiments() -> dict[str, Experiment]:
             for label, kw in CONTROLLERS.items()}
 
 
-def oscillation_fraction(result: dict) -> float:
-    """Share of trials whose signed progress overshoots: the error rises again after falling below 2 ε_p."""
-    import numpy as np
-
-    err = np.asarray(result["error_um"])
-    osc = 0
-    for row in err:
-        row = row[np.isfinite(row)]
-        low = np.nonzero(row < 2 * EPS_UM)[0]
-        osc += bool(low.size and (row[low[0]:] > 2 * EPS_UM).any())
-    return osc / max(1, len(err))
-
-
 def run(ctx: StudyContext) -> StudyResult:
     n = ctx.n_trials(DEFAULT_TRIALS)
     exps = experiments()
     results = {label: run_experiment(ctx, exp, n) for label, exp in exps.items()}
     summaries = {label: summarise(r) for label, r in results.items()}
     for label, r in results.items():
-        summaries[label]["oscillating_fraction"] = oscillation_fraction(r)
+        summaries[label]["overshoot_fraction"] = overshoot_fraction(r, EPS_UM)
     figs = [
         plot_convergence(summaries, ctx.figure_path("side_push_convergence"),
                          f"Side pushing, {n} trials per controller (cf. Fig 12)", MAX_ATTEMPTS),
@@ -72,17 +67,12 @@ def run(ctx: StudyContext) -> StudyResult:
     summary = [
         f"{n} trials per controller; plant: {PLANT.describe()}.",
         "",
-        "| controller | converged | N_p (converged) | mean attempts (failures at 30) | oscillating |",
-        "|---|---|---|---|---|",
+        *controller_table(summaries, MAX_ATTEMPTS, ("pushed past the goal", "overshoot_fraction")),
     ]
-    for label, s in summaries.items():
-        n_p = s["mean_attempts_converged"]
-        summary.append(f"| {label} | {s['converged_fraction']:.0%} | {n_p if n_p is None else f'{n_p:.1f}'} | "
-                       f"{s['mean_attempts_all']:.1f} | {s['oscillating_fraction']:.0%} |")
     s370, s500, best = summaries["D_g=370 µm fixed"], summaries["D_g=500 µm fixed"], summaries["lin, K_s=0.9"]
     paper = [
         PaperRow("side push: D_g=370 µm fixed", "oscillates, fails in many cases",
-                 f"{s370['converged_fraction']:.0%} converged, {s370['oscillating_fraction']:.0%} oscillating"),
+                 f"{s370['converged_fraction']:.0%} converged, {s370['overshoot_fraction']:.0%} pushed past the goal"),
         PaperRow("side push: D_g=500 µm fixed", "converges in all cases but slowly",
                  f"{s500['converged_fraction']:.0%} converged, {s500['mean_attempts_all']:.1f} mean attempts"),
         PaperRow("side push: learning (lin, K_s=0.9) fastest", "yes",

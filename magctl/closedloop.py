@@ -191,8 +191,10 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
 
     Returns per-trial arrays (leading axis = trials): ``status`` (code), ``attempts``,
     ``error_um`` after each attempt (``(B, A)``, NaN where no attempt ran; index 0 is the
-    start), ``final_error_um``, ``frames`` (frames to termination), ``correction_um`` (δ or Δ
-    at the end). With ``keep_paths`` also ``t``, ``robot_xy``, ``robot_heading``, ``spheres_xy``.
+    start), ``signed_error_um`` (the same along the initial sphere→goal direction: negative
+    once the sphere was pushed past the goal), ``final_error_um``, ``frames`` (frames to
+    termination), ``correction_um`` (δ or Δ at the end). With ``keep_paths`` also ``t``,
+    ``robot_xy``, ``robot_heading``, ``spheres_xy``.
     """
     trials = list(trials)
     batch = len(trials)
@@ -203,6 +205,10 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
     max_att = int(task.max_attempts)
     errors = np.full((batch, max_att + 1), np.nan)
     errors[:, 0] = task_error(exp.kind, g["spheres"][None], g["goal"], radius)
+    along = g["goal"] - g["spheres"][0]
+    along = along / np.linalg.norm(along)
+    signed = np.full((batch, max_att + 1), np.nan)
+    signed[:, 0] = (g["goal"] - g["spheres"][0]) @ along
     status = np.full(batch, RUNNING, dtype=np.int64)
     attempts = np.zeros(batch, dtype=np.int64)
     frames = np.full(batch, exp.max_frames, dtype=np.int64)
@@ -219,7 +225,9 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
         prev = np.concatenate([attempts[:, None], att[:, :-1]], axis=1)
         bumped = att > prev
         rows, cols = np.nonzero(bumped)
-        errors[rows, np.minimum(att[rows, cols], max_att)] = err[rows, cols]
+        slot = np.minimum(att[rows, cols], max_att)
+        errors[rows, slot] = err[rows, cols]
+        signed[rows, slot] = np.einsum("ki,i->k", g["goal"] - res["spheres.spheres"][rows, cols, 0], along)
         ended = (st != RUNNING) & (status == RUNNING)[:, None]
         first_end = np.where(ended.any(axis=1), ended.argmax(axis=1), -1)
         newly = first_end >= 0
@@ -234,7 +242,8 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
             break
     final = task_error(exp.kind, res["spheres.spheres"][:, -1][:, None], g["goal"], radius)[:, 0]
     out = {
-        "status": status, "attempts": attempts, "error_um": errors / UM, "final_error_um": final / UM,
+        "status": status, "attempts": attempts, "error_um": errors / UM, "signed_error_um": signed / UM,
+        "final_error_um": final / UM,
         "frames": frames, "correction_um": correction / UM,
     }
     if keep_paths:

@@ -61,6 +61,30 @@ def summarise(result: dict) -> dict:
     }
 
 
+def overshoot_fraction(result: dict, eps_um: float) -> float:
+    """Share of trials whose sphere was pushed more than ``eps_um`` past the goal at some attempt."""
+    signed = np.asarray(result["signed_error_um"])
+    return float(np.mean(np.nanmin(signed, axis=1) < -eps_um))
+
+
+def controller_table(summaries: dict[str, dict], max_attempts: int, extra: tuple[str, str] | None = None) -> list[str]:
+    """Markdown table of the controllers' convergence; ``extra`` = (column title, summary key) for one more column."""
+    head = f"| controller | converged | N_p (converged) | mean attempts (failures at {max_attempts}) |"
+    rule = "|---|---|---|---|"
+    if extra:
+        head, rule = head + f" {extra[0]} |", rule + "---|"
+    lines = [head, rule]
+    for label, s in summaries.items():
+        n_p = s["mean_attempts_converged"]
+        row = (f"| {label} | {s['converged_fraction']:.0%} | {'never' if n_p is None else f'{n_p:.2f}'} | "
+               f"{s['mean_attempts_all']:.2f} |")
+        if extra:
+            value = s[extra[1]]
+            row += f" {value:.0%} |" if isinstance(value, float) and value <= 1 else f" {value:.0f} |"
+        lines.append(row)
+    return lines
+
+
 def plot_convergence(summaries: dict[str, dict], path: Path, title: str, max_attempts: int) -> Path:
     """Fig 10/12 style: fraction of converged trials versus pushing attempts."""
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
