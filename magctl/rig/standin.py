@@ -218,11 +218,14 @@ class StandinSpheres(Block):
         # 3. contact
         rel = s - r[:, None, :]
         dist = np.sqrt(np.einsum("bni,bni->bn", rel, rel))
-        over = dist < self.contact_distance
+        over = dist < self.contact_distance * (1 - 1e-9)  # a rounding-level overlap (a following sphere) is none
         pushed = r[:, None, :] + rel * (self.contact_distance / np.where(dist > 0, dist, 1.0))[..., None]
         s = np.where(over[..., None], pushed, s)
+        # a sphere left exactly at contact distance still touches (unless the robot is leaving it): whether
+        # rounding puts it a hair inside or outside must not decide whether it is released later
+        touching = over | ((dist < self.contact_distance * (1 + 1e-9)) & ~away)
         return {"s": s, "contact": over.any(axis=1), "r": r.copy(), "dir": np.where(moving[:, None], d, state["dir"]),
-                "attached": attached | over, "pending": np.where(over, 0.0, pending), "passed": passed,
+                "attached": attached | touching, "pending": np.where(touching, 0.0, pending), "passed": passed,
                 "rng": state["rng"]}
 
 

@@ -37,15 +37,19 @@ def test_no_displacement_beyond_the_side_range():
     np.testing.assert_array_equal(run(block, path)[-1], [0.0, 900 * UM])
 
 
-def test_retreating_robot_pulls_the_sphere_by_the_release_distance():
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (1.0e-3, 1.8e-3), (3.7e-3, -2.1e-3)])
+def test_retreating_robot_pulls_the_sphere_by_the_release_distance(offset):
+    """Wherever the scene is: a sphere following the retreating robot sits at contact distance up to
+    rounding, which must neither count as a new contact nor cut the release short."""
     contact = 250 * UM
-    block = StandinSpheres("spheres", [[1e-3, 0.0]], contact, release_mean=300 * UM, release_std=75 * UM,
-                           start_robot=(0.0, 0.0))
+    o = np.asarray(offset)
+    block = StandinSpheres("spheres", [o + (1e-3, 0.0)], contact, release_mean=300 * UM, release_std=75 * UM,
+                           start_robot=o)
     push = np.stack([np.linspace(0.0, 1.2e-3, 61), np.zeros(61)], axis=1)
     back = np.stack([np.linspace(1.2e-3, 0.2e-3, 51)[1:], np.zeros(50)], axis=1)
-    s = run(block, np.concatenate([push, back]), seed=3)
+    s = run(block, np.concatenate([push, back]) + o, seed=3) - o
     after_push = s[60]
-    assert after_push[0] == pytest.approx(1.2e-3 + contact, rel=1e-12)
+    assert after_push[0] == pytest.approx(1.2e-3 + contact, rel=1e-9)
     pulled = after_push[0] - s[-1][0]
     # the draw of the step when the retreat started: N(300, 75²) µm
     streams = TrialStreams.for_block(3, [0], "spheres")
