@@ -15,7 +15,7 @@ import numpy as np
 
 from magctl.closedloop import Experiment, Variability, geometry
 from magctl.control.push_common import CONVERGED
-from magctl.push_report import animate_one, run_experiment, summarise
+from magctl.push_report import animate_one, run_experiments, summarise
 from magctl.studies import PaperRow, StudyContext, StudyResult
 
 NAME = "assembly"
@@ -45,7 +45,7 @@ def run(ctx: StudyContext) -> StudyResult:
 
     n = ctx.n_trials(DEFAULT_TRIALS)
     exps = experiments()
-    results = {label: run_experiment(ctx, exp, n) for label, exp in exps.items()}
+    results = run_experiments(ctx, exps, n)
     summaries = {label: summarise(r) for label, r in results.items()}
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for label, r in results.items():

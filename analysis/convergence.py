@@ -13,7 +13,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from magctl import studies  # noqa: E402
-from magctl.push_report import carried_errors, run_experiment  # noqa: E402
+from magctl.push_report import carried_errors, run_experiments  # noqa: E402
 from magctl.studies import PaperRow, StudyContext, StudyResult  # noqa: E402
 
 NAME = "convergence"
@@ -34,8 +34,8 @@ def run(ctx: StudyContext) -> StudyResult:
     f_exp = front.controllers(front.model_delta0())
     f_label = next(k for k in f_exp if k.startswith("K_c=1,") and "δ(0)=0" not in k)
     s_label = "lin, K_s=0.9"
-    f_err = carried_errors(run_experiment(ctx, f_exp[f_label], n))
-    s_err = carried_errors(run_experiment(ctx, side.experiments()[s_label], n))
+    runs = run_experiments(ctx, {f_label: f_exp[f_label], s_label: side.experiments()[s_label]}, n)
+    f_err, s_err = carried_errors(runs[f_label]), carried_errors(runs[s_label])
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, err, eps, label in ((axes[0], f_err, front.EPS_UM, f"front: {f_label}"),
                                 (axes[1], s_err, side.EPS_UM, f"side: {s_label}")):

@@ -22,7 +22,7 @@ from magctl.push_report import (
     controller_table,
     plot_convergence,
     plot_errors,
-    run_experiment,
+    run_experiments,
     summarise,
 )
 from magctl.studies import PaperRow, StudyContext, StudyResult
@@ -62,7 +62,7 @@ def run(ctx: StudyContext) -> StudyResult:
     n = ctx.n_trials(DEFAULT_TRIALS)
     d_model = model_delta0()
     exps = controllers(d_model)
-    results = {label: run_experiment(ctx, exp, n) for label, exp in exps.items()}
+    results = run_experiments(ctx, exps, n)
     summaries = {label: summarise(r) for label, r in results.items()}
     naive = summaries["K_c=0, δ(0)=0"]
     steady_naive = steady_error(results["K_c=0, δ(0)=0"])

@@ -20,7 +20,7 @@ from magctl.push_report import (
     overshoot_fraction,
     plot_convergence,
     plot_errors,
-    run_experiment,
+    run_experiments,
     summarise,
 )
 from magctl.studies import PaperRow, StudyContext, StudyResult
@@ -53,7 +53,7 @@ def experiments() -> dict[str, Experiment]:
 def run(ctx: StudyContext) -> StudyResult:
     n = ctx.n_trials(DEFAULT_TRIALS)
     exps = experiments()
-    results = {label: run_experiment(ctx, exp, n) for label, exp in exps.items()}
+    results = run_experiments(ctx, exps, n)
     summaries = {label: summarise(r) for label, r in results.items()}
     for label, r in results.items():
         summaries[label]["overshoot_fraction"] = overshoot_fraction(r, EPS_UM)

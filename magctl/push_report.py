@@ -17,18 +17,27 @@ from magctl.control.push_common import CONVERGED  # noqa: E402
 _MEMO: dict[str, dict] = {}
 
 
-def run_experiment(ctx, exp: Experiment, n_trials: int) -> dict:
-    """``n_trials`` trials of ``exp`` through the study's executor; memoised within a process
-    so studies that share a controller (e.g. ``convergence``) do not run it twice."""
-    from magctl.sweep import default_workers, run_study_trials
+def run_experiments(ctx, exps: dict[str, Experiment], n_trials: int) -> dict[str, dict]:
+    """``n_trials`` trials of every experiment, all on one executor at once.
 
-    key = repr((exp, n_trials, ctx.seed, ctx.scheduler))
-    if key not in _MEMO:
+    Each controller runs as few, large lockstep batches as keep the workers busy. Results
+    are memoised within a process, so studies that share a controller (``convergence``)
+    do not run it twice.
+    """
+    from magctl.sweep import default_workers, run_sweeps
+
+    keys = {label: repr((exp, n_trials, ctx.seed, ctx.scheduler)) for label, exp in exps.items()}
+    todo = {label: exp for label, exp in exps.items() if keys[label] not in _MEMO}
+    if todo:
         workers = ctx.workers or default_workers()
-        chunk = max(1, math.ceil(n_trials / workers))
-        _MEMO[key] = run_study_trials(ctx, run_push_trials, n_trials, desc=exp.label or exp.kind,
-                                      chunk_size=chunk, exp=exp)
-    return _MEMO[key]
+        chunks_per_job = max(1, math.ceil(workers / len(todo)))
+        jobs = {label: (run_push_trials, n_trials, {"exp": exp}) for label, exp in todo.items()}
+        done = run_sweeps(jobs, seed=ctx.seed, chunk_size=max(1, math.ceil(n_trials / chunks_per_job)),
+                          scheduler=ctx.scheduler, workers=ctx.workers, progress=not ctx.quiet,
+                          desc=f"{len(todo)} controllers")
+        for label, result in done.items():
+            _MEMO[keys[label]] = result
+    return {label: _MEMO[keys[label]] for label in exps}
 
 
 def carried_errors(result: dict) -> np.ndarray:

@@ -321,35 +321,55 @@ def run_study_trials(ctx, fn: Callable, n_trials: int, *, desc: str = "trials", 
                       workers=ctx.workers, progress=not ctx.quiet, desc=desc, **kwargs)
 
 
+def run_sweeps(jobs: dict, *, seed: int, chunk_size: int | None = None, scheduler: str | None = None,
+               workers: int | None = None, progress: bool = True, desc: str = "trials",
+               timeout: float = DEFAULT_CONNECT_TIMEOUT_S) -> dict:
+    """Several sweeps on one executor at once: ``jobs`` maps a key to ``(fn, n_trials, kwargs)``.
+
+    Chunks of all jobs share the workers, so many small sweeps (one per controller, say)
+    keep every worker busy with large lockstep batches. Returns ``{key: results}`` with
+    each job's per-trial results in trial order, exactly as :func:`run_trials` would.
+    """
+    with open_executor(scheduler, workers, timeout) as (ex, parallelism):
+        return _run_jobs(ex, parallelism, jobs, int(seed), chunk_size, progress, desc)
+
+
 def _run(ex: Executor, parallelism: int, fn, n_trials, seed, chunk_size, progress, desc, kwargs):
-    chunks = chunk_trials(n_trials, int(chunk_size or default_chunk_size(n_trials, parallelism)))
-    results: list = [None] * len(chunks)
+    return _run_jobs(ex, parallelism, {None: (fn, n_trials, kwargs)}, seed, chunk_size, progress, desc)[None]
+
+
+def _run_jobs(ex: Executor, parallelism: int, jobs: dict, seed: int, chunk_size, progress, desc) -> dict:
+    chunks = {key: chunk_trials(n, int(chunk_size or default_chunk_size(n, parallelism)))
+              for key, (_, n, _) in jobs.items()}
+    results = {key: [None] * len(c) for key, c in chunks.items()}
+    items = [(key, i, idx) for key, c in chunks.items() for i, idx in enumerate(c)]
     # at most two chunks per worker in flight: bounded memory, and the serial executor still shows progress
-    todo = iter(enumerate(chunks))
-    pending: dict[Future, int] = {}
+    todo = iter(items)
+    pending: dict[Future, tuple] = {}
 
     def submit_next() -> None:
-        for i, idx in todo:
-            pending[ex.submit(_call_chunk, fn, idx, seed, kwargs)] = i
+        for key, i, idx in todo:
+            fn, _, kwargs = jobs[key]
+            pending[ex.submit(_call_chunk, fn, idx, seed, kwargs)] = (key, i, idx)
             return
 
     for _ in range(2 * parallelism):
         submit_next()
-    bar = iter(progress_bar(range(len(chunks)), desc=desc, total=len(chunks), quiet=not progress))
+    bar = iter(progress_bar(range(len(items)), desc=desc, total=len(items), quiet=not progress))
     try:
         while pending:
             done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
             for fut in done:
-                i = pending.pop(fut)
-                idx = chunks[i]
+                key, i, idx = pending.pop(fut)
+                where = "" if key is None else f"{key}: "
                 try:
                     res = fut.result()
                 except Exception as exc:
                     raise SweepError(
-                        f"chunk {i} (trials {idx[0]}–{idx[-1]}) failed: {type(exc).__name__}: {exc}", i, idx
+                        f"{where}chunk {i} (trials {idx[0]}–{idx[-1]}) failed: {type(exc).__name__}: {exc}", i, idx
                     ) from exc
                 _chunk_length(res, i, idx)
-                results[i] = res
+                results[key][i] = res
                 next(bar, None)
                 submit_next()
     finally:
@@ -358,4 +378,4 @@ def _run(ex: Executor, parallelism: int, fn, n_trials, seed, chunk_size, progres
         close = getattr(bar, "close", None)
         if close:
             close()
-    return _combine(results, chunks)
+    return {key: _combine(results[key], chunks[key]) for key in jobs}

@@ -178,3 +178,25 @@ def _inconsistent_trials(indices, seed):
 def test_chunks_with_different_keys_are_reported():
     with pytest.raises(SweepError, match=r"chunk 1 \(trials 2–3\) returned \['b'\], but chunk 0 returned \['a'\]"):
         run_trials(_inconsistent_trials, 4, seed=0, scheduler="serial", chunk_size=2, progress=False)
+
+
+def test_several_sweeps_share_one_executor_with_identical_results():
+    from magctl.sweep import run_sweeps
+
+    jobs = {"slow": (drift_trials, 7, {"speed": 50e-6}), "fast": (drift_trials, 5, {"speed": 200e-6})}
+    together = run_sweeps(jobs, seed=4, chunk_size=3, scheduler="processes", workers=2, progress=False)
+    for key, (fn, n, kw) in jobs.items():
+        alone = run_trials(fn, n, seed=4, scheduler="serial", progress=False, **kw)
+        assert together[key].keys() == alone.keys()
+        for name in alone:
+            assert np.array_equal(together[key][name], alone[name])
+    first = next(iter(together["slow"]))
+    assert not np.array_equal(together["slow"][first][:5], together["fast"][first])
+
+
+def test_failing_job_is_named():
+    from magctl.sweep import run_sweeps
+
+    jobs = {"ok": (drift_trials, 4, {}), "broken": (failing_trials, 4, {"fail_on": 2})}
+    with pytest.raises(SweepError, match=r"broken: chunk 1 \(trials 2–3\) failed: ValueError"):
+        run_sweeps(jobs, seed=0, chunk_size=2, scheduler="serial", progress=False)
