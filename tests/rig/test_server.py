@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zmq
+from rig_helpers import magctl_cmd
 
 from magctl.config import load_model
 from magctl.rig import protocol as P
@@ -171,3 +173,23 @@ def test_client_refuses_a_server_of_another_protocol_version():
     t.join()
     rig.close()
     rep.close(0)
+
+
+@pytest.mark.parametrize("plant", ["physics", "standin"])
+def test_serve_sim_names_its_plant_and_scene(start_server, plant):
+    """``--plant`` picks the plant behind the server (physics by default); ``hello`` reports it and the scene."""
+    srv = start_server(*([] if plant == "physics" else ["--plant", plant]), "--robot-um", "1500", "1000")
+    client = RigClient(srv.address)
+    hello = client.call("hello")
+    assert hello["scene"]["plant"] == plant
+    assert hello["scene"]["robot_um"] == [1500.0, 1000.0] and hello["scene"]["spheres_um"] == [[2500.0, 1000.0]]
+    client.configure()
+    obs = client.read()
+    assert not obs.lost and np.hypot(*(obs.robot_est - [1.5e-3, 1.0e-3])) < 7.5e-6
+    client.close()
+
+
+def test_serve_sim_refuses_a_scene_outside_the_camera_field():
+    proc = subprocess.run(magctl_cmd("rig", "serve-sim", "--bind", "tcp://127.0.0.1:1", "--robot-um", "-200", "500"),
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "outside the camera's field of view" in proc.stderr
