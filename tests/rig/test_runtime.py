@@ -100,7 +100,7 @@ def test_overruns_skip_ticks_count_them_and_never_replay(tmp_path, capsys):
 
 
 def test_tracking_loss_stops_the_robot_and_ends_the_run(tmp_path):
-    scene = Scene(blackout=(0.5, 100.0))
+    scene = Scene.default(0, blackout=(0.5, 100.0))
     rig = SimRig(lambda: build_sim_plant(0, scene), realtime=False)
     log = tmp_path / "lost.jsonl"
     report = Runtime(rig, "goto", {"target_um": um(START + (2e-3, 0.0))}, log_path=log, realtime=False,
