@@ -116,22 +116,22 @@ def plot_convergence(summaries: dict[str, dict], path: Path, title: str, max_att
 
 
 def plot_errors(results: dict[str, dict], path: Path, title: str, eps_um: float, log: bool = False) -> Path:
-    """Fig 11/13 style: error versus attempt — mean ± std band and one representative trial each."""
+    """Fig 11/13 style: error versus attempt — median, interquartile band and trial 0 of each controller."""
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for i, (label, r) in enumerate(results.items()):
         err = carried_errors(r)
         xs = np.arange(err.shape[1])
-        mean, std = np.nanmean(err, axis=0), np.nanstd(err, axis=0)
+        lo, mid, hi = np.nanpercentile(err, [25, 50, 75], axis=0)
         col = f"C{i}"
-        ax.plot(xs, mean, color=col, label=label)
-        ax.fill_between(xs, np.maximum(mean - std, 1e-3 if log else 0), mean + std, color=col, alpha=0.12)
+        ax.plot(xs, mid, color=col, label=label)
+        ax.fill_between(xs, lo, hi, color=col, alpha=0.15)
         ax.plot(xs, r["error_um"][0], color=col, ls=":", lw=0.8)
     ax.axhline(eps_um, color="k", ls="--", lw=0.8, label=f"ε_p = {eps_um:g} µm")
     if log:
         ax.set_yscale("log")
     ax.set_xlabel("pushing attempt")
     ax.set_ylabel("positioning error (µm)")
-    ax.set_title(title + "\n(line: mean; band: ±1 std; dotted: trial 0)", fontsize=9)
+    ax.set_title(title + "\n(line: median; band: 25–75 %; dotted: trial 0)", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
