@@ -57,7 +57,7 @@ def test_front_push_completes_through_the_server(start_server, tmp_path):
     report = Runtime(rig, "front-push", {"delta0_um": 300.0}, log_path=log, realtime=True, duration=60.0,
                      quiet=True).run()
     rig.close()
-    assert report.exit_status == "done", report.reason
+    assert report.exit_status == "done", (report.reason, report.ticks, report.final)
     # the paper's setting: goal 750 µm beyond the sphere that starts 1 mm ahead of the robot, ε_p = 75 µm
     sphere = np.array(report.final["spheres_um"][0]) * 1e-6
     assert np.hypot(*(sphere - FRONT_GOAL)) < EPS_P
