@@ -23,8 +23,11 @@ def straight_run(chain, speed, heading, steps=120):
     return res.outputs["position"][0], res.outputs["saturated"][0]
 
 
+# The robot starts at heading 0. A command within a few degrees of ±π puts the magnet
+# at its unstable antiparallel equilibrium (torque ∝ sin of the misalignment), where it
+# takes many frames to start turning; that case is tested separately below.
 @settings(max_examples=15, deadline=None)
-@given(speed=st.floats(0.05e-3, 1.0e-3), heading=st.floats(-np.pi, np.pi))
+@given(speed=st.floats(0.05e-3, 1.0e-3), heading=st.floats(-0.9 * np.pi, 0.9 * np.pi))
 def test_constant_command_gives_straight_path_at_that_speed(chain, speed, heading):
     pos, sat = straight_run(chain, speed, heading)
     d = pos[-1] - pos[10]  # after the heading has settled (τ_ψ ≈ 9 ms)
@@ -35,6 +38,16 @@ def test_constant_command_gives_straight_path_at_that_speed(chain, speed, headin
     assert np.abs(lateral).max() < 0.1e-6  # straight within 0.1 µm
     assert (d @ u) > 0
     assert not sat.any()
+
+
+def test_antiparallel_command_turns_the_robot_eventually(chain):
+    """Near-antiparallel start: slow to leave the unstable equilibrium, then straight at the speed."""
+    heading = np.pi - 1e-6
+    pos, _ = straight_run(chain, PAPER_SPEED, heading, steps=240)
+    u = np.array([np.cos(heading), np.sin(heading)])
+    d = pos[-1] - pos[-61]
+    assert np.linalg.norm(d) / (60 * H) == pytest.approx(PAPER_SPEED, rel=0.01)
+    assert d @ u / np.linalg.norm(d) > 0.9999
 
 
 def test_nominal_speed_is_the_papers(chain):
