@@ -36,6 +36,14 @@ from magctl.plant._stickslip import (
 __all__ = ["StickSlipParams", "StickSlipRobot", "load_robot", "rocking_amplitude", "speed", "step_length"]
 
 
+# The ports every robot block shares (the stick-slip model and the rig's stand-in): the field the
+# coils deliver in, the pose and what the fluid model needs out (docs/interfaces.md).
+ROBOT_INPUTS = (Port("b_static_delivered", (2,), "T"), Port("b_osc_delivered", (), "T"),
+                Port("freq_delivered", (), "1/s"))
+ROBOT_OUTPUTS = (Port("position", (2,), "m"), Port("heading", (), "rad"), Port("velocity", (2,), "m/s"),
+                 Port("tilt", (), "rad"))
+
+
 class StickSlipRobot(Block):
     """Mag-µBot on glass under oil, driven by the delivered coil field.
 
@@ -67,10 +75,8 @@ class StickSlipRobot(Block):
         self.cv = self.params.step_cv if variability else 0.0
         super().__init__(
             name,
-            inputs=[Port("b_static_delivered", (2,), "T"), Port("b_osc_delivered", (), "T"),
-                    Port("freq_delivered", (), "1/s")],
-            outputs=[Port("position", (2,), "m"), Port("heading", (), "rad"), Port("velocity", (2,), "m/s"),
-                     Port("tilt", (), "rad")],
+            inputs=list(ROBOT_INPUTS),
+            outputs=list(ROBOT_OUTPUTS),
             dt=dt, feedthrough=False,
         )
         p = self.params

@@ -27,6 +27,7 @@ import numpy as np
 from magctl import FRAME_PERIOD_S
 from magctl.core.block import Block
 from magctl.core.ports import Port
+from magctl.plant.robot import ROBOT_INPUTS, ROBOT_OUTPUTS
 from magctl.rig.interface import CoilMap
 
 FIELD_IN = [Port("b_static", (2,), "T"), Port("b_osc", (), "T"), Port("freq", (), "1/s")]
@@ -93,10 +94,8 @@ class StandinRobot(Block):
         self.start, self.heading0 = np.asarray(start, dtype=float), float(heading0)
         super().__init__(
             name,
-            inputs=[Port("b_static_delivered", (2,), "T"), Port("b_osc_delivered", (), "T"),
-                    Port("freq_delivered", (), "1/s")],
-            outputs=[Port("position", (2,), "m"), Port("heading", (), "rad"), Port("velocity", (2,), "m/s"),
-                     Port("tilt", (), "rad")],
+            inputs=list(ROBOT_INPUTS),
+            outputs=list(ROBOT_OUTPUTS),
             dt=dt, feedthrough=False,
         )
 

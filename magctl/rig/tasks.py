@@ -276,15 +276,21 @@ def _need_spheres(task: str, first_obs: Observation, n: int) -> int:
     return have
 
 
+def _sphere_and_away(first_obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+    """Sphere 0's estimate and the unit vector from the robot to it (+x if they coincide)."""
+    ps = first_obs.spheres_est[0]
+    away = ps - first_obs.robot_est
+    length = np.hypot(*away)
+    return ps, (away / length if length > 0 else np.array([1.0, 0.0]))
+
+
 @register_task("front-push")
 def _front_push(first_obs: Observation, options: dict, params: Params) -> Task:
     """Front-push sphere 0 to ``goal`` (default ``tasks.goal_distance`` beyond it, away from the robot), §V-A."""
     from magctl.control.push_front import FrontPushTask
 
     n = _need_spheres("front-push", first_obs, 1)
-    ps, pr = first_obs.spheres_est[0], first_obs.robot_est
-    away = ps - pr
-    away = away / np.hypot(*away) if np.hypot(*away) > 0 else np.array([1.0, 0.0])
+    ps, away = _sphere_and_away(first_obs)
     goal = _xy(options, "goal", ps + params.tasks.goal_distance * away)
     kc = _float(options, "kc", 1.0)
     delta0 = _num(options, "delta0", "m", "um", 1e-6, 0.0, positive=False)
@@ -306,9 +312,7 @@ def _side_push(first_obs: Observation, options: dict, params: Params) -> Task:
     from magctl.control.push_side import SidePushTask
 
     n = _need_spheres("side-push", first_obs, 1)
-    ps, pr = first_obs.spheres_est[0], first_obs.robot_est
-    away = ps - pr
-    away = away / np.hypot(*away) if np.hypot(*away) > 0 else np.array([1.0, 0.0])
+    ps, away = _sphere_and_away(first_obs)
     goal = _xy(options, "goal", ps + params.tasks.side_goal_distance * away)
     ks = _float(options, "ks", 0.9)
     model = str(options.get("model", "lin"))
