@@ -37,7 +37,8 @@ def main() -> int:
         results[name] = module.run(quick=args.quick)
         results[name]["wall_time_s"] = time.perf_counter() - t0
         print(json.dumps({name: results[name]}, indent=2, default=float))
-    args.out.write_text(json.dumps(results, indent=2, default=float))
+        # written after every benchmark, so a later one that fails loses none of the numbers before it
+        args.out.write_text(json.dumps(results, indent=2, default=float))
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
 
