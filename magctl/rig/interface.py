@@ -173,6 +173,9 @@ class CoilMap:
         self._i_clamp = self.clamp_gradient * self.pinv[:, 3]
         self._per_tesla_xy = self.pinv[:, :2]
         self._per_tesla_osc = np.abs(self.pinv[:, 2])
+        # the headroom checks run every 30 Hz tick on the rig: their constant parts are computed once
+        self._static_room = self.current_limit - np.abs(self._i_clamp)
+        self._osc_carry = self._per_tesla_osc > 1e-9 * self._per_tesla_osc.max()
 
     @classmethod
     def from_coils(cls, coils=None) -> CoilMap:
@@ -202,16 +205,17 @@ class CoilMap:
 
     def static_headroom(self, b_static: np.ndarray) -> float:
         """Largest ``s`` with ``s·b_static`` within every coil's rating (ignoring the clamp term)."""
-        need = np.abs(self.static_currents(b_static[None, :]) - self._i_clamp)[0]
-        room = self.current_limit - np.abs(self._i_clamp)
-        with np.errstate(divide="ignore", over="ignore"):
-            return float(np.min(np.where(need > 0, room / need, np.inf)))
+        need = np.abs(self._per_tesla_xy @ b_static)
+        loaded = need > 0
+        if not loaded.any():
+            return math.inf
+        return float((self._static_room[loaded] / need[loaded]).min())
 
     def osc_headroom(self, b_static: np.ndarray) -> float:
         """Largest ``b_osc`` (T) the coils can add to ``b_static`` within their ratings."""
-        left = self.current_limit - np.abs(self.static_currents(b_static[None, :]))[0]
-        carry = self._per_tesla_osc > 1e-9 * self._per_tesla_osc.max()
-        return float(max(0.0, np.min(left[carry] / self._per_tesla_osc[carry])))
+        left = self.current_limit - np.abs(self._per_tesla_xy @ b_static + self._i_clamp)
+        carry = self._osc_carry
+        return max(0.0, float((left[carry] / self._per_tesla_osc[carry]).min()))
 
 
 @dataclass(frozen=True)
