@@ -209,7 +209,8 @@ class CoilMap:
         loaded = need > 0
         if not loaded.any():
             return math.inf
-        return float((self._static_room[loaded] / need[loaded]).min())
+        # a floor on the load keeps a vanishing field from overflowing the ratio (it then reads ~1e300, as good as inf)
+        return float((self._static_room[loaded] / np.maximum(need[loaded], 1e-300)).min())
 
     def osc_headroom(self, b_static: np.ndarray) -> float:
         """Largest ``b_osc`` (T) the coils can add to ``b_static`` within their ratings."""
