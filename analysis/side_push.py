@@ -4,7 +4,7 @@ Six controllers push a 210 µm sphere to a goal 300 µm away without contact (§
 fixed gaps D_g = 370 µm and 500 µm (the naïve controllers), the exponential (eq 22)
 and linear (eq 23) models without learning (K_s = 0), and the linear model with
 learning K_s = 0.5 and 0.9; ε_p = 7.5 µm (one pixel), at most 30 attempts,
-repositioning round the sphere at 1 mm to 1 mm behind it (see ``CLEARANCE_UM``). The plant is the
+repositioning round the sphere, 1 mm clear of it, to a start 1 mm behind it (``CLEARANCE_UM``). The plant is the
 fluid model itself (uncalibrated, ε = 25 nm), so the controllers' eq 22/23 — fitted
 to the paper's COMSOL curve — are a mismatched model of it, as in the paper; camera
 noise, stick-slip step variability, a ±10 % per-trial scatter of the sphere's
