@@ -38,6 +38,7 @@ from magctl.plant.fluid.geometry import Polygon, RobotGeometry
 from magctl.plant.fluid.params import GRAVITY, SphereParams, fluid_viscosity, sphere_params
 from magctl.plant.fluid.surface import pull_off_range
 from magctl.plant.fluid.wall_drag import mobility
+from magctl.plant.sphere_kernel import sphere_frame
 
 InitialPositions = np.ndarray | Callable[[int, object], np.ndarray]
 
@@ -148,12 +149,16 @@ class Spheres(Block):
         Overrides ε (a calibration knob; see docs/fluid.md).
     dt : float
         Frame period [s].
+    compiled : bool
+        Run frames through the compiled kernel (:mod:`magctl.plant.sphere_kernel`), which
+        hands trials it does not cover back to the array form; False: array form only.
     """
 
     def __init__(self, initial_positions: InitialPositions, name: str = "spheres", *,
                  params: SphereParams | None = None, geometry: RobotGeometry | None = None,
                  viscosity: float | None = None, fluid_density: float | None = None,
-                 drag_mode: str | None = None, roughness: float | None = None, dt: float = FRAME_PERIOD_S):
+                 drag_mode: str | None = None, roughness: float | None = None, dt: float = FRAME_PERIOD_S,
+                 compiled: bool = True):
         self.params = params if params is not None else sphere_params()
         self.init = initial_positions
         n = self._count(initial_positions)
@@ -183,6 +188,9 @@ class Spheres(Block):
         self.reach = float(np.linalg.norm(self.footprint, axis=1).max()) + r
         self._flow: RobotFlow | None = None
         self._k_contact = float(mobility(self.mode, r, 0.0, self.roughness))   # V_p/U resting on the glass
+        self.compiled = bool(compiled)
+        poly = self._footprint
+        self._edges = tuple(np.ascontiguousarray(a) for a in (poly.x0, poly.y0, poly.dx, poly.dy, poly.ab2, poly.y1))
 
     @staticmethod
     def _count(init) -> int:
@@ -204,6 +212,16 @@ class Spheres(Block):
             # mobility (eq 4), not where the flow is read
             self._flow = robot_flow(self.geometry, self.viscosity, self.radius + self.params.roughness)
         return self._flow
+
+    def prepare(self) -> None:
+        """Do the one-off work of the first frame now: solve the robot's flow (cached per process)
+        and load or compile the frame kernel, so a real-time loop does not stall on its first frame."""
+        state = self.initial_state(1)
+        still = {"position": np.zeros((1, 2)), "heading": np.zeros(1), "velocity": np.zeros((1, 2))}
+        if self.compiled:
+            self.compiled_frame(state, still)
+        else:
+            _ = self.flow
 
     @property
     def uses_random(self) -> bool:
@@ -270,6 +288,38 @@ class Spheres(Block):
         return wx, wy, self._gap_rate(uz, gap), k
 
     def update(self, state, u):
+        if not self.compiled:
+            return self._update_arrays(state, u)
+        new, ok = self.compiled_frame(state, u)
+        if not ok.all():   # trials the kernel does not cover: the array form, from the start of the frame
+            rows = np.nonzero(~ok)[0]
+            redo = self._update_arrays({k: v[rows] for k, v in state.items()},
+                                       {k: np.asarray(v)[rows] for k, v in u.items()})
+            for key in ("xy", "gap", "contact"):
+                new[key][rows] = redo[key]
+        return new
+
+    def compiled_frame(self, state, u) -> tuple[dict, np.ndarray]:
+        """One frame by :func:`~magctl.plant.sphere_kernel.sphere_frame`: the next state, and a bool
+        array of the trials it covered (the others are returned unchanged)."""
+        z = _complex(state["xy"])
+        gap = state["gap"].copy()
+        mult = state["mobility"]
+        heading = np.asarray(u["heading"], float)
+        flat, dgx, dgy = self.flow._flat_maps()
+        contact, ok = sphere_frame(
+            z, gap, mult, _complex(np.asarray(u["position"], float)),
+            _complex(np.asarray(u["velocity"], float)), np.cos(heading) + 1j * np.sin(heading),
+            self.params.substeps, self.dt / self.params.substeps, flat, self.flow.gx, self.flow.gy, dgx, dgy,
+            self.flow.points, self.flow.forces, self.flow.eps, self.flow.viscosity, self.flow.height,
+            *self._edges, self.radius, self.reach, self._box[0], self._box[1], self.buoyant_weight / self.zeta,
+            (self.buoyant_weight + self.pull_off) / self.zeta, self.params.adhesion_range, self._k_contact,
+            self.mode == "paper", self.roughness)
+        new = {"xy": np.stack([z.real, z.imag], axis=-1), "gap": gap, "mobility": mult, "contact": contact}
+        return new, ok
+
+    def _update_arrays(self, state, u):
+        """One frame in numpy array operations, for any trials (the reference form of the kernel)."""
         # Plane points and vectors are complex numbers x + iy inside the frame: a rotation by the
         # heading is then one multiplication by e^{±iθ} (fewer array operations per sub-step).
         pos = _complex(np.asarray(u["position"], float))

@@ -183,7 +183,7 @@ def _physics_plant(n: int, scene: Scene, p: Params) -> Diagram:
     if n:
         sp = dataclasses.replace(sphere_params(), release_scatter=float(ph.release_scatter))
         spheres = Spheres(spheres0, params=sp, roughness=calibrated_roughness() if ph.calibrated_release else None)
-        _ = spheres.flow  # solve the robot's flow now (~1 s, cached per process), not in the first served frame
+        spheres.prepare()  # flow solve and kernel compile (~1 s, once per process) now, not in the first served frame
         blocks.append(spheres)
         wires += [("robot.position", "spheres.position"), ("robot.heading", "spheres.heading"),
                   ("robot.velocity", "spheres.velocity"), ("spheres.spheres", "camera.spheres")]
