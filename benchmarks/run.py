@@ -17,6 +17,20 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
+def small_op_us() -> float:
+    """Best time of one small numpy operation (a 100-element add) [µs]: how fast this machine is right now.
+
+    Most of the loops measured here are bound by the fixed cost of numpy calls, so runs on a
+    shared machine are comparable only next to this number.
+    """
+    import timeit
+
+    import numpy as np
+
+    a = np.ones(100)
+    return min(timeit.repeat(lambda: a + a, number=20000, repeat=7)) / 20000 * 1e6
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", type=Path, default=HERE / "results.json")
@@ -36,6 +50,7 @@ def main() -> int:
         t0 = time.perf_counter()
         results[name] = module.run(quick=args.quick)
         results[name]["wall_time_s"] = time.perf_counter() - t0
+        results[name]["numpy_small_op_us"] = small_op_us()   # right after, under the same load
         print(json.dumps({name: results[name]}, indent=2, default=float))
         # written after every benchmark, so a later one that fails loses none of the numbers before it
         args.out.write_text(json.dumps(results, indent=2, default=float))
