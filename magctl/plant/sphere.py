@@ -15,6 +15,9 @@ split into sub-steps. Each sub-step
 3. enforces non-penetration against the robot's footprint (including the concave
    front face) and between spheres.
 
+A frame runs for the whole batch in one compiled call (:mod:`magctl.plant.sphere_kernel`);
+the array form below is its reference and handles the trials the kernel hands back.
+
 Optional seeded per-trial variability (off by default, ``models/sphere.toml``):
 a sphere may sit on a sticky patch that scales its mobility (§VI-B, "stuck on a
 piece of dirt"), and a lognormal scatter of the mobility spreads the release

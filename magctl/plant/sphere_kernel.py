@@ -1,6 +1,6 @@
 """Compiled sphere sub-steps: one frame of :class:`magctl.plant.sphere.Spheres` for a whole batch.
 
-The array form in ``Spheres.update`` makes about 150 numpy calls per sub-step; at the
+The array form (``Spheres._update_arrays``) makes about 150 numpy calls per sub-step; at the
 batch sizes of a study (≈ 100 trials) each call is dominated by its fixed cost, not
 by the arithmetic. This module runs the same frame — flow look-up in the robot-frame
 map, inertia-free move ``V_p = k U`` (eq 4), gap balance (eq 8–9), non-penetration of
@@ -234,7 +234,7 @@ def sphere_frame(z, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dg
                 d = zb[i] - p_end
                 if abs(d) >= reach:
                     continue
-                rel = d * turn[b].conjugate()
+                rel = d * back
                 if not (abs(rel.real) < box_x and abs(rel.imag) < box_y):
                     continue
                 rx, ry, hit = _push_out_point(rel.real, rel.imag, x0, y0, dx, dy, ab2, y1, radius, 3)

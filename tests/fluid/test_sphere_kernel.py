@@ -88,12 +88,18 @@ def test_kernel_hands_back_lifted_spheres_in_the_accurate_mode():
 def test_kernel_uses_the_adhesion_and_substeps_of_the_parameters():
     """A changed parameter set reaches the kernel: adhesion P holds a sphere the flow would lift, and
     the sub-step count changes the path exactly as it does in the array form."""
+    plain = Spheres(np.zeros((1, 2)))
+    state, u = _random_frame(plain, 200, seed=11)
+    default = plain.compiled_frame({k: v.copy() for k, v in state.items()}, u)[0]
     for params in (dataclasses.replace(sphere_params(), adhesion=True),
                    dataclasses.replace(sphere_params(), substeps=7)):
         block = Spheres(np.zeros((1, 2)), params=params)
-        state, u = _random_frame(block, 200, seed=11)
         reference = block._update_arrays({k: v.copy() for k, v in state.items()}, u)
         compiled, covered = block.compiled_frame({k: v.copy() for k, v in state.items()}, u)
         assert covered.mean() > 0.95
         np.testing.assert_allclose(compiled["xy"][covered], reference["xy"][covered], rtol=0, atol=1e-15)
         np.testing.assert_allclose(compiled["gap"][covered], reference["gap"][covered], rtol=0, atol=1e-18)
+        if params.adhesion:     # P keeps most spheres the flow lifts without it on the glass
+            assert (compiled["gap"] > 0).sum() < 0.5 * (default["gap"] > 0).sum()
+        else:
+            assert np.abs(compiled["xy"] - default["xy"]).max() > 1e-9
