@@ -18,7 +18,7 @@ from magctl.core import Diagram, simulate  # noqa: E402
 from magctl.plant.coils import CoilActuator, load_coils  # noqa: E402
 from magctl.plant.drive import Drive, actuated_robot, load_drive  # noqa: E402
 from magctl.plant.robot import StickSlipRobot, heading_time_constant, load_robot  # noqa: E402
-from magctl.studies import PaperRow, StudyContext, StudyResult  # noqa: E402
+from magctl.studies.runner import PaperRow, StudyContext, StudyResult  # noqa: E402
 
 NAME = "actuator"
 TITLE = "Coil actuator and stick-slip robot: speed–frequency curve and heading response"

@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.closedloop import Experiment, Variability, geometry
-from magctl.control.push_common import CONVERGED
-from magctl.push_report import animate_one, run_experiments, summarise
-from magctl.studies import PaperRow, StudyContext, StudyResult
+from magctl.control.push.common import CONVERGED
+from magctl.loops import Experiment, Variability, geometry
+from magctl.studies.push import animate_one, run_experiments, summarise
+from magctl.studies.runner import PaperRow, StudyContext, StudyResult
 
 NAME = "assembly"
 TITLE = "Figs 3, 9, 15 — two-sphere assembly: front push vs side push"

@@ -12,9 +12,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from magctl import studies  # noqa: E402
-from magctl.push_report import carried_errors, run_experiments, summarise  # noqa: E402
-from magctl.studies import PaperRow, StudyContext, StudyResult  # noqa: E402
+from magctl.studies import runner as studies  # noqa: E402
+from magctl.studies.push import carried_errors, run_experiments, summarise  # noqa: E402
+from magctl.studies.runner import PaperRow, StudyContext, StudyResult  # noqa: E402
 
 NAME = "convergence"
 TITLE = "Fig 14 — error versus attempt for the best front and side controllers"

@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.closedloop import Experiment, Variability, geometry
-from magctl.control.push_common import ATTEMPT_LIMIT
+from magctl.control.push.common import ATTEMPT_LIMIT
+from magctl.loops import Experiment, Variability, geometry
 from magctl.plant.fluid.scenarios import release_displacement
-from magctl.push_report import (
+from magctl.studies.push import (
     animate_one,
     controller_table,
     plot_convergence,
@@ -25,7 +25,7 @@ from magctl.push_report import (
     run_experiments,
     summarise,
 )
-from magctl.studies import PaperRow, StudyContext, StudyResult
+from magctl.studies.runner import PaperRow, StudyContext, StudyResult
 
 NAME = "front-push"
 TITLE = "Figs 10–11 — front pushing: six controllers in closed loop"

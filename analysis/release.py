@@ -18,7 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from magctl.plant.fluid.calibration import PAPER_RELEASE_EXPERIMENT, PAPER_RELEASE_SIMULATION, calibrate  # noqa: E402
 from magctl.plant.fluid.params import sphere_params  # noqa: E402
 from magctl.plant.fluid.scenarios import release_displacement  # noqa: E402
-from magctl.studies import PaperRow, StudyContext, StudyResult  # noqa: E402
+from magctl.studies.runner import PaperRow, StudyContext, StudyResult  # noqa: E402
 
 NAME = "release"
 TITLE = "Release displacement D_p,r after a front push"

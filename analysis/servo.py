@@ -16,11 +16,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from magctl.control.servo import Servo, servo_params  # noqa: E402
-from magctl.control.tracker import Tracker  # noqa: E402
 from magctl.core import Constant, Diagram, simulate  # noqa: E402
-from magctl.plant.camera import Camera, camera_params  # noqa: E402
-from magctl.stability_servo import analyse, simulated_overshoot, step_report  # noqa: E402
-from magctl.studies import PaperRow, StudyContext, StudyResult  # noqa: E402
+from magctl.sensing.camera import Camera, camera_params  # noqa: E402
+from magctl.sensing.tracker import Tracker  # noqa: E402
+from magctl.stability.servo import analyse, simulated_overshoot, step_report  # noqa: E402
+from magctl.studies.runner import PaperRow, StudyContext, StudyResult  # noqa: E402
 
 NAME = "servo"
 TITLE = "PI visual servo: ~100 µm overshoot of §VI-A (default) vs tuned; poles and margins"

@@ -13,8 +13,8 @@ mobility and a 10 % chance of a sticky patch (§VI-B) make trials differ.
 
 from __future__ import annotations
 
-from magctl.closedloop import Experiment, Variability, geometry
-from magctl.push_report import (
+from magctl.loops import Experiment, Variability, geometry
+from magctl.studies.push import (
     animate_one,
     controller_table,
     overshoot_fraction,
@@ -23,7 +23,7 @@ from magctl.push_report import (
     run_experiments,
     summarise,
 )
-from magctl.studies import PaperRow, StudyContext, StudyResult
+from magctl.studies.runner import PaperRow, StudyContext, StudyResult
 
 NAME = "side-push"
 TITLE = "Figs 12–13 — side pushing: fixed gaps, models and learning in closed loop"

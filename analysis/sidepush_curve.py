@@ -19,7 +19,7 @@ import numpy as np  # noqa: E402
 from magctl.plant.fluid.calibration import EQ22_A, EQ22_B, calibrate, eq22, eq23_gap  # noqa: E402
 from magctl.plant.fluid.flow import robot_flow  # noqa: E402
 from magctl.plant.fluid.scenarios import contact_threshold, sidepush_curve, sidepush_fit  # noqa: E402
-from magctl.studies import PaperRow, StudyContext, StudyResult  # noqa: E402
+from magctl.studies.runner import PaperRow, StudyContext, StudyResult  # noqa: E402
 
 NAME = "sidepush-curve"
 TITLE = "Fig 6 — side-push displacement D_s versus side gap D_g"

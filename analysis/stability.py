@@ -11,9 +11,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from magctl import stability as S  # noqa: E402
-from magctl.control.push_common import ExpSideModel, LinSideModel  # noqa: E402
-from magctl.studies import PaperRow, StudyResult  # noqa: E402
+from magctl.control.push.common import ExpSideModel, LinSideModel  # noqa: E402
+from magctl.stability import iteration as S  # noqa: E402
+from magctl.studies.runner import PaperRow, StudyResult  # noqa: E402
 
 NAME = "stability"
 TITLE = "Iteration-domain stability of front and side pushing (eq 13-23)"

@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 
-from magctl.benchmark_loops import STEPS, b1_diagram, b1_noise, b1_numpy, b1_python_control
 from magctl.core import simulate
+from magctl.testing import STEPS, b1_diagram, b1_noise, b1_numpy, b1_python_control
 
 SEED = 2026
 

@@ -1,6 +1,6 @@
 """Closed-loop push trials: simulated time per wall-clock second, batch of 100 trials in lockstep on one core.
 
-The full 30 Hz loop of :func:`magctl.closedloop.push_loop` (drive → coils → robot → spheres → camera in
+The full 30 Hz loop of :func:`magctl.loops.push_loop` (drive → coils → robot → spheres → camera in
 positions mode → Kalman tracker → push task → servo) for a front push (K_c = 1, δ(0) from the model) and
 a side push, from the start of a trial. Speed = (batch × simulated seconds) / wall seconds; target
 ≥ 5000× real time for a batch of 100 (issue 7). A second, instrumented run times every leaf block's
@@ -13,8 +13,8 @@ from __future__ import annotations
 import time
 
 from magctl import FRAME_PERIOD_S
-from magctl.closedloop import Experiment, push_loop
 from magctl.core import simulate
+from magctl.loops import Experiment, push_loop
 
 BATCH = 100
 SPEED_TARGET = 5000.0

@@ -12,11 +12,11 @@ import time
 
 import numpy as np
 
-from magctl.control.particle_filter import ImageTracker
 from magctl.control.servo import Servo, servo_params
 from magctl.core import simulate
-from magctl.plant.camera import camera_params, render_frame
-from magctl.stability_servo import servo_step_diagram
+from magctl.sensing.camera import camera_params, render_frame
+from magctl.sensing.particle_filter import ImageTracker
+from magctl.stability.servo import servo_step_diagram
 
 T = 1.0 / 30.0
 TRACKER_FPS_TARGET = 30.0

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from magctl import stability as S
+from magctl.stability import iteration as S
 
 SWEEP_TARGET_S = 1.0
 
@@ -52,7 +52,7 @@ def run(quick: bool = False) -> dict:
 
 def _task_frame(batch: int) -> float:
     """Wall time of one 30 Hz frame (output + update) of the side-push task, per trial (µs)."""
-    from magctl.control.push_side import SidePushTask
+    from magctl.control.push.side import SidePushTask
 
     task = SidePushTask(goal=(300e-6, 0.0))
     st = task.initial_state(batch)

@@ -16,7 +16,7 @@ Executors (all ``concurrent.futures.Executor``):
 - ``"tcp://HOST:PORT"`` (any Dask address) — ``distributed.Client(addr).get_executor()``.
 
 Functions sent to processes or Dask workers are pickled by reference: define
-them in an importable module (see :mod:`magctl.examples`).
+them in an importable module (see :mod:`magctl.testing`).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from magctl.core.errors import MagctlError
-from magctl.progress import progress as progress_bar
+from magctl.core.progress import progress as progress_bar
 
 SERIAL = "serial"
 PROCESSES = "processes"
@@ -316,7 +316,7 @@ def _parallelism(executor: Executor, workers: int | None) -> int:
 
 def run_study_trials(ctx, fn: Callable, n_trials: int, *, desc: str = "trials", chunk_size: int | None = None,
                      **kwargs):
-    """:func:`run_trials` with the seed, scheduler, workers and quietness of a ``magctl.studies.StudyContext``."""
+    """:func:`run_trials` with the seed, scheduler, workers and quietness of a study context."""
     return run_trials(fn, n_trials, seed=ctx.seed, chunk_size=chunk_size, scheduler=ctx.scheduler,
                       workers=ctx.workers, progress=not ctx.quiet, desc=desc, **kwargs)
 

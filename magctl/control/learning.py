@@ -13,7 +13,7 @@ with the attempt index ``i`` as time (``dt = 1`` attempt):
 
 The same block object serves the 30 Hz push tasks (which call :meth:`update_where`
 on the trials that just finished an attempt) and the iteration-domain diagrams
-of :mod:`magctl.stability` (through :meth:`to_control`, ``g/(z − 1)``, eq 14 and 19).
+of :mod:`magctl.stability.iteration` (through :meth:`to_control`, ``g/(z − 1)``, eq 14 and 19).
 """
 
 from __future__ import annotations

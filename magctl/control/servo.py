@@ -14,7 +14,7 @@ Together with the camera lag this gives an overshoot of about
 ``v_cap/Kp + v_cap·d·T`` whatever the step length, the ~100 µm of §VI-A.
 
 So along the line to the target it is the single-axis loop that
-:mod:`magctl.stability_servo` analyses. ``v_cap`` is the lower of the
+:mod:`magctl.stability.servo` analyses. ``v_cap`` is the lower of the
 parameter ``speed_max`` and the optional ``speed_cap`` input (push tasks push
 slowly). With ``constant_speed`` the robot runs at ``v_cap`` until it arrives,
 as in the paper's experiments (§VI-A). Inside ``arrive_tol`` the speed is zero

@@ -10,14 +10,14 @@ contract the rig server and :class:`~magctl.rig.sim.SimRig` rely on:
 Two plants honour it:
 
 ``physics`` (default)
-    The blocks of the closed-loop simulation (:func:`magctl.closedloop.push_loop` without its
+    The blocks of the closed-loop simulation (:func:`magctl.loops.push_loop` without its
     task, servo and drive): :class:`~magctl.plant.coils.CoilActuator` →
     :class:`~magctl.plant.robot.StickSlipRobot` → :class:`~magctl.plant.sphere.Spheres` (Stokes
-    flow and contact) → :class:`~magctl.plant.camera.Camera` (positions mode, primed with the
-    scene) → :class:`~magctl.control.tracker.Tracker` (Kalman). A :class:`Blackout` gate between
+    flow and contact) → :class:`~magctl.sensing.camera.Camera` (positions mode, primed with the
+    scene) → :class:`~magctl.sensing.tracker.Tracker` (Kalman). A :class:`Blackout` gate between
     camera and tracker drops frames in a configured window, so the tracker really loses track.
 ``standin``
-    The fast kinematic stand-in of :mod:`magctl.rig.standin`.
+    The fast kinematic stand-in of :mod:`magctl.plant.standin`.
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ from magctl.core.errors import WiringError
 from magctl.core.linear import Constant
 from magctl.core.ports import DIMENSIONLESS, Port
 from magctl.plant.robot import load_robot
+from magctl.plant.standin import StandinCoils, StandinRobot, StandinSpheres, StandinTracker
 from magctl.rig.interface import CoilMap
-from magctl.rig.standin import StandinCoils, StandinRobot, StandinSpheres, StandinTracker
 
 PLANT_INPUTS = ("b_static", "b_osc", "freq")
 PLANT_OUTPUTS = ("robot_est", "heading_est", "spheres_est", "lost", "currents")
@@ -152,13 +152,13 @@ def build_sim_plant(n_spheres: int, scene: Scene | None = None, params: Params |
 
 
 def _physics_plant(n: int, scene: Scene, p: Params) -> Diagram:
-    from magctl.closedloop import calibrated_roughness
-    from magctl.control.tracker import Tracker
-    from magctl.plant.camera import Camera
+    from magctl.loops import calibrated_roughness
     from magctl.plant.coils import CoilActuator
     from magctl.plant.fluid.params import sphere_params
     from magctl.plant.robot import StickSlipRobot
     from magctl.plant.sphere import Spheres
+    from magctl.sensing.camera import Camera
+    from magctl.sensing.tracker import Tracker
 
     ph = p.physics
     start, heading, spheres0 = np.asarray(scene.robot, float), float(scene.heading), scene.spheres

@@ -23,11 +23,7 @@ from typing import Any
 import numpy as np
 
 from magctl.config import Params, load_model
-from magctl.core.diagram import Diagram
-from magctl.core.errors import MagctlError
-from magctl.core.linear import Constant
-from magctl.rig.interface import Command, Observation
-from magctl.rig.task_blocks import (
+from magctl.control.guards import (
     DONE,
     FAILED,
     LOST,
@@ -38,6 +34,10 @@ from magctl.rig.task_blocks import (
     Tee,
     TrackingGuard,
 )
+from magctl.core.diagram import Diagram
+from magctl.core.errors import MagctlError
+from magctl.core.linear import Constant
+from magctl.rig.interface import Command, Observation
 
 OBS_SIGNALS = ("robot_est", "heading_est", "spheres_est", "lost")
 COMMAND_SIGNALS = ("b_static", "b_osc", "freq")
@@ -287,7 +287,7 @@ def _sphere_and_away(first_obs: Observation) -> tuple[np.ndarray, np.ndarray]:
 @register_task("front-push")
 def _front_push(first_obs: Observation, options: dict, params: Params) -> Task:
     """Front-push sphere 0 to ``goal`` (default ``tasks.goal_distance`` beyond it, away from the robot), §V-A."""
-    from magctl.control.push_front import FrontPushTask
+    from magctl.control.push.front import FrontPushTask
 
     n = _need_spheres("front-push", first_obs, 1)
     ps, away = _sphere_and_away(first_obs)
@@ -309,7 +309,7 @@ def _front_push(first_obs: Observation, options: dict, params: Params) -> Task:
 @register_task("side-push")
 def _side_push(first_obs: Observation, options: dict, params: Params) -> Task:
     """Side-push sphere 0 to ``goal`` (default 300 µm beyond it, away from the robot; §VI), §V-B."""
-    from magctl.control.push_side import SidePushTask
+    from magctl.control.push.side import SidePushTask
 
     n = _need_spheres("side-push", first_obs, 1)
     ps, away = _sphere_and_away(first_obs)
@@ -327,7 +327,7 @@ def _side_push(first_obs: Observation, options: dict, params: Params) -> Task:
 @register_task("assemble")
 def _assemble(first_obs: Observation, options: dict, params: Params) -> Task:
     """Assemble sphere 0 onto sphere 1 by side-pushing along the adjusted line (§V-C, eq 21)."""
-    from magctl.control.assembly import AssemblyTask
+    from magctl.control.push.assembly import AssemblyTask
 
     n = _need_spheres("assemble", first_obs, 2)
     theta = _num(options, "theta_n", "rad", "deg", np.pi / 180.0, np.deg2rad(30.0), positive=False)

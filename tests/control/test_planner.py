@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from magctl.control.planner import KEEP_OUT_M, Planner, PlanningError, plan_path, wavefront
 from magctl.control.servo import Servo
 from magctl.core import Constant, Diagram, simulate
-from magctl.stability_servo import KinematicRobot
+from magctl.stability.servo import KinematicRobot
 
 BOUNDS = (0.0, 0.0, 4.8e-3, 3.6e-3)
 

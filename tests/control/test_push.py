@@ -5,15 +5,15 @@ import numpy as np
 import pytest
 from standin_plant import StandInPlant
 
-from magctl import stability as S
-from magctl.control.assembly import AssemblyTask, FrontAssemblyTask
 from magctl.control.learning import front_push_law, side_push_law
-from magctl.control.push_common import ATTEMPT_LIMIT, CONVERGED, SPHERE_LOST, STALLED, TRACKING_LOST
-from magctl.control.push_front import FrontPushTask
-from magctl.control.push_side import SidePushTask
+from magctl.control.push.assembly import AssemblyTask, FrontAssemblyTask
+from magctl.control.push.common import ATTEMPT_LIMIT, CONVERGED, SPHERE_LOST, STALLED, TRACKING_LOST
+from magctl.control.push.front import FrontPushTask
+from magctl.control.push.side import SidePushTask
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.simulate import simulate
+from magctl.stability import iteration as S
 
 UM = 1e-6
 EXACT = {"arrive_tol": 0.1 * UM}  # the kinematic robot lands exactly on its targets
@@ -153,7 +153,7 @@ def test_bad_task_parameters_are_named():
 @pytest.mark.slow
 def test_front_push_runs_on_the_plant_blocks():
     """The task closes the loop through the real drive/coils/robot, fluid spheres, camera, tracker and servo."""
-    from magctl.closedloop import Experiment, geometry, push_loop
+    from magctl.loops import Experiment, geometry, push_loop
 
     exp = Experiment("front", task=dict(kc=1.0, delta0=127 * UM, max_attempts=3, arrive_tol=20 * UM), servo="tuned")
     res = simulate(push_loop(exp), 1500, batch=2, seed=0, record=["task.status", "task.attempt", "spheres.spheres"])

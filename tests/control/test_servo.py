@@ -5,7 +5,7 @@ import pytest
 
 from magctl.control.servo import Servo, servo_params
 from magctl.core import ParameterError, simulate
-from magctl.stability_servo import servo_step_diagram, simulated_overshoot
+from magctl.stability.servo import servo_step_diagram, simulated_overshoot
 
 T = 1.0 / 30.0
 

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from magctl.benchmark_loops import REFERENCE, STEPS, b1_diagram, b1_noise, b1_numpy, b1_python_control
 from magctl.core import simulate
+from magctl.testing import REFERENCE, STEPS, b1_diagram, b1_noise, b1_numpy, b1_python_control
 
 
 def test_three_implementations_agree():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from magctl.core.random import TrialStreams
-from magctl.rig.standin import StandinSpheres
+from magctl.plant.standin import StandinSpheres
 
 UM = 1e-6
 

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from magctl.examples import drift_trials, failing_trials
 from magctl.sweep import SweepError, run_trials
+from magctl.testing import drift_trials, failing_trials
 
 pytest.importorskip("distributed")
 

@@ -13,7 +13,6 @@ from hypothesis import strategies as st
 
 from magctl.core.errors import MagctlError
 from magctl.core.random import trial_seed_sequence
-from magctl.examples import drift_trials, failing_trials
 from magctl.sweep import (
     SchedulerError,
     SerialExecutor,
@@ -22,6 +21,7 @@ from magctl.sweep import (
     executor_kind,
     run_trials,
 )
+from magctl.testing import drift_trials, failing_trials
 
 
 def _first_normals(indices, seed):
@@ -162,7 +162,7 @@ def test_single_chunk_runs_in_process_without_a_pool():
 
 
 def test_study_context_sweep(tmp_path):
-    from magctl.studies import StudyContext
+    from magctl.studies.runner import StudyContext
     from magctl.sweep import run_study_trials
 
     ctx = StudyContext(out=tmp_path, seed=11, scheduler="serial", quiet=True)

@@ -1,0 +1,57 @@
+"""``magctl log show|export|replay FILE``: run logs written by ``magctl rig run --log``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from magctl.cli.common import add_json, emit
+
+
+def register(sub) -> None:
+    p = sub.add_parser("log", help="show, export or replay a rig run log")
+    ls = p.add_subparsers(dest="log_command", metavar="LOG_COMMAND")
+    ls.required = True
+
+    s = ls.add_parser("show", help="summary of a run log")
+    s.add_argument("file", type=Path)
+    add_json(s)
+    s.set_defaults(func=cmd_show)
+
+    e = ls.add_parser("export", help="export the events to Parquet (.parquet) or HDF5 (.h5)")
+    e.add_argument("file", type=Path)
+    e.add_argument("--out", type=Path, required=True, help="output file: .parquet, .h5 or .hdf5")
+    add_json(e)
+    e.set_defaults(func=cmd_export)
+
+    r = ls.add_parser("replay", help="feed the logged observations through the controller; compare commands")
+    r.add_argument("file", type=Path)
+    add_json(r)
+    r.set_defaults(func=cmd_replay)
+
+
+def cmd_show(args) -> int:
+    from magctl.rig.log import read_log
+
+    doc = read_log(args.file).summary()
+    emit(args, doc, lambda d: "\n".join(f"{k}: {v}" for k, v in d.items()))
+    return 0
+
+
+def cmd_export(args) -> int:
+    from magctl.rig.log import export, read_log
+
+    out = export(args.file, args.out)
+    doc = {"log": str(args.file), "out": str(out), "events": len(read_log(args.file).events)}
+    emit(args, doc, lambda d: f"wrote {d['out']} ({d['events']} events)")
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from magctl.rig.log import replay
+
+    res = replay(args.file)
+    doc = {"log": str(args.file), "events": res.events, "commands_compared": res.compared,
+           "mismatches": res.mismatches, "identical": res.identical, "first_mismatch": res.first_mismatch}
+    emit(args, doc, lambda d: (f"replayed {d['events']} events: {d['commands_compared']} commands compared, "
+                               f"{d['mismatches']} mismatches — " + ("identical" if d["identical"] else "DIFFERENT")))
+    return 0 if res.identical else 1

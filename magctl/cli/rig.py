@@ -1,0 +1,162 @@
+"""``magctl rig serve-sim`` and ``magctl rig run``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from magctl.cli.common import add_json, emit
+from magctl.config import load_model
+from magctl.core.errors import MagctlError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("rig", help="simulated rig server and the 30 Hz rig runtime")
+    rs = p.add_subparsers(dest="rig_command", metavar="RIG_COMMAND")
+    rs.required = True
+
+    s = rs.add_parser("serve-sim", help="serve a simulated rig (protocol v1, docs/rig-protocol.md)")
+    s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ endpoint (default tcp://127.0.0.1:5555)")
+    s.add_argument("--spheres", type=int, default=1, help="number of spheres in the scene (default 1)")
+    s.add_argument("--plant", choices=("physics", "standin"), default="physics",
+                   help="physics: the plant blocks (coils, stick-slip robot, Stokes-flow spheres, camera, Kalman "
+                        "tracker; default); standin: the fast kinematic stand-in")
+    s.add_argument("--robot-um", type=float, nargs=2, metavar=("X", "Y"), default=None,
+                   help="robot start position in µm (default models/rig.toml [scene], inside the camera field)")
+    s.add_argument("--sphere-um", type=float, nargs=2, metavar=("X", "Y"), action="append", default=None,
+                   help="a sphere's position in µm (repeat per sphere; default: ahead of the robot every 1 mm)")
+    s.add_argument("--blackout-s", type=float, nargs=2, metavar=("T0", "T1"), default=None,
+                   help="force tracking loss during [T0, T1) s (to exercise loss handling)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--rt-priority", type=int, default=None, metavar="P",
+                   help="run under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
+    s.set_defaults(func=cmd_serve_sim)
+
+    r = rs.add_parser("run", help="run a task on a rig at 30 Hz")
+    r.add_argument("--rig", required=True, help="rig server address (tcp://HOST:PORT) or 'sim' for an in-process "
+                                                 "simulated rig")
+    r.add_argument("--task", required=True, help="task name: goto, front-push, side-push, assemble, patrol")
+    r.add_argument("--target-um", type=float, nargs=2, metavar=("X", "Y"), help="goto: target position in µm")
+    r.add_argument("--goal-um", type=float, nargs=2, metavar=("X", "Y"), help="push tasks: goal of the sphere in µm")
+    r.add_argument("--kc", type=float, default=None, help="front-push: learning gain K_c (eq 13)")
+    r.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="task option, e.g. push_speed_um_s=1000, ks=0.9, model=exp, servo=default (repeatable)")
+    r.add_argument("--log", default=None, help="run log to create (JSON lines)")
+    r.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    r.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
+    r.add_argument("--spheres", type=int, default=1, help="with --rig sim: number of spheres")
+    r.add_argument("--fast", action="store_true", help="with --rig sim: run ticks back to back, not at 30 Hz")
+    r.add_argument("--plant", choices=("physics", "standin"), default="physics",
+                   help="with --rig sim: the plant blocks (default) or the fast kinematic stand-in")
+    r.add_argument("--rt-priority", type=int, default=None, metavar="P",
+                   help="run the loop under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
+    r.add_argument("--reset", action="store_true", help="ask a simulated rig server to restart its scene")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--quiet", action="store_true")
+    add_json(r)
+    r.set_defaults(func=cmd_run)
+
+
+def _scene(args):
+    from magctl.rig.plant import Scene
+
+    params = load_model("rig")
+    if args.sphere_um:
+        if len(args.sphere_um) != args.spheres and args.spheres != 1:
+            raise MagctlError(f"--spheres {args.spheres} but {len(args.sphere_um)} --sphere-um given")
+        scene = Scene(robot=Scene.default(0, params).robot, spheres=np.asarray(args.sphere_um, dtype=float) * 1e-6)
+    else:
+        scene = Scene.default(args.spheres, params)
+    if args.robot_um:
+        shift = np.asarray(args.robot_um, dtype=float) * 1e-6 - scene.robot
+        scene.robot = scene.robot + shift
+        if not args.sphere_um:  # default spheres keep their place ahead of the robot
+            scene.spheres = scene.spheres + shift
+    if args.blackout_s:
+        scene.blackout = tuple(args.blackout_s)
+    return scene, params
+
+
+def cmd_serve_sim(args) -> int:
+    from magctl.rig.interface import RigLimits
+    from magctl.rig.plant import build_sim_plant
+    from magctl.rig.runtime import set_realtime_priority
+    from magctl.rig.server import RigServer, announce
+
+    scene, params = _scene(args)
+    n = scene.spheres.shape[0]
+    sched = set_realtime_priority(args.rt_priority)
+    kind = {"physics": "physical plant blocks", "standin": "kinematic stand-in plant"}[args.plant]
+    try:
+        build_sim_plant(n, scene, params, plant=args.plant)  # a bad scene is an error before serving
+    except MagctlError as err:
+        raise MagctlError(f"serve-sim: {err}") from None
+    server = RigServer(lambda: build_sim_plant(n, scene, params, plant=args.plant), args.bind,
+                       RigLimits.from_params(params), params.watchdog.timeout, 1.0 / params.runtime.rate,
+                       seed=args.seed, describe={"kind": f"serve-sim ({kind})", "plant": args.plant,
+                                                 "scheduling": sched, **scene.to_dict()})
+    try:
+        return server.serve(ready=announce)
+    except Exception as err:
+        import zmq
+
+        if isinstance(err, zmq.ZMQError):
+            raise MagctlError(f"cannot serve on {args.bind}: {err}") from None
+        raise
+
+
+def cmd_run(args) -> int:
+    from magctl.rig.runtime import Runtime, set_realtime_priority
+
+    sched = set_realtime_priority(args.rt_priority)
+    options = {}
+    if args.target_um:
+        options["target_um"] = list(args.target_um)
+    if args.goal_um:
+        options["goal_um"] = list(args.goal_um)
+    if args.kc is not None:
+        options["kc"] = args.kc
+    for item in args.option:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise MagctlError(f"--option {item!r}: write KEY=VALUE")
+        try:
+            options[key] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key] = value
+    if args.rig == "sim":
+        from magctl.rig.sim import SimRig
+
+        rig = SimRig(n_spheres=args.spheres, realtime=not args.fast, seed=args.seed, plant=args.plant)
+        desc = {"kind": "SimRig", "plant": args.plant, "n_spheres": args.spheres, "realtime": not args.fast,
+                "scheduling": sched}
+    else:
+        from magctl.rig.client import RigClient
+
+        rig = RigClient(args.rig, reset=args.reset)
+        desc = {"kind": "RigClient", "address": args.rig, "scheduling": sched}
+    runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not (args.rig == "sim" and args.fast),
+                      max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,
+                      rig_description=desc)
+    try:
+        report = runtime.run()
+    finally:
+        rig.close()
+    doc = report.stats()
+    emit(args, doc, _summary)
+    return 0 if doc["exit_status"] in ("done", "stopped") else 1
+
+
+def _summary(d: dict) -> str:
+    lines = [f"exit: {d['exit_status']} — {d['reason']}", f"ticks: {d['ticks']}, overruns: {d['overruns']}"]
+    if d.get("jitter_p99_ms") is not None:
+        lines.append(f"tick jitter p50/p99/max: {d['jitter_p50_ms']:.3f}/{d['jitter_p99_ms']:.3f}/"
+                     f"{d['jitter_max_ms']:.3f} ms; compute p50/p99: {d['compute_p50_ms']:.3f}/"
+                     f"{d['compute_p99_ms']:.3f} ms")
+    if d.get("robot_um") is not None:
+        lines.append(f"robot: {np.round(d['robot_um'], 1).tolist()} µm; spheres: "
+                     f"{np.round(d['spheres_um'], 1).tolist()} µm; status: {d.get('status')}")
+    if d.get("log"):
+        lines.append(f"log: {d['log']}")
+    return "\n".join(lines)

@@ -1,0 +1,183 @@
+"""Front pushing (§V-A, eq 10–13) as a batched attempt-level state machine at 30 Hz.
+
+One attempt, per trial:
+
+1. ``APPROACH`` — servo to ``P_ri``, a point on the pushing line ``P_s → P_g``
+   ``approach`` behind the sphere, going round the sphere at ``clearance``;
+2. ``PUSH`` — drive along the line until the sphere reaches ``P_o = P_g + δ(i)·u``
+   (eq 10), i.e. ``|P_s − P_o| < push_tol`` (eq 11, ``push_tol = ε_p`` as in the paper)
+   or the robot is where it would stand with the sphere at ``P_o``;
+3. ``RETRACT`` — move ``retract`` back along the line (the fluid pulls the sphere
+   ``D_p,r`` after it);
+4. ``SETTLE`` — wait ``settle_frames``, then measure: eq 12 ends the task, otherwise
+   the eq 13 law block takes ``e = (P_g − P_s)·u`` and the next attempt starts.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magctl import FRAME_PERIOD_S
+from magctl.control.learning import LearningLaw, front_push_law
+from magctl.control.push.common import CONVERGED, UM, PushTask, around, arrived, check_positive, norm, unit
+from magctl.core.block import Block
+from magctl.core.errors import MagctlError
+
+APPROACH, PUSH, RETRACT, SETTLE = 1, 2, 3, 4
+
+
+class FrontPushTask(PushTask, Block):
+    """Front pushing of sphere ``sphere`` to ``goal`` with the eq 13 learning law.
+
+    Parameters
+    ----------
+    goal : (2,) or (B, 2) array_like
+        ``P_g`` in metres (one for all trials, or one per trial).
+    kc, delta0 : float
+        ``K_c`` and ``δ(0)`` (m) of the law, used when ``law`` is not given.
+    law : LearningLaw, optional
+        The eq 13 block to use (shared with the iteration-domain analysis).
+    n_spheres, sphere : int
+        Width of the ``spheres_est`` port and which sphere to push.
+    eps : float
+        ``ε_p`` of eq 12 (75 µm, §VI-A).
+    push_tol : float, optional
+        Tolerance of eq 11 (default ``eps``, as printed).
+    max_attempts : int
+        Attempt limit (10, §VI-A).
+    contact : float
+        Robot-centre to sphere-centre distance when touching (m).
+    approach, retract, clearance : float
+        Distance of ``P_ri`` behind the sphere, retraction length, and the distance kept
+        from the sphere while going round it (m).
+    arrive_tol : float
+        Robot counts as at its target within this distance (m).
+    push_speed, travel_speed : float
+        ``speed_cap`` while pushing / otherwise (m/s).
+    settle_frames, max_lost_frames, phase_timeout_frames : int
+        Frames to wait before measuring; frames of tracking loss tolerated; frames
+        allowed in one phase before the trial ends as stalled.
+    workspace : float
+        Sphere farther than this from the goal counts as lost (m).
+
+    Ports
+    -----
+    inputs ``robot_est`` (2,) m, ``spheres_est`` (N, 2) m, ``lost`` () bool;
+    outputs ``target`` (2,) m, ``speed_cap`` () m/s, ``status`` () (codes in
+    :mod:`magctl.control.push.common`), ``attempt`` (), ``phase`` (), ``correction`` () m (δ).
+    """
+
+    PHASES = {0: "start", APPROACH: "approach", PUSH: "push", RETRACT: "retract", SETTLE: "settle", 99: "done"}
+
+    def __init__(self, name: str = "front_push", *, goal, kc: float = 1.0, delta0: float = 0.0,
+                 law: LearningLaw | None = None, n_spheres: int = 1, sphere: int = 0, eps: float = 75 * UM,
+                 push_tol: float | None = None, max_attempts: int = 10, contact: float = 250 * UM,
+                 approach: float = 700 * UM, retract: float = 700 * UM, clearance: float = 650 * UM,
+                 arrive_tol: float = 10 * UM, push_speed: float = 0.4e-3, travel_speed: float = 1.0e-3,
+                 settle_frames: int = 10, max_lost_frames: int = 30, phase_timeout_frames: int = 3000,
+                 workspace: float = 5e-3):
+        self._check_common("front push", name, goal=goal, n_spheres=n_spheres, sphere=sphere, eps=eps,
+                           max_attempts=max_attempts, clearance=clearance, arrive_tol=arrive_tol,
+                           travel_speed=travel_speed, settle_frames=settle_frames, max_lost_frames=max_lost_frames,
+                           phase_timeout_frames=phase_timeout_frames, workspace=workspace)
+        self.law = law if law is not None else front_push_law(kc, delta0)
+        self.push_tol = self.eps if push_tol is None else check_positive("push_tol", push_tol)
+        self.contact = check_positive("contact", contact)
+        self.approach = check_positive("approach", approach)
+        self.retract = check_positive("retract", retract)
+        self.push_speed = check_positive("push_speed", push_speed)
+        ins, outs = self._ports(n_spheres)
+        Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
+
+    # --- geometry: which point the sphere must reach and when the task is done ------------------
+    def _geometry(self, new, r, spheres):
+        """Moved sphere ``s``, goal point, pushing direction ``u`` and the eq 12 test."""
+        s = spheres[:, self.sphere_indices[0]]
+        goal = new["goal"]
+        return s, goal, unit(goal - s), norm(goal - s) < self.eps
+
+    def initial_state(self, batch, rng=None):
+        st = self._common_state(batch)
+        st["goal"] = np.broadcast_to(self.goal, (batch, 2)).copy()
+        for k in ("u", "p_ri", "p_o", "g_line", "stand", "back"):
+            st[k] = np.zeros((batch, 2))
+        return st
+
+    def _begin(self, new, mask, r, spheres):
+        s, goal, u, _ = self._geometry(new, r, spheres)
+        m = mask[:, None]
+        delta = self.law.output(new["law"], {})["y"]
+        p_o = goal + delta[:, None] * u  # eq 10
+        new["u"] = np.where(m, u, new["u"])
+        new["g_line"] = np.where(m, goal, new["g_line"])
+        new["p_ri"] = np.where(m, s - self.approach * u, new["p_ri"])
+        new["p_o"] = np.where(m, p_o, new["p_o"])
+        new["stand"] = np.where(m, p_o - self.contact * u, new["stand"])
+        self._enter(new, mask, APPROACH)
+
+    def _step(self, state, new, r, spheres, ok):
+        ph = new["phase"]
+        s, _, _, done = self._geometry(new, r, spheres)
+        # start: already there?
+        start = ok & (ph == 0)
+        if start.any():
+            new["status"] = np.where(start & done, CONVERGED, new["status"])
+            self._begin(new, start & ~done, r, spheres)
+        # approach → push
+        app = ok & (ph == APPROACH) & arrived(r, new["p_ri"], self.arrive_tol)
+        self._enter(new, app, PUSH)
+        # push → retract (eq 11, or the robot stands where the sphere would be at P_o)
+        pushing = ok & (ph == PUSH)
+        reached = pushing & ((norm(s - new["p_o"]) < self.push_tol) | arrived(r, new["stand"], self.arrive_tol))
+        new["back"] = np.where(reached[:, None], r - self.retract * new["u"], new["back"])
+        self._enter(new, reached, RETRACT)
+        # retract → settle
+        ret = ok & (ph == RETRACT) & arrived(r, new["back"], self.arrive_tol)
+        self._enter(new, ret, SETTLE)
+        # settle → measure (eq 12, eq 13) → next attempt
+        meas = ok & (ph == SETTLE) & (new["frames"] >= self.settle_frames)
+        if meas.any():
+            e = np.einsum("bi,bi->b", new["g_line"] - s, new["u"])
+            go_on = self._finish_attempt(new, meas, done)
+            new["law"] = self.law.update_where(new["law"], {"e": e}, go_on)
+            self._begin(new, go_on, r, spheres)
+        self._targets(new, r, s)
+
+    def _targets(self, new, r, s):
+        ph = new["phase"]
+        tgt = new["target"]
+        tgt = np.where((ph == APPROACH)[:, None], around(r, s, new["p_ri"], self.clearance), tgt)
+        tgt = np.where((ph == PUSH)[:, None], new["stand"], tgt)
+        tgt = np.where(((ph == RETRACT) | (ph == SETTLE))[:, None], new["back"], tgt)
+        new["target"] = tgt
+        new["speed"] = np.where(ph == PUSH, self.push_speed, self.travel_speed)
+
+
+class FrontAssemblyTask(FrontPushTask):
+    """Assembly by front pushing (§V-C, Fig 3): push sphere 1 to the contact point of sphere 2.
+
+    The goal of each attempt is ``P_s2 − (R_1 + R_2)·v`` with ``v`` the unit vector from
+    sphere 1 to sphere 2; the task ends by eq 21, ``|P_s2 − P_s1| ≤ R_1 + R_2 + ε_as``.
+    The paper shows this failing: retraction pulls sphere 1 back by ``D_p,r``.
+    """
+
+    def __init__(self, name: str = "front_assembly", *, n_spheres: int = 2, moved: int = 0, fixed: int = 1,
+                 radii=(105 * UM, 105 * UM), eps_as: float = 10 * UM, **kw):
+        if moved == fixed or not (0 <= moved < n_spheres and 0 <= fixed < n_spheres):
+            raise MagctlError(f"assembly {name!r}: sphere indices {moved}, {fixed} must differ and be < {n_spheres}")
+        self.radii = (check_positive("radius 1", radii[0]), check_positive("radius 2", radii[1]))
+        self.eps_as = check_positive("eps_as", eps_as, allow_zero=True)
+        kw.setdefault("goal", (0.0, 0.0))
+        super().__init__(name, n_spheres=n_spheres, sphere=moved, **kw)
+        self.sphere_indices = (int(moved), int(fixed))
+
+    def _geometry(self, new, r, spheres):
+        s1, s2 = spheres[:, self.sphere_indices[0]], spheres[:, self.sphere_indices[1]]
+        v = unit(s2 - s1)
+        goal = s2 - (self.radii[0] + self.radii[1]) * v
+        done = norm(s2 - s1) <= self.radii[0] + self.radii[1] + self.eps_as  # eq 21
+        return s1, goal, v, done
+
+    def _spheres_found(self, new, spheres):
+        s = spheres[:, list(self.sphere_indices)]
+        return np.isfinite(s).all(axis=(1, 2)) & (norm(s[:, 0] - s[:, 1]) < self.workspace)

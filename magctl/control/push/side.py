@@ -1,0 +1,160 @@
+"""Side pushing (§V-B, eq 16–18) as a batched attempt-level state machine at 30 Hz.
+
+One attempt, per trial:
+
+1. measure ``D_s,des = min(|P_g − P_s|, D_max)`` (eq 16, bounded so the gap stays at or
+   above ``min_gap``: ``D_max = F⁻¹(min_gap)``), and the gap
+   ``D_g = max(F(D_s,des + Δ), min_gap)`` (eq 17, ``F`` = eq 23 or eq 22);
+2. ``REPOSITION`` — go round the sphere at ``clearance`` (≥ 650 µm, §VI) to the start of
+   the motion line, ``behind`` (1 mm) behind the sphere, ``D_g`` to the side of the line
+   sphere → goal (on the side the robot is already on);
+3. ``PASS`` — move along the motion line to ``ahead`` past the sphere;
+4. ``SETTLE`` — wait, then measure ``D_s,act`` along the line; eq 12 ends the task,
+   otherwise the eq 18 law block takes ``e = D_s,act − D_s,des``.
+
+The naive controllers of §VI-B (a fixed gap, no model) are ``fixed_gap=``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magctl import FRAME_PERIOD_S
+from magctl.control.learning import LearningLaw, side_push_law
+from magctl.control.push.common import (
+    CONVERGED,
+    UM,
+    PushTask,
+    around,
+    arrived,
+    check_positive,
+    cross,
+    norm,
+    perp,
+    side_model,
+    unit,
+)
+from magctl.core.block import Block
+from magctl.core.ports import Port
+
+REPOSITION, PASS, SETTLE = 1, 2, 3
+
+
+class SidePushTask(PushTask, Block):
+    """Side pushing of sphere ``sphere`` to ``goal`` with the eq 18 learning law.
+
+    Parameters
+    ----------
+    goal : (2,) or (B, 2) array_like
+        ``P_g`` (m).
+    ks : float
+        ``K_s`` of eq 18 (used when ``law`` is not given).
+    model : "lin", "exp" or a model object
+        ``F`` of eq 17: eq 23 (``lin``) or eq 22 (``exp``).
+    law : LearningLaw, optional
+        The eq 18 block (shared with the iteration-domain analysis).
+    fixed_gap : float, optional
+        Pass at this gap every time (the paper's naive 370/500 µm controllers).
+    min_gap : float
+        Lower bound of ``D_g`` (370 µm, the contact threshold of Fig 6).
+    eps, max_attempts
+        ``ε_p`` = 7.5 µm and 30 attempts (§VI-B).
+    behind, ahead, clearance : float
+        Motion-line start behind the sphere (1 mm, §VI), end past it, and the distance
+        kept while repositioning round the sphere (650 µm, §VI) (m).
+    pass_speed, travel_speed : float
+        ``speed_cap`` along the motion line (0.4 mm/s, §IV-C) and otherwise (m/s).
+
+    Ports: as :class:`~magctl.control.push.front.FrontPushTask`; ``correction`` is ``Δ``.
+    """
+
+    PHASES = {0: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", 99: "done"}
+
+    def __init__(self, name: str = "side_push", *, goal=(0.0, 0.0), ks: float = 0.9, model="lin",
+                 law: LearningLaw | None = None, fixed_gap: float | None = None, n_spheres: int = 1,
+                 sphere: int = 0, min_gap: float = 370 * UM, eps: float = 7.5 * UM, max_attempts: int = 30,
+                 behind: float = 1e-3, ahead: float = 1e-3, clearance: float = 650 * UM,
+                 arrive_tol: float = 10 * UM, pass_speed: float = 0.4e-3, travel_speed: float = 1.0e-3,
+                 settle_frames: int = 10, max_lost_frames: int = 30, phase_timeout_frames: int = 3000,
+                 workspace: float = 5e-3):
+        self._check_common("side push", name, goal=goal, n_spheres=n_spheres, sphere=sphere, eps=eps,
+                           max_attempts=max_attempts, clearance=clearance, arrive_tol=arrive_tol,
+                           travel_speed=travel_speed, settle_frames=settle_frames, max_lost_frames=max_lost_frames,
+                           phase_timeout_frames=phase_timeout_frames, workspace=workspace)
+        self.model = side_model(model) if isinstance(model, str) else model
+        self.law = law if law is not None else side_push_law(ks)
+        self.fixed_gap = None if fixed_gap is None else check_positive("fixed_gap", fixed_gap)
+        self.min_gap = check_positive("min_gap", min_gap)
+        self.d_max = float(self.model.displacement(self.min_gap))
+        self.behind = check_positive("behind", behind)
+        self.ahead = check_positive("ahead", ahead)
+        self.pass_speed = check_positive("pass_speed", pass_speed)
+        ins, outs = self._ports(n_spheres)
+        outs.append(Port("gap", (), "m"))
+        Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
+
+    # --- geometry ---------------------------------------------------------------------------------
+    def _geometry(self, new, r, spheres):
+        """Moved sphere, distance still to go, pushing direction, side of the motion line, eq 12."""
+        s = spheres[:, self.sphere_indices[0]]
+        to_goal = new["goal"] - s
+        u = unit(to_goal)
+        side = np.where(cross(u, r - s) >= 0, 1.0, -1.0)
+        dist = norm(to_goal)
+        return s, dist, u, side, dist < self.eps
+
+    def initial_state(self, batch, rng=None):
+        st = self._common_state(batch)
+        st["goal"] = np.broadcast_to(self.goal, (batch, 2)).copy()
+        for k in ("u", "p0", "start", "end"):
+            st[k] = np.zeros((batch, 2))
+        st["d_des"] = np.zeros(batch)
+        st["gap"] = np.full(batch, np.nan)
+        return st
+
+    def output(self, state, u):
+        out = super().output(state, u)
+        out["gap"] = state["_cache"][2]["gap"].copy()
+        return out
+
+    def _begin(self, new, mask, r, spheres):
+        s, dist, u, side, _ = self._geometry(new, r, spheres)
+        d_des = np.minimum(dist, self.d_max)  # eq 16, bounded (§V-B step 1)
+        if self.fixed_gap is None:
+            delta = self.law.output(new["law"], {})["y"]
+            gap = np.maximum(self.model.gap(d_des + delta), self.min_gap)  # eq 17
+        else:
+            gap = np.full(dist.shape, self.fixed_gap)
+        n = side[:, None] * perp(u) * gap[:, None]
+        m = mask[:, None]
+        new["u"] = np.where(m, u, new["u"])
+        new["p0"] = np.where(m, s, new["p0"])
+        new["start"] = np.where(m, s - self.behind * u + n, new["start"])
+        new["end"] = np.where(m, s + self.ahead * u + n, new["end"])
+        new["d_des"] = np.where(mask, d_des, new["d_des"])
+        new["gap"] = np.where(mask, gap, new["gap"])
+        self._enter(new, mask, REPOSITION)
+
+    def _step(self, state, new, r, spheres, ok):
+        ph = new["phase"]
+        s, *_, done = self._geometry(new, r, spheres)
+        start = ok & (ph == 0)
+        if start.any():
+            new["status"] = np.where(start & done, CONVERGED, new["status"])
+            self._begin(new, start & ~done, r, spheres)
+        rep = ok & (ph == REPOSITION) & arrived(r, new["start"], self.arrive_tol)
+        self._enter(new, rep, PASS)
+        passed = ok & (ph == PASS) & arrived(r, new["end"], self.arrive_tol)
+        self._enter(new, passed, SETTLE)
+        meas = ok & (ph == SETTLE) & (new["frames"] >= self.settle_frames)
+        if meas.any():
+            d_act = np.einsum("bi,bi->b", s - new["p0"], new["u"])
+            go_on = self._finish_attempt(new, meas, done)
+            # eq 18 bracket as printed; the law's gain carries the sign
+            new["law"] = self.law.update_where(new["law"], {"e": d_act - new["d_des"]}, go_on)
+            self._begin(new, go_on, r, spheres)
+        ph = new["phase"]
+        tgt = np.where((ph == REPOSITION)[:, None], around(r, s, new["start"], self.clearance), new["target"])
+        tgt = np.where(((ph == PASS) | (ph == SETTLE))[:, None], new["end"], tgt)
+        new["target"] = tgt
+        new["speed"] = np.where(ph == PASS, self.pass_speed, self.travel_speed)
