@@ -6,11 +6,8 @@ One diagram per experiment::
         ↑                                                            │
         └──────────── tracker (Kalman) ←── camera (lag, pixels) ◄────┘
 
-built from the same blocks the rig runs. :func:`run_push_trials` steps a batch of
-trials in lockstep, stops when every trial has terminated, and reduces each
-trial to plain numbers (status, attempts, error after every attempt). It has the
-signature :func:`magctl.sweep.run_trials` expects, so trials fan out over local
-processes or a Dask cluster with identical results.
+built from the same blocks the rig runs (:func:`magctl.studies.trials.run_push_trials`
+steps batches of it).
 
 The variability that makes trials differ (:class:`Variability`) is seeded per
 trial: camera noise and quantisation (tracking noise), stick-slip step
@@ -28,11 +25,10 @@ import numpy as np
 
 from magctl.config import load_model
 from magctl.control.push.assembly import AssemblyTask
-from magctl.control.push.common import RUNNING, STATUS_NAMES
 from magctl.control.push.front import FrontAssemblyTask, FrontPushTask
 from magctl.control.push.side import SidePushTask
 from magctl.control.servo import Servo, servo_params
-from magctl.core import Diagram, simulate
+from magctl.core import Diagram
 from magctl.core.errors import MagctlError
 from magctl.plant.drive import ActuatedRobot
 from magctl.plant.fluid.params import sphere_params
@@ -172,87 +168,3 @@ def push_loop(exp: Experiment) -> Diagram:
         ("servo.speed", "plant.speed"), ("servo.heading", "plant.heading"),
     ]
     return Diagram(f"{exp.kind}_push_loop", blocks, wires)
-
-
-def task_error(kind: str, spheres: np.ndarray, goal: np.ndarray, radius: float) -> np.ndarray:
-    """Positioning error of the true sphere positions ``(…, N, 2)``: distance to the goal
-    (push tasks) or the surface gap between the two spheres (assembly, eq 21)."""
-    if kind in ("front", "side"):
-        return np.linalg.norm(spheres[..., 0, :] - goal, axis=-1)
-    return np.linalg.norm(spheres[..., 1, :] - spheres[..., 0, :], axis=-1) - 2 * radius
-
-
-RECORD = ["task.status", "task.attempt", "spheres.spheres", "plant.position", "plant.heading", "task.correction"]
-
-
-def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 150,
-                    keep_paths: bool = False) -> dict:
-    """Run the given trials of ``exp`` in lockstep until each has terminated.
-
-    Returns per-trial arrays (leading axis = trials): ``status`` (code), ``attempts``,
-    ``error_um`` after each attempt (``(B, A)``, NaN where no attempt ran; index 0 is the
-    start), ``signed_error_um`` (the same along the initial sphere→goal direction: negative
-    once the sphere was pushed past the goal), ``final_error_um``, ``frames`` (frames to
-    termination), ``correction_um`` (δ or Δ at the end). With ``keep_paths`` also ``t``,
-    ``robot_xy``, ``robot_heading``, ``spheres_xy``.
-    """
-    trials = list(trials)
-    batch = len(trials)
-    diagram = push_loop(exp)
-    task = diagram.blocks["task"]
-    g = geometry(exp.kind)
-    radius = sphere_params().radius
-    max_att = int(task.max_attempts)
-    errors = np.full((batch, max_att + 1), np.nan)
-    errors[:, 0] = task_error(exp.kind, g["spheres"][None], g["goal"], radius)
-    along = g["goal"] - g["spheres"][0]
-    along = along / np.linalg.norm(along)
-    signed = np.full((batch, max_att + 1), np.nan)
-    signed[:, 0] = (g["goal"] - g["spheres"][0]) @ along
-    status = np.full(batch, RUNNING, dtype=np.int64)
-    attempts = np.zeros(batch, dtype=np.int64)
-    frames = np.full(batch, exp.max_frames, dtype=np.int64)
-    correction = np.zeros(batch)
-    paths: dict[str, list] = {k: [] for k in RECORD}
-    state = None
-    done_frames = 0
-    while done_frames < exp.max_frames:
-        steps = min(chunk_frames, exp.max_frames - done_frames)
-        res = simulate(diagram, steps, batch=batch, seed=seed, trials=trials, record=RECORD, state=state)
-        state = res.final_state
-        st, att = res["task.status"], res["task.attempt"]
-        err = task_error(exp.kind, res["spheres.spheres"], g["goal"], radius)
-        prev = np.concatenate([attempts[:, None], att[:, :-1]], axis=1)
-        bumped = att > prev
-        rows, cols = np.nonzero(bumped)
-        slot = np.minimum(att[rows, cols], max_att)
-        errors[rows, slot] = err[rows, cols]
-        signed[rows, slot] = np.einsum("ki,i->k", g["goal"] - res["spheres.spheres"][rows, cols, 0], along)
-        ended = (st != RUNNING) & (status == RUNNING)[:, None]
-        first_end = np.where(ended.any(axis=1), ended.argmax(axis=1), -1)
-        newly = first_end >= 0
-        frames[newly] = done_frames + first_end[newly]
-        status, attempts = st[:, -1].copy(), att[:, -1].copy()
-        correction = res["task.correction"][:, -1].copy()
-        if keep_paths:
-            for k in RECORD:
-                paths[k].append(res[k])
-        done_frames += steps
-        if not (status == RUNNING).any():
-            break
-    final = task_error(exp.kind, res["spheres.spheres"][:, -1][:, None], g["goal"], radius)[:, 0]
-    out = {
-        "status": status, "attempts": attempts, "error_um": errors / UM, "signed_error_um": signed / UM,
-        "final_error_um": final / UM,
-        "frames": frames, "correction_um": correction / UM,
-    }
-    if keep_paths:
-        cat = {k: np.concatenate(v, axis=1) for k, v in paths.items()}
-        out.update(t=np.arange(cat["plant.position"].shape[1]) * diagram.dt, robot_xy=cat["plant.position"],
-                   robot_heading=cat["plant.heading"], spheres_xy=cat["spheres.spheres"])
-    return out
-
-
-def status_counts(status: np.ndarray) -> dict[str, int]:
-    """Trials per termination status, by name."""
-    return {name: int((status == code).sum()) for code, name in STATUS_NAMES.items()}

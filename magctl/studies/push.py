@@ -12,7 +12,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from magctl.control.push.common import CONVERGED  # noqa: E402
-from magctl.loops import Experiment, run_push_trials, status_counts  # noqa: E402
+from magctl.loops import Experiment
+from magctl.studies.trials import run_push_trials, status_counts  # noqa: E402
 
 _MEMO: dict[str, dict] = {}
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from magctl.control.push.common import ATTEMPT_LIMIT, CONVERGED
-from magctl.loops import Experiment, Variability, run_push_trials
+from magctl.loops import Experiment, Variability
+from magctl.studies.trials import run_push_trials
 
 UM = 1e-6
 TRIALS = 8
