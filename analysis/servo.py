@@ -1,4 +1,4 @@
-"""Servo study: the 30 Hz PI visual-servo loop, paper-like default vs tuned (paper §II, §VI-A).
+"""Servo study: the 30 Hz PI visual-servo loop, paper-like vs tuned (the default) (paper §II, §VI-A).
 
 The paper's servo overshot the goal by about 100 µm (constant robot speed and
 image-processing lag). The study shows the step response of both settings in
@@ -23,7 +23,7 @@ from magctl.stability.servo import analyse, simulated_overshoot, step_report  # 
 from magctl.studies.runner import PaperRow, StudyContext, StudyResult  # noqa: E402
 
 NAME = "servo"
-TITLE = "PI visual servo: ~100 µm overshoot of §VI-A (default) vs tuned; poles and margins"
+TITLE = "PI visual servo: ~100 µm overshoot of §VI-A (paper setting) vs tuned; poles and margins"
 ORDER = 12
 DEFAULT_TRIALS = 64
 
@@ -56,7 +56,7 @@ def run(ctx: StudyContext) -> StudyResult:
     trials = ctx.n_trials(DEFAULT_TRIALS)
     target = START + [STEP, 0.0]
     results, curves, reports = {}, {}, {}
-    for setting in ("default", "tuned"):
+    for setting in ("paper", "tuned"):
         servo = Servo("servo", params=servo_params(setting))
         rep = analyse(servo.kp, servo.ki, latency)
         kin = step_report(servo, delay_frames=latency, step=STEP, steps=STEPS, start=START)
@@ -77,7 +77,7 @@ def run(ctx: StudyContext) -> StudyResult:
         results[setting]["linear_overshoot_um"] = results[setting].pop("overshoot_um")
 
     figs = [_step_figure(ctx, curves), _pole_figure(ctx, reports)]
-    d, t = results["default"], results["tuned"]
+    d, t = results["paper"], results["tuned"]
     summary = [
         f"Step of {STEP * 1e3:g} mm, camera lag {latency} frames, speed cap 400 µm/s, {trials} Monte Carlo trials "
         f"on the drive → coils → robot chain with {noise_px:g} px camera noise.",
@@ -93,11 +93,11 @@ def run(ctx: StudyContext) -> StudyResult:
             f"| {r['gain_margin']:.2f} | {r['phase_margin_deg']:.1f} | {r['overshoot_percent']:.1f} "
             f"| {r['kinematic_overshoot_um']:.1f} | {r['drive_chain_overshoot_mean_um']:.1f} ± "
             f"{r['drive_chain_overshoot_std_um']:.1f} |")
-    summary += ["", "The default's overshoot comes from the integral filling during the constant-speed (saturated) "
+    summary += ["", "The paper setting's overshoot comes from the integral filling during the constant-speed (saturated) "
                 "approach plus the camera lag (≈ v/Kp + v·d·T); the linear model alone (no saturation) predicts a "
                 "different, step-dependent number. Tuned: P-only with conditional-integration anti-windup."]
     paper = [
-        PaperRow("servo overshoot (default)", f"~{PAPER_OVERSHOOT_UM:.0f} µm (§VI-A)",
+        PaperRow("servo overshoot (paper setting)", f"~{PAPER_OVERSHOOT_UM:.0f} µm (§VI-A)",
                  f"{d['drive_chain_overshoot_mean_um']:.0f} µm", "drive → coils → robot chain, 1 mm step"),
         PaperRow("servo overshoot (tuned)", "—", f"{t['drive_chain_overshoot_mean_um']:.1f} µm",
                  "P-only, anti-windup"),
@@ -109,7 +109,7 @@ def run(ctx: StudyContext) -> StudyResult:
 
 def _step_figure(ctx, curves):
     fig, ax = plt.subplots(figsize=(7, 4))
-    colours = {"default": "tab:red", "tuned": "tab:blue"}
+    colours = {"paper": "tab:red", "tuned": "tab:blue"}
     for name, (kin, mc) in curves.items():
         t = kin["t_s"]
         lo, hi = np.percentile(mc, [5, 95], axis=0)
@@ -125,7 +125,7 @@ def _step_figure(ctx, curves):
     ax.set_ylabel("position along the step (µm)")
     ax.set_ylim(0, 1.25 * STEP * 1e6)
     ax.legend(fontsize=7, loc="lower right")
-    ax.set_title("1 mm servo step: paper-like default vs tuned")
+    ax.set_title("1 mm servo step: paper-like vs tuned (the default)")
     path = ctx.figure_path("servo_step")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

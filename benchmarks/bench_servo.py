@@ -51,7 +51,7 @@ def _tracker(frames: int) -> dict:
 
 
 def _loop(batch: int, steps: int) -> dict:
-    servo = Servo("servo", params=servo_params("default"))
+    servo = Servo("servo", params=servo_params("paper"))
     d = servo_step_diagram(servo, delay_frames=2, tracker_mode="kalman", predict=False, position_noise_px=0.3,
                            heading_noise=0.02, drop_probability=0.01, spheres=[[3e-3, 3e-3], [3.5e-3, 1e-3]])
     target = np.array([2e-3, 1e-3])

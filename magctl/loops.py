@@ -1,46 +1,179 @@
-"""The paper's push experiments (§VI) as batched 30 Hz closed loops.
+"""The closed loop, wired in one place: :func:`controller` and :func:`plant` built once, and the two connected.
 
-One diagram per experiment::
+::
 
-    push task → PI servo → drive → coils → stick-slip robot → spheres (Stokes flow, contact)
-        ↑                                                            │
-        └──────────── tracker (Kalman) ←── camera (lag, pixels) ◄────┘
+     controller(task)                                   plant(scene, variability)
+    ┌────────────────────────────────────┐  field cmd  ┌───────────────────────────────────────────────┐
+    │ task ─► PI servo ─► drive          │────────────►│ coils ─► robot ─► spheres ─► camera ─► tracker │
+    │  ▲ (push law,  (hold on   (speed,  │ b_static,   │ (RL,     (stick-  (Stokes    (lag,   (Kalman)  │
+    │  │  planner)    loss)   heading→B) │ b_osc, freq │ limits)   slip)    flow)     pixels)           │
+    └──┼─────────────────────────────────┘             └───────────────────────────────────────┬───────┘
+       └──────────── robot_est, spheres_est, lost ◄─────────────────────────────────────────────┘
 
-built from the same blocks the rig runs (:func:`magctl.studies.trials.run_push_trials`
-steps batches of it).
+The studies connect the two halves with :func:`closed_loop`; the rig runtime steps the very
+:func:`controller` diagram against a hardware adapter, and ``magctl rig serve-sim`` serves the
+very :func:`plant` diagram. Nothing else in magctl wires a task, a servo, a drive or a plant
+chain together.
 
-The variability that makes trials differ (:class:`Variability`) is seeded per
-trial: camera noise and quantisation (tracking noise), stick-slip step
-variability of the robot, lognormal scatter of the sphere's flow mobility (the
-spread of the release displacement D_p,r, §IV-D) and sticky patches on the glass
-(§VI-B).
+The controller's exported inputs are ``robot_est`` (2,) m, ``spheres_est`` (N, 2) m and
+``lost`` () bool (a subset of the rig's observation); its exported outputs are the field
+command ``b_static`` (2,) T, ``b_osc`` () T, ``freq`` () 1/s, the task's ``status``
+(:class:`~magctl.control.status.Status`) and the task's own outputs. The plant's exported
+inputs are the field command; its outputs are the tracker's ``robot_est``, ``heading_est``,
+``spheres_est``, ``lost`` and the coils' ``currents`` (6,) A.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from magctl.config import load_model
+from magctl.config import Params, load_model
+from magctl.control.guards import ArrivalStatus, Patrol
 from magctl.control.push.assembly import AssemblyTask
+from magctl.control.push.common import goal_distance
 from magctl.control.push.front import FrontAssemblyTask, FrontPushTask
 from magctl.control.push.side import SidePushTask
 from magctl.control.servo import Servo, servo_params
-from magctl.core import Diagram
-from magctl.core.errors import MagctlError
-from magctl.plant.drive import ActuatedRobot
+from magctl.core.batched import perp, unit
+from magctl.core.diagram import Diagram
+from magctl.core.errors import MagctlError, WiringError
+from magctl.core.linear import Constant
+from magctl.core.units import UM
+from magctl.plant.coils import CoilActuator
+from magctl.plant.drive import Drive
 from magctl.plant.fluid.params import sphere_params
+from magctl.plant.robot import StickSlipRobot, load_robot
 from magctl.plant.sphere import Spheres
+from magctl.plant.standin import StandinRobot, StandinSpheres, StandinTracker
+from magctl.sensing.blackout import Blackout
 from magctl.sensing.camera import Camera
 from magctl.sensing.tracker import Tracker
 
-UM = 1e-6
-ORIGIN = np.array([2.0e-3, 1.8e-3])
-"""Where the (first) sphere starts: near the middle of the 4.8 × 3.6 mm camera field."""
+COMMAND = ("b_static", "b_osc", "freq")
+"""The field command: the controller's outputs, the plant's inputs."""
+OBSERVATION = ("robot_est", "heading_est", "spheres_est", "lost")
+"""The tracker's estimate: the plant's outputs, a superset of the controller's inputs."""
+PLANT_OUTPUTS = (*OBSERVATION, "currents")
+PUSH_TASKS = {"front-push": FrontPushTask, "side-push": SidePushTask, "assemble": AssemblyTask,
+              "front-assemble": FrontAssemblyTask}
+TASKS = ("goto", "patrol", *PUSH_TASKS)
+PLANTS = ("physics", "standin")
+
+__all__ = ["COMMAND", "OBSERVATION", "PLANTS", "PLANT_OUTPUTS", "PUSH_TASKS", "TASKS", "Experiment", "Scene",
+           "Variability", "closed_loop", "controller", "default_goal", "experiment_controller", "geometry", "plant",
+           "push_loop", "sphere_count"]
 
 
+# --- the controller ---------------------------------------------------------------------------------------
+def controller(task: str, *, n_spheres: int, goal=None, target=None, waypoints=None, servo: str | None = None,
+               speed_max: float | None = None, **task_options: Any) -> Diagram:
+    """Task → PI servo → drive, as one diagram (the controller half of the loop).
+
+    Parameters
+    ----------
+    task : {"goto", "patrol", "front-push", "side-push", "assemble", "front-assemble"}
+        ``goto``: servo to ``target`` and stop (status ``CONVERGED`` on arrival). ``patrol``: drive
+        round ``waypoints`` forever. The push tasks are §V-A (eq 10–13), §V-B (eq 16–18), §V-C
+        (eq 21, by side pushing) and the front-push assembly the paper shows failing (Fig 3).
+    n_spheres : int
+        Width of the ``spheres_est`` input (push tasks).
+    goal : (2,) or (B, 2) array_like, optional
+        ``P_g`` in m of ``front-push`` and ``side-push`` (see :func:`default_goal`).
+    target : (2,) array_like
+        Go-to target, m.
+    waypoints : (K, 2) array_like
+        Patrol waypoints, m.
+    servo : str, optional
+        Servo setting of ``models/servo.toml`` (its ``[choice] default`` when omitted).
+    speed_max : float, optional
+        Servo speed limit, m/s (the setting's when omitted).
+    **task_options
+        Keyword arguments of the push task's block (gains, model, fixed gap, tolerances …; SI);
+        the ones not given come from ``models/push.toml``.
+
+    Returns
+    -------
+    Diagram
+        Named ``controller``: inputs ``robot_est`` [, ``spheres_est``], ``lost``; outputs
+        ``b_static``, ``b_osc``, ``freq``, ``status`` and the task's other outputs.
+    """
+    if task not in TASKS:
+        raise MagctlError(f"unknown task {task!r}; tasks: {', '.join(TASKS)}")
+    is_push = task in PUSH_TASKS
+    sp = servo_params(servo)
+    servo_block = Servo("servo", params=sp, speed_max=speed_max, speed_cap_input=is_push, hold_input=True)
+    blocks: list = [servo_block, Drive("drive")]
+    wires = [("servo.speed", "drive.speed"), ("servo.heading", "drive.heading")]
+    inputs: dict[str, list[str]] = {"robot_est": ["servo.robot_est"], "lost": ["servo.hold"]}
+    outputs = {name: f"drive.{name}" for name in COMMAND}
+    if is_push:
+        block = _push_task_block(task, n_spheres, goal, task_options)
+        blocks.insert(0, block)
+        wires += [("task.target", "servo.target"), ("task.speed_cap", "servo.speed_cap")]
+        inputs["robot_est"].append("task.robot_est")
+        inputs["lost"].append("task.lost")
+        inputs["spheres_est"] = ["task.spheres_est"]
+        outputs |= {p: f"task.{p}" for p in block.outputs if p != "speed_cap"}
+    elif task_options:
+        raise MagctlError(f"task {task!r} takes no options {sorted(task_options)}")
+    elif task == "goto":
+        if target is None:
+            raise MagctlError("task 'goto' needs a target")
+        blocks += [Constant("goal", np.asarray(target, dtype=float), shape=(2,), unit="m"), ArrivalStatus("task")]
+        wires += [("goal.y", "servo.target"), ("servo.arrived", "task.arrived")]
+        inputs["lost"].append("task.lost")
+        outputs |= {"status": "task.status", "target": "goal.y"}
+    else:
+        if waypoints is None:
+            raise MagctlError("task 'patrol' needs waypoints")
+        blocks.insert(0, Patrol("task", waypoints, 2.0 * servo_block.arrive_tol))
+        wires.append(("task.target", "servo.target"))
+        inputs["robot_est"].append("task.robot_est")
+        outputs |= {"status": "task.status", "lap": "task.lap", "target": "task.target"}
+    return Diagram("controller", blocks, wires, inputs=inputs, outputs=outputs)
+
+
+def _push_task_block(task: str, n_spheres: int, goal, options: dict):
+    cls = PUSH_TASKS[task]
+    kw = dict(options)
+    if task in ("front-push", "side-push"):
+        if goal is None:
+            raise MagctlError(f"task {task!r} needs a goal")
+        kw["goal"] = goal
+    elif goal is not None:
+        raise MagctlError(f"task {task!r} takes no goal: it assembles sphere 0 onto sphere 1")
+    try:
+        return cls("task", n_spheres=n_spheres, **kw)
+    except TypeError as err:  # an option the block does not have
+        raise MagctlError(f"task {task!r}: {err}") from None
+
+
+def default_goal(task: str, robot, spheres) -> np.ndarray:
+    """The goal of a push task when none is given: the paper's set-ups (§VI), from where things are.
+
+    Front push: ``goal_distance`` (750 µm) beyond sphere 0, on the line from the robot through it.
+    Side push: ``goal_distance`` (300 µm) from sphere 0, square to that line (to its left).
+    Distances from ``models/push.toml``.
+    """
+    robot, s0 = np.asarray(robot, dtype=float), np.asarray(spheres, dtype=float)[0]
+    away = unit(s0 - robot)
+    if task == "front-push":
+        return s0 + goal_distance("front") * away
+    if task == "side-push":
+        return s0 + goal_distance("side") * perp(away)
+    raise MagctlError(f"task {task!r} has no goal (only front-push and side-push do)")
+
+
+def sphere_count(task: str) -> int:
+    """Spheres a task needs tracked: 2 for the assemblies, 1 for the pushes, 0 otherwise."""
+    return 2 if task in ("assemble", "front-assemble") else 1 if task in PUSH_TASKS else 0
+
+
+# --- the plant ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Variability:
     """Sources of trial-to-trial variation (each seeded per trial).
@@ -68,6 +201,13 @@ class Variability:
     sticky_probability: float = 0.0
     calibrated: bool = False
 
+    @classmethod
+    def of_rig(cls, params: Params | None = None) -> Variability:
+        """The simulated rig's variability (``models/rig.toml`` ``[physics]``)."""
+        ph = (params or load_model("rig")).physics
+        return cls(camera_noise=bool(ph.camera_noise), robot_steps=bool(ph.robot_steps),
+                   release_scatter=float(ph.release_scatter), calibrated=bool(ph.calibrated_release))
+
     def describe(self) -> str:
         on = [name for name, v in (("camera noise", self.camera_noise), ("robot step variability", self.robot_steps),
                                    (f"release scatter ±{self.release_scatter:.0%}", self.release_scatter > 0),
@@ -77,6 +217,171 @@ class Variability:
         return ", ".join(on) if on else "none (deterministic)"
 
 
+
+@dataclass
+class Scene:
+    """Initial layout of a plant (SI).
+
+    Attributes
+    ----------
+    robot : (2,) array
+        Robot start position, m.
+    heading : float
+        Robot start heading, rad.
+    spheres : (N, 2) array
+        Sphere centres, m.
+    blackout : (float, float) or None
+        Window ``[t0, t1)`` in s of forced tracking loss (for tests of loss handling).
+    """
+
+    robot: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    heading: float = 0.0
+    spheres: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    blackout: tuple[float, float] | None = None
+
+    def __post_init__(self):
+        self.robot = np.asarray(self.robot, dtype=float).reshape(2)
+        self.spheres = np.asarray(self.spheres, dtype=float).reshape(-1, 2)
+        self.heading = float(self.heading)
+
+    @classmethod
+    def default(cls, n_spheres: int, params: Params | None = None, **kw) -> Scene:
+        """The paper's starting layout (§VI): robot at ``scene.robot_start`` heading +x, spheres ahead of
+        it on its line every ``scene.sphere_spacing`` (1 mm), inside the camera field (``models/rig.toml``)."""
+        if n_spheres < 0:
+            raise WiringError(f"n_spheres must be >= 0, got {n_spheres}")
+        p = params or load_model("rig")
+        start = np.asarray(p.scene.robot_start, dtype=float)
+        gap = p.scene.sphere_spacing
+        spheres = np.array([start + (gap * (i + 1), 0.0) for i in range(n_spheres)]).reshape(-1, 2)
+        return cls(robot=start, spheres=spheres, **kw)
+
+    def to_dict(self) -> dict:
+        return {"robot_um": (self.robot * 1e6).tolist(), "heading_rad": self.heading,
+                "spheres_um": (self.spheres * 1e6).tolist(),
+                "blackout_s": None if self.blackout is None else list(self.blackout)}
+
+
+def plant(scene: Scene, variability: Variability | None = None, *, kind: str = "physics") -> Diagram:
+    """Coils → robot → spheres → camera → tracker, as one diagram (the plant half of the loop).
+
+    Parameters
+    ----------
+    scene : Scene
+        Where the robot and the spheres start (must lie inside the camera field).
+    variability : Variability, optional
+        Sources of trial-to-trial variation (default: :class:`Variability()`).
+    kind : {"physics", "standin"}
+        The physical plant (coil RL dynamics and limits, stick-slip robot, Stokes flow and
+        contact, camera lag and pixels, Kalman tracker) or the fast kinematic stand-in of
+        :mod:`magctl.plant.standin` (empirical eq 22 and D_p,r instead of the flow).
+
+    Returns
+    -------
+    Diagram
+        Named ``plant``: inputs ``b_static``, ``b_osc``, ``freq``; outputs ``robot_est``,
+        ``heading_est``, ``spheres_est``, ``lost``, ``currents``.
+    """
+    if kind not in PLANTS:
+        raise WiringError(f"plant {kind!r} is not one of {', '.join(PLANTS)}")
+    var = Variability() if variability is None else variability
+    return (_physics_plant if kind == "physics" else _standin_plant)(scene, var)
+
+
+def _physics_plant(scene: Scene, var: Variability) -> Diagram:
+    n = len(scene.spheres)
+    camera_kw = {} if var.camera_noise else {"position_noise_px": 0.0, "heading_noise": 0.0, "drop_probability": 0.0}
+    camera = Camera(n_spheres=n, primed=(scene.robot, scene.heading, scene.spheres), **camera_kw)
+    _check_in_view(camera, scene.robot, scene.spheres)
+    blocks = [
+        CoilActuator("coils"),
+        StickSlipRobot("robot", position=scene.robot, heading=scene.heading, variability=var.robot_steps),
+        camera,
+        Blackout("blackout", scene.blackout),
+        Tracker(n_spheres=n, init_robot=scene.robot, init_heading=scene.heading, init_spheres=scene.spheres),
+    ]
+    wires = [
+        ("coils.b_static_delivered", "robot.b_static_delivered"), ("coils.b_osc_delivered", "robot.b_osc_delivered"),
+        ("coils.freq_delivered", "robot.freq_delivered"),
+        ("robot.position", "camera.position"), ("robot.heading", "camera.heading"),
+        ("camera.robot_meas", "tracker.robot_meas"), ("camera.heading_meas", "tracker.heading_meas"),
+        ("camera.spheres_meas", "tracker.spheres_meas"), ("camera.valid", "blackout.valid"),
+        ("blackout.valid_out", "tracker.valid"),
+    ]
+    if n:
+        sp = dataclasses.replace(sphere_params(), release_scatter=var.release_scatter,
+                                 sticky_probability=var.sticky_probability)
+        roughness = float(load_model("sphere").calibration.release_roughness) if var.calibrated else None
+        blocks.append(Spheres(scene.spheres, params=sp, roughness=roughness))
+        wires += [("robot.position", "spheres.position"), ("robot.heading", "spheres.heading"),
+                  ("robot.velocity", "spheres.velocity"), ("spheres.spheres", "camera.spheres")]
+    else:  # the sphere block needs at least one sphere; an empty scene feeds the camera none
+        blocks.append(Constant("spheres", np.zeros((0, 2)), shape=(0, 2), unit="m"))
+        wires.append(("spheres.y", "camera.spheres"))
+    return _plant_diagram(blocks, wires)
+
+
+def _standin_plant(scene: Scene, var: Variability) -> Diagram:
+    sd = load_model("rig").standin
+    release = load_model("push").release
+    blocks = [
+        CoilActuator("coils"),
+        StandinRobot("robot", load_robot(), scene.robot, scene.heading),
+        StandinSpheres("spheres", scene.spheres, sd.robot_contact_radius + sd.sphere_radius,
+                       release_mean=release.mean, release_std=release.std if var.release_scatter > 0 else 0.0,
+                       side_range=sd.side_range, start_robot=scene.robot),
+        StandinTracker("tracker", len(scene.spheres), sd.workspace_half, scene.blackout, scene.robot, scene.heading,
+                       scene.spheres),
+    ]
+    wires = [
+        ("coils.b_static_delivered", "robot.b_static_delivered"), ("coils.b_osc_delivered", "robot.b_osc_delivered"),
+        ("coils.freq_delivered", "robot.freq_delivered"),
+        ("robot.position", "spheres.position"), ("robot.heading", "spheres.heading"),
+        ("robot.velocity", "spheres.velocity"), ("robot.position", "tracker.position"),
+        ("robot.heading", "tracker.heading"), ("spheres.spheres", "tracker.spheres"),
+    ]
+    return _plant_diagram(blocks, wires)
+
+
+def _plant_diagram(blocks, wires) -> Diagram:
+    return Diagram("plant", blocks, wires, inputs={name: f"coils.{name}" for name in COMMAND},
+                   outputs={"robot_est": "tracker.robot_est", "heading_est": "tracker.heading_est",
+                            "spheres_est": "tracker.spheres_est", "lost": "tracker.lost",
+                            "currents": "coils.currents"})
+
+
+def _check_in_view(camera: Camera, robot: np.ndarray, spheres: np.ndarray) -> None:
+    """The scene must start inside the camera's field of view, or the tracker starts lost."""
+    w, h = camera.field_of_view
+    pts = np.vstack([robot[None], spheres])
+    out = (pts[:, 0] < 0) | (pts[:, 0] > w) | (pts[:, 1] < 0) | (pts[:, 1] > h)
+    if out.any():
+        raise WiringError(
+            f"scene point(s) {np.round(pts[out] / UM, 1).tolist()} µm lie outside the camera's field of view "
+            f"[0, {w / UM:.0f}] × [0, {h / UM:.0f}] µm; place the robot and the spheres inside it")
+
+
+# --- the closed loop ----------------------------------------------------------------------------------------
+def closed_loop(ctrl: Diagram, plnt: Diagram, name: str = "loop") -> Diagram:
+    """``ctrl`` and ``plnt`` connected: field command forward, tracker estimate back.
+
+    Leaf signals are recorded as ``"controller/task.status"``, ``"plant/robot.position"`` ….
+    """
+    feedback = [(f"plant.{p}", f"controller.{p}") for p in OBSERVATION if p in ctrl.inputs]
+    missing = sorted(set(ctrl.inputs) - set(OBSERVATION))
+    if missing:
+        raise WiringError(f"controller inputs {missing} are not plant outputs {list(OBSERVATION)}")
+    forward = [(f"controller.{p}", f"plant.{p}") for p in COMMAND]
+    return Diagram(name, [ctrl, plnt], [*forward, *feedback])
+
+
+# --- the paper's experiments (§VI) as closed loops -----------------------------------------------------------
+ORIGIN = np.array([2.0e-3, 1.8e-3])
+"""Where the (first) sphere starts: near the middle of the 4.8 × 3.6 mm camera field."""
+EXPERIMENT_TASKS = {"front": "front-push", "side": "side-push", "assembly": "assemble",
+                    "front-assembly": "front-assemble"}
+
+
 @dataclass(frozen=True)
 class Experiment:
     """One controller in one of the paper's set-ups (§VI), picklable for process pools.
@@ -84,14 +389,13 @@ class Experiment:
     Attributes
     ----------
     kind : {"front", "side", "assembly", "front-assembly"}
-        Task: front push (§V-A), side push (§V-B), side-push assembly (§V-C) or the
+        Set-up: front push (§V-A), side push (§V-B), side-push assembly (§V-C) or the
         front-push assembly the paper shows failing (Fig 3).
     task : dict
-        Keyword arguments of the task class (gains, model, fixed gap, …).
+        Options of :func:`controller` (push-task gains, model, fixed gap, ``servo`` …); what is
+        not given is the default every controller uses, on the rig too.
     max_frames : int
         Frames after which a still-running trial is cut off.
-    servo : {"default", "tuned"}
-        Servo parameter set (``models/servo.toml``).
     variability : Variability
     label : str
         Controller label for figures and tables.
@@ -100,71 +404,38 @@ class Experiment:
     kind: str
     task: dict = field(default_factory=dict)
     max_frames: int = 3000
-    servo: str = "default"
     variability: Variability = Variability()
     label: str = ""
-
-
-def calibrated_roughness() -> float:
-    """The D_p,r-calibrated sphere–glass gap ε [m] from ``models/sphere.toml``."""
-    return float(load_model("sphere").calibration.release_roughness)
 
 
 def geometry(kind: str) -> dict:
     """Start positions and goal of the paper's set-ups (§VI), in metres.
 
-    Front push: goal 750 µm beyond the sphere, robot 1 mm behind it on the pushing line.
-    Side push: goal 300 µm from the sphere, robot 1 mm away. Assembly: a second sphere
-    600 µm (centre to centre) from the first.
+    The robot starts 1 mm behind the (first) sphere. Front push: goal 750 µm beyond the sphere;
+    side push: 300 µm from it, square to the robot's line (both :func:`default_goal`).
+    Assembly: a second sphere 600 µm (centre to centre) ahead of the first; the goal is it.
     """
+    if kind not in EXPERIMENT_TASKS:
+        raise MagctlError(f"experiment kind {kind!r} is not one of {', '.join(EXPERIMENT_TASKS)}")
     sphere = ORIGIN.copy()
-    if kind == "front":
-        return {"spheres": sphere[None], "robot": sphere - (1e-3, 0.0), "goal": sphere + (750 * UM, 0.0)}
-    if kind == "side":
-        return {"spheres": sphere[None], "robot": sphere - (1e-3, 0.0), "goal": sphere + (0.0, 300 * UM)}
-    if kind in ("assembly", "front-assembly"):
-        second = sphere + (600 * UM, 0.0)
-        return {"spheres": np.stack([sphere, second]), "robot": sphere - (1e-3, 0.0), "goal": second}
-    raise MagctlError(f"experiment kind {kind!r} is not one of front, side, assembly, front-assembly")
+    robot = sphere - (1e-3, 0.0)
+    if kind in ("front", "side"):
+        return {"spheres": sphere[None], "robot": robot, "goal": default_goal(EXPERIMENT_TASKS[kind], robot,
+                                                                               sphere[None])}
+    second = sphere + (600 * UM, 0.0)
+    return {"spheres": np.stack([sphere, second]), "robot": robot, "goal": second}
 
 
-def build_task(exp: Experiment):
+def experiment_controller(exp: Experiment) -> Diagram:
+    """The controller of ``exp``: :func:`controller` for its task, goal and options."""
     g = geometry(exp.kind)
-    kw = dict(exp.task)
-    if exp.kind == "front":
-        return FrontPushTask("task", goal=g["goal"], **kw)
-    if exp.kind == "side":
-        return SidePushTask("task", goal=g["goal"], **kw)
-    if exp.kind == "assembly":
-        return AssemblyTask("task", n_spheres=2, **kw)
-    return FrontAssemblyTask("task", n_spheres=2, **kw)
+    task = EXPERIMENT_TASKS[exp.kind]
+    goal = g["goal"] if task in ("front-push", "side-push") else None
+    return controller(task, n_spheres=len(g["spheres"]), goal=goal, **exp.task)
 
 
 def push_loop(exp: Experiment) -> Diagram:
-    """The closed-loop diagram of one experiment."""
+    """The closed-loop diagram of one experiment: its controller and the physical plant of its set-up."""
     g = geometry(exp.kind)
-    n = len(g["spheres"])
-    var = exp.variability
-    sp = dataclasses.replace(sphere_params(), release_scatter=var.release_scatter,
-                             sticky_probability=var.sticky_probability)
-    camera_kw = {} if var.camera_noise else {"position_noise_px": 0.0, "heading_noise": 0.0, "drop_probability": 0.0}
-    blocks = [
-        ActuatedRobot("plant", position=g["robot"], variability=var.robot_steps),
-        Spheres(g["spheres"], params=sp, roughness=calibrated_roughness() if var.calibrated else None),
-        Camera(n_spheres=n, primed=(g["robot"], 0.0, g["spheres"]), **camera_kw),
-        Tracker(n_spheres=n, init_robot=g["robot"], init_spheres=g["spheres"]),
-        Servo(params=servo_params(exp.servo), speed_cap_input=True, hold_input=True),
-        build_task(exp),
-    ]
-    wires = [
-        ("plant.position", "spheres.position"), ("plant.heading", "spheres.heading"),
-        ("plant.velocity", "spheres.velocity"), ("plant.position", "camera.position"),
-        ("plant.heading", "camera.heading"), ("spheres.spheres", "camera.spheres"),
-        ("camera.robot_meas", "tracker.robot_meas"), ("camera.heading_meas", "tracker.heading_meas"),
-        ("camera.spheres_meas", "tracker.spheres_meas"), ("camera.valid", "tracker.valid"),
-        ("tracker.robot_est", "task.robot_est"), ("tracker.spheres_est", "task.spheres_est"),
-        ("tracker.lost", "task.lost"), ("task.target", "servo.target"), ("tracker.robot_est", "servo.robot_est"),
-        ("task.speed_cap", "servo.speed_cap"), ("tracker.lost", "servo.hold"),
-        ("servo.speed", "plant.speed"), ("servo.heading", "plant.heading"),
-    ]
-    return Diagram(f"{exp.kind}_push_loop", blocks, wires)
+    scene = Scene(robot=g["robot"], spheres=g["spheres"])
+    return closed_loop(experiment_controller(exp), plant(scene, exp.variability), name=f"{exp.kind}_push_loop")

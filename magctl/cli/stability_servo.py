@@ -7,9 +7,11 @@ from magctl.cli.common import add_json, emit
 
 def register_servo(subparsers) -> None:
     """Add ``servo`` to the ``stability`` sub-commands."""
+    from magctl.control.servo import servo_settings
+
     p = subparsers.add_parser("servo", help="PI visual-servo loop: poles, margins, overshoot (linear vs simulated)")
-    p.add_argument("--setting", default="default", choices=["default", "tuned"],
-                   help="parameter set from models/servo.toml (default: paper-like)")
+    p.add_argument("--setting", default=None, choices=servo_settings(),
+                   help="parameter set from models/servo.toml (default: its [choice] default)")
     p.add_argument("--kp", type=float, default=None, help="proportional gain, 1/s (overrides the setting)")
     p.add_argument("--ki", type=float, default=None, help="integral gain, 1/s² (overrides the setting)")
     p.add_argument("--delay-frames", type=int, default=None, help="camera latency in frames (default: camera.toml)")
@@ -18,16 +20,17 @@ def register_servo(subparsers) -> None:
     p.set_defaults(func=cmd_servo)
 
 
-def servo_report(setting: str = "default", kp: float | None = None, ki: float | None = None,
+def servo_report(setting: str | None = None, kp: float | None = None, ki: float | None = None,
                  delay_frames: int | None = None, step_um: float = 1000.0) -> dict:
     """Everything ``magctl stability servo`` prints, as a JSON-able dict (µm, s)."""
-    from magctl.control.servo import Servo, servo_params
+    from magctl.control.servo import Servo, default_servo_setting, servo_params
     from magctl.core.errors import ParameterError
     from magctl.sensing.camera import camera_params
     from magctl.stability.servo import analyse, step_report
 
     if not step_um > 0:
         raise ParameterError(f"--step-um {step_um} must be positive")
+    setting = setting or default_servo_setting()
     params = servo_params(setting)
     servo = Servo("servo", kp=kp, ki=ki, params=params)
     d = int(camera_params().camera.latency) if delay_frames is None else delay_frames

@@ -33,12 +33,23 @@ from magctl.core.errors import ParameterError
 from magctl.core.ports import DIMENSIONLESS, Port
 
 
-def servo_params(setting: str = "default") -> Params:
-    """The ``[setting]`` table of ``models/servo.toml`` (``"default"`` = paper-like, ``"tuned"``)."""
+def servo_settings() -> list[str]:
+    """Names of the servo settings in ``models/servo.toml`` (``"paper"``, ``"tuned"``)."""
+    return sorted(k for k in load_model("servo") if k != "choice")
+
+
+def default_servo_setting() -> str:
+    """The setting every controller uses unless told otherwise (``models/servo.toml`` ``[choice] default``)."""
+    return str(load_model("servo").choice.default)
+
+
+def servo_params(setting: str | None = None) -> Params:
+    """The ``[setting]`` table of ``models/servo.toml``; None gives :func:`default_servo_setting`."""
     model = load_model("servo")
-    if setting not in model:
-        raise ParameterError(f"models/servo.toml: no setting [{setting}]; settings: {sorted(model)}")
-    return model[setting]
+    name = default_servo_setting() if setting is None else setting
+    if name == "choice" or name not in model:
+        raise ParameterError(f"models/servo.toml: no servo setting [{name}]; settings: {servo_settings()}")
+    return model[name]
 
 
 class Servo(Block):
@@ -79,7 +90,7 @@ class Servo(Block):
                  speed_cap_input: bool = False, hold_input: bool = False, params: Params | None = None,
                  dt: float = FRAME_PERIOD_S):
         if params is None and None in (kp, ki, speed_max, arrive_tol, anti_windup):
-            params = servo_params("default")
+            params = servo_params()
         self.anti_windup = bool(params.anti_windup if anti_windup is None else anti_windup)
         self.kp = float(params.kp if kp is None else kp)
         self.ki = float(params.ki if ki is None else ki)

@@ -19,3 +19,31 @@ def rows_times(x: np.ndarray, m: np.ndarray) -> np.ndarray:
     if m.ndim == 1:
         return np.einsum("...i,i->...", x, m)
     return np.einsum("...i,ij->...j", x, m)
+
+
+# --- planar vectors (…, 2), batch-safe: einsum sums each row on its own -----------------------------
+def norm(v: np.ndarray) -> np.ndarray:
+    """Euclidean norm over the last axis."""
+    return np.sqrt(np.einsum("...i,...i->...", v, v))
+
+
+def unit(v: np.ndarray, fallback=(1.0, 0.0)) -> np.ndarray:
+    """Unit vectors along the last axis (``fallback`` where the vector is zero)."""
+    n = norm(v)[..., None]
+    return np.where(n > 0, v / np.where(n > 0, n, 1.0), np.asarray(fallback, dtype=float))
+
+
+def perp(v: np.ndarray) -> np.ndarray:
+    """``v`` rotated by +90°."""
+    return np.stack([-v[..., 1], v[..., 0]], axis=-1)
+
+
+def rotate(v: np.ndarray, angle) -> np.ndarray:
+    """Rotate 2-vectors ``v`` (…, 2) by ``angle`` (scalar or per row) counter-clockwise."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """z-component of the 2-D cross product."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]

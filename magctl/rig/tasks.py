@@ -1,17 +1,19 @@
-"""Rig tasks: a registry from task names to controller diagrams, and the B = 1 controller that steps them.
+"""Rig tasks: a registry from task names to the controllers of :func:`magctl.loops.controller`, and the B = 1
+controller that steps them.
 
-A task diagram's exported inputs are a subset of the observation's signals
-(``robot_est`` (2,) m, ``heading_est`` rad, ``spheres_est`` (N, 2) m, ``lost``)
-and its exported outputs include the drive's field command (``b_static`` (2,) T,
-``b_osc`` T, ``freq`` 1/s) and a ``status`` code (:data:`STATUS_NAMES`).
+A task's diagram is :func:`magctl.loops.controller` itself — the diagram the studies run — built
+from the first observation (to resolve defaults such as the goal) and the user's options. Its
+exported inputs are a subset of the observation's signals (``robot_est`` (2,) m, ``spheres_est``
+(N, 2) m, ``lost``) and its exported outputs include the field command (``b_static`` (2,) T,
+``b_osc`` T, ``freq`` 1/s) and a ``status`` (:class:`~magctl.control.status.Status`).
 
-Tasks register themselves with :func:`register_task`: ``goto``, ``patrol``, and
-``front-push``, ``side-push``, ``assemble`` from ``magctl.control.push``, each
-behind ``magctl.control.servo.Servo``, the rig's tracking guard and
-``magctl.plant.drive.Drive``. A builder receives the first observation (to resolve defaults such
-as the goal) and the user's options, and returns a :class:`Task` whose
-``options`` are fully resolved — they go into the run log so that a replay
-rebuilds the identical controller.
+Options are the controller's: for the push tasks every parameter of ``models/push.toml`` that
+the task uses (``eps_um``, ``clearance_um``, ``kc``, ``max_attempts`` …) plus ``goal``, for
+every task ``servo`` (a setting of ``models/servo.toml``) and ``speed_max``. A length or speed is
+given with its unit in the key (``goal_um``, ``push_speed_um_s``; any unit suffix of
+:data:`magctl.config.UNITS` of the right kind); an unknown key is an error. The resolved options
+(every parameter, SI, in ``_m``/``_m_s``/``_rad``-suffixed keys so that they round-trip exactly)
+go into the run log, so that a replay rebuilds the identical controller.
 """
 
 from __future__ import annotations
@@ -22,32 +24,30 @@ from typing import Any
 
 import numpy as np
 
-from magctl.config import Params, load_model
-from magctl.control.guards import (
-    DONE,
-    FAILED,
-    LOST,
-    RUNNING,
-    STATUS_NAMES,
-    ArrivalStatus,
-    Patrol,
-    Tee,
-    TrackingGuard,
-)
+from magctl.config import UNITS, Params, load_model, split_unit
+from magctl.control.push.common import task_parameters
+from magctl.control.servo import default_servo_setting, servo_params, servo_settings
+from magctl.control.status import STATUS_NAMES, Status
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
-from magctl.core.linear import Constant
+from magctl.loops import COMMAND, OBSERVATION, controller, default_goal, sphere_count
 from magctl.rig.interface import Command, Observation
 
-OBS_SIGNALS = ("robot_est", "heading_est", "spheres_est", "lost")
-COMMAND_SIGNALS = ("b_static", "b_osc", "freq")
+OBS_SIGNALS = OBSERVATION
+COMMAND_SIGNALS = COMMAND
 
-__all__ = ["DONE", "FAILED", "LOST", "RUNNING", "STATUS_NAMES", "Controller", "Task", "TaskError", "available_tasks",
-           "build_task", "register_task"]
+__all__ = ["Controller", "Task", "TaskError", "available_tasks", "build_task", "register_task", "task_options"]
 
 
 class TaskError(MagctlError):
     """Unknown task, bad task options, or a task diagram that breaks the contract."""
+
+
+PUSH_OUTCOMES = {Status.CONVERGED: ("done", "converged: the sphere is within ε_p of the goal"),
+                 Status.ATTEMPT_LIMIT: ("failed", "attempt limit reached"),
+                 Status.TRACKING_LOST: ("tracking-lost", "the task stopped on tracking loss"),
+                 Status.SPHERE_LOST: ("failed", "sphere lost"),
+                 Status.STALLED: ("failed", "a phase timed out (stalled)")}
 
 
 @dataclass
@@ -61,11 +61,10 @@ class Task:
     diagram : Diagram
         Inputs ⊆ :data:`OBS_SIGNALS`; outputs ⊇ :data:`COMMAND_SIGNALS` and ``status``.
     options : dict
-        Resolved options (JSON-able, SI in ``_m``-suffixed keys so that they round-trip exactly);
+        Resolved options (JSON-able, SI in unit-suffixed keys so that they round-trip exactly);
         rebuilding with them gives the same task.
     outcomes : dict of int to (str, str)
-        Status codes that end the run → (exit status, reason). The defaults are the goto/patrol codes;
-        tasks with other codes (e.g. ``magctl.control.push``'s ``sphere_lost``, ``stalled``) list theirs.
+        Status codes that end the run → (exit status, reason).
     status_names : dict of int to str
         Names of the status codes, for logs and summaries.
     """
@@ -74,7 +73,7 @@ class Task:
     diagram: Diagram
     options: dict[str, Any] = field(default_factory=dict)
     outcomes: dict[int, tuple[str, str]] = field(
-        default_factory=lambda: {DONE: ("done", "task completed"), FAILED: ("failed", "task gave up")})
+        default_factory=lambda: {Status.CONVERGED: ("done", "task completed")})
     status_names: dict[int, str] = field(default_factory=lambda: dict(STATUS_NAMES))
 
     def __post_init__(self):
@@ -91,7 +90,7 @@ _REGISTRY: dict[str, Builder] = {}
 
 
 def register_task(name: str):
-    """Decorator: ``@register_task("side-push")`` on ``builder(first_obs, options, params) -> Task``."""
+    """Decorator: ``@register_task("name")`` on ``builder(first_obs, options, params) -> Task``."""
 
     def deco(fn: Builder) -> Builder:
         _REGISTRY[name] = fn
@@ -138,203 +137,171 @@ class Controller:
 
 
 # --- options ---------------------------------------------------------------------------------------------
-def _xy(options: dict, name: str, default_m) -> np.ndarray:
-    """Option ``name`` as a point in m: from ``name_m`` (exact, as logged) or ``name_um`` (as typed)."""
-    for key, scale in ((f"{name}_m", 1.0), (f"{name}_um", 1e-6)):
-        v = options.get(key)
-        if v is None:
-            continue
+_SI_SUFFIX = {"m": "m", "m/s": "m_s", "rad": "rad", "1": "", "": ""}
+_PUSH_TABLES = {"front-push": ("front",), "side-push": ("side",), "assemble": ("side", "assembly")}
+_OPTIONAL = {"front-push": {"push_tol": "m"}, "side-push": {"fixed_gap": "m"}, "assemble": {"fixed_gap": "m"}}
+
+
+def task_options(task: str) -> dict[str, tuple[Any, str]]:
+    """Options of rig task ``task``: name → (default, SI unit); a default of None means "not set"."""
+    common = {"servo": (default_servo_setting(), ""), "speed_max": (None, "m/s")}
+    if task == "goto":
+        return {"target": (None, "m"), **common}
+    if task == "patrol":
+        return {"side": (1e-3, "m"), "origin": (None, "m"), **common}
+    spec: dict[str, tuple[Any, str]] = {}
+    for table in _PUSH_TABLES[task]:
+        spec |= task_parameters(table)
+    if task in ("front-push", "side-push"):
+        spec["goal"] = (None, "m")
+    spec |= {k: (None, unit) for k, unit in _OPTIONAL[task].items()}
+    return spec | common
+
+
+def resolve_options(task: str, options: dict) -> dict[str, Any]:
+    """``options`` as typed (any unit suffix) → option name → SI value, with clear errors; unknown keys refused."""
+    spec = task_options(task)
+    values: dict[str, Any] = {}
+    for key, raw in options.items():
+        name, factor = _option_name(task, key, spec)
+        if name in values:
+            raise TaskError(f"{task}: option {name!r} given twice")
+        values[name] = _option_value(task, key, raw, factor, spec[name][1], name)
+    return values
+
+
+def _option_name(task: str, key: str, spec: dict) -> tuple[str, float]:
+    if key in spec:
+        return key, 1.0
+    base, suffix = split_unit(key)
+    if suffix is not None and base in spec:
+        si_unit, factor = UNITS[suffix]
+        want = spec[base][1]
+        if si_unit != want:
+            raise TaskError(f"{task}: option {key} is in {si_unit!r} but {base} is a quantity in {want!r}")
+        return base, factor
+    names = ", ".join(f"{n}_{_SI_SUFFIX.get(u, u)}" if _SI_SUFFIX.get(u) else n for n, (_, u) in sorted(spec.items()))
+    raise TaskError(f"{task}: unknown option {key!r}; options: {names}")
+
+
+def _option_value(task: str, key: str, raw, factor: float, unit: str, name: str):
+    if name == "servo":
+        if raw not in servo_settings():
+            raise TaskError(f"{task}: option servo={raw!r} is not one of {', '.join(servo_settings())}")
+        return str(raw)
+    if name == "model":
+        if raw not in ("lin", "exp"):
+            raise TaskError(f"{task}: option model={raw!r} must be 'lin' (eq 23) or 'exp' (eq 22)")
+        return str(raw)
+    if name in ("goal", "target", "origin"):
         try:
-            arr = np.asarray(v, dtype=float).reshape(-1)
+            arr = np.asarray(raw, dtype=float).reshape(-1)
         except (TypeError, ValueError):
             arr = np.full(0, np.nan)
         if arr.shape != (2,) or not np.all(np.isfinite(arr)):
-            raise TaskError(f"option {key} must be two finite numbers, got {v!r}")
-        return arr * scale
-    return np.asarray(default_m, dtype=float)
-
-
-def _num(options: dict, name: str, si_unit: str, user_unit: str, scale: float, default: float,
-         positive: bool = True) -> float:
-    """Option ``name`` in SI: from ``name_<si_unit>`` (exact, as logged) or ``name_<user_unit>`` (as typed)."""
-    for key, k in ((f"{name}_{si_unit}", 1.0), (f"{name}_{user_unit}", scale)):
-        if options.get(key) is None:
-            continue
-        try:
-            v = float(options[key]) * k
-        except (TypeError, ValueError):
-            raise TaskError(f"option {key} must be a number, got {options[key]!r}") from None
-        if not np.isfinite(v) or (positive and v <= 0):
-            raise TaskError(f"option {key} must be {'positive' if positive else 'finite'}, got {options[key]!r}")
-        return v
-    return float(default)
-
-
-def _float(options: dict, name: str, default: float) -> float:
-    v = options.get(name, default)
+            raise TaskError(f"{task}: option {key} must be two finite numbers, got {raw!r}")
+        return arr * factor
+    if isinstance(raw, bool):
+        raise TaskError(f"{task}: option {key} must be a number, got {raw!r}")
     try:
-        v = float(v)
+        v = float(raw) * factor
     except (TypeError, ValueError):
-        raise TaskError(f"option {name} must be a number, got {v!r}") from None
+        raise TaskError(f"{task}: option {key} must be a number, got {raw!r}") from None
     if not np.isfinite(v):
-        raise TaskError(f"option {name} must be finite, got {v!r}")
+        raise TaskError(f"{task}: option {key} must be finite, got {raw!r}")
+    if unit == "m/s" and v <= 0:
+        raise TaskError(f"{task}: option {key} must be positive, got {raw!r}")
+    if name.endswith(("_frames", "attempts")):
+        if v != int(v) or v < 0:
+            raise TaskError(f"{task}: option {key} must be a whole number >= 0, got {raw!r}")
+        return int(v)
     return v
 
 
-# --- the servo → guard → drive chain shared by every task ------------------------------------------------
-def _servo_drive(params: Params, options: dict, resolved: dict, speed_cap: bool) -> tuple[list, list]:
-    """The PI servo (``models/servo.toml``, setting ``servo``), the tracking guard and the drive.
-
-    The servo holds its integral while tracking is lost (``hold``) and the guard zeroes the speed, so
-    the drive commands no oscillation: the robot stops instead of driving blind.
-    """
-    from magctl.control.servo import Servo, servo_params
-    from magctl.plant.drive import Drive
-
-    setting = str(options.get("servo", params.tasks.servo_setting))
-    sp = servo_params(setting)
-    v_max = _num(options, "speed_max", "m_s", "um_s", 1e-6, sp.speed_max)
-    resolved |= {"servo": setting, "speed_max_m_s": v_max}
-    servo = Servo("servo", params=sp, speed_max=v_max, speed_cap_input=speed_cap, hold_input=True)
-    blocks = [servo, TrackingGuard("guard"), Drive("drive"), Tee("robot_in", (2,), "m"),
-              Tee("lost_in", (), "1", "bool")]
-    wires = [("robot_in.y", "servo.robot_est"), ("lost_in.y", "servo.hold"), ("lost_in.y", "guard.lost"),
-             ("servo.speed", "guard.speed"), ("guard.speed", "drive.speed"), ("servo.heading", "drive.heading")]
-    return blocks, wires
+def _logged(values: dict[str, Any], spec: dict) -> dict[str, Any]:
+    """Resolved options in unit-suffixed SI keys (JSON-able; parsed back by :func:`resolve_options`)."""
+    out = {}
+    for name, v in sorted(values.items()):
+        if v is None:
+            continue
+        suffix = _SI_SUFFIX.get(spec[name][1], "")
+        out[f"{name}_{suffix}" if suffix else name] = v.tolist() if isinstance(v, np.ndarray) else v
+    return out
 
 
-COMMAND_OUTPUTS = {"b_static": "drive.b_static", "b_osc": "drive.b_osc", "freq": "drive.freq",
-                   "stopped": "guard.stopped"}
-OBS_INPUTS = {"robot_est": "robot_in.u", "lost": "lost_in.u"}
+def _resolved(task: str, options: dict) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(controller keyword values, logged options): defaults filled in, every option checked."""
+    spec = task_options(task)
+    given = resolve_options(task, options)
+    values = {name: given.get(name, default) for name, (default, _unit) in spec.items()}
+    if values["speed_max"] is None:
+        values["speed_max"] = servo_params(values["servo"]).speed_max
+    return values, _logged(values, spec)
 
 
-# --- built-in tasks ---------------------------------------------------------------------------------------
+def _need_spheres(task: str, first_obs: Observation) -> int:
+    have = first_obs.spheres_est.shape[0]
+    need = sphere_count(task)
+    if have < need:
+        raise TaskError(f"{task} needs at least {need} tracked sphere(s); the rig reports {have}")
+    return have
+
+
+def _build(task: str, values: dict, n_spheres: int, **extra) -> Diagram:
+    try:
+        return controller(task, n_spheres=n_spheres, **values, **extra)
+    except MagctlError as err:
+        raise TaskError(f"{task}: {err}") from None
+
+
+# --- the tasks --------------------------------------------------------------------------------------------
 @register_task("goto")
 def _goto(first_obs: Observation, options: dict, params: Params) -> Task:
-    """Servo the robot to ``target`` (default: where it is) and stop there: DONE on arrival."""
-    target = _xy(options, "target", first_obs.robot_est)
-    resolved = {"target_m": target.tolist()}
-    blocks, wires = _servo_drive(params, options, resolved, speed_cap=False)
-    d = Diagram(
-        "goto",
-        [Constant("target", target, shape=(2,), unit="m"), *blocks, ArrivalStatus("status")],
-        connections=[("target.y", "servo.target"), *wires, ("servo.arrived", "status.arrived"),
-                     ("lost_in.y", "status.lost")],
-        inputs=OBS_INPUTS, outputs={**COMMAND_OUTPUTS, "status": "status.status"},
-    )
-    return Task("goto", d, resolved)
+    """Servo the robot to ``target`` (default: where it is) and stop there: CONVERGED on arrival."""
+    values, logged = _resolved("goto", options)
+    if values["target"] is None:
+        values["target"] = np.asarray(first_obs.robot_est, dtype=float)
+        logged["target_m"] = values["target"].tolist()
+    return Task("goto", _build("goto", values, 0), logged)
 
 
 @register_task("patrol")
 def _patrol(first_obs: Observation, options: dict, params: Params) -> Task:
     """Drive round a square of side ``side`` (default 1 mm) starting at the robot, forever."""
-    side = _num(options, "side", "m", "um", 1e-6, 1e-3)
-    r0 = _xy(options, "origin", first_obs.robot_est)
-    square = r0 + side * np.array([[0.0, 1.0], [-1.0, 1.0], [-1.0, 0.0], [0.0, 0.0]])
-    resolved = {"side_m": side, "origin_m": r0.tolist()}
-    blocks, wires = _servo_drive(params, options, resolved, speed_cap=False)
-    tol = 2.0 * blocks[0].arrive_tol
-    d = Diagram(
-        "patrol",
-        [Patrol("patrol", square, tol), *blocks],
-        connections=[("robot_in.y", "patrol.robot_est"), ("patrol.target", "servo.target"), *wires],
-        inputs=OBS_INPUTS, outputs={**COMMAND_OUTPUTS, "status": "patrol.status", "lap": "patrol.lap"},
-    )
-    return Task("patrol", d, resolved)
+    values, logged = _resolved("patrol", options)
+    side, origin = values.pop("side"), values.pop("origin")
+    if side <= 0:
+        raise TaskError("patrol: option side must be positive")
+    if origin is None:
+        origin = np.asarray(first_obs.robot_est, dtype=float)
+        logged["origin_m"] = origin.tolist()
+    square = origin + side * np.array([[0.0, 1.0], [-1.0, 1.0], [-1.0, 0.0], [0.0, 0.0]])
+    return Task("patrol", _build("patrol", values, 0, waypoints=square), logged,
+                outcomes={})
 
 
-def _push_outcomes() -> tuple[dict, dict]:
-    from magctl.control import push
-
-    outcomes = {push.CONVERGED: ("done", "converged: the sphere is within ε_p of the goal"),
-                push.ATTEMPT_LIMIT: ("failed", "attempt limit reached"),
-                push.TRACKING_LOST: ("tracking-lost", "the task stopped on tracking loss"),
-                push.SPHERE_LOST: ("failed", "sphere lost"),
-                push.STALLED: ("failed", "a phase timed out (stalled)")}
-    return outcomes, dict(push.STATUS_NAMES)
-
-
-def _push_diagram(name: str, task_block, first_obs: Observation, options: dict, params: Params, resolved: dict):
-    blocks, wires = _servo_drive(params, options, resolved, speed_cap=True)
-    outcomes, names = _push_outcomes()
-    d = Diagram(
-        name.replace("-", "_"),
-        [task_block, *blocks],
-        connections=[("robot_in.y", "push.robot_est"), ("lost_in.y", "push.lost"), ("push.target", "servo.target"),
-                     ("push.speed_cap", "servo.speed_cap"), *wires],
-        inputs={**OBS_INPUTS, "spheres_est": "push.spheres_est"},
-        outputs={**COMMAND_OUTPUTS, "status": "push.status", "attempt": "push.attempt", "phase": "push.phase",
-                 "correction": "push.correction", "target": "push.target"},
-    )
-    return Task(name, d, resolved, outcomes, names)
-
-
-def _need_spheres(task: str, first_obs: Observation, n: int) -> int:
-    have = first_obs.spheres_est.shape[0]
-    if have < n:
-        raise TaskError(f"{task} needs at least {n} tracked sphere(s); the rig reports {have}")
-    return have
-
-
-def _sphere_and_away(first_obs: Observation) -> tuple[np.ndarray, np.ndarray]:
-    """Sphere 0's estimate and the unit vector from the robot to it (+x if they coincide)."""
-    ps = first_obs.spheres_est[0]
-    away = ps - first_obs.robot_est
-    length = np.hypot(*away)
-    return ps, (away / length if length > 0 else np.array([1.0, 0.0]))
+def _push(task: str, first_obs: Observation, options: dict) -> Task:
+    n = _need_spheres(task, first_obs)
+    values, logged = _resolved(task, options)
+    if "goal" in values and values["goal"] is None:
+        values["goal"] = default_goal(task, first_obs.robot_est, first_obs.spheres_est)
+        logged["goal_m"] = values["goal"].tolist()
+    return Task(task, _build(task, values, n), logged, dict(PUSH_OUTCOMES))
 
 
 @register_task("front-push")
 def _front_push(first_obs: Observation, options: dict, params: Params) -> Task:
-    """Front-push sphere 0 to ``goal`` (default ``tasks.goal_distance`` beyond it, away from the robot), §V-A."""
-    from magctl.control.push.front import FrontPushTask
-
-    n = _need_spheres("front-push", first_obs, 1)
-    ps, away = _sphere_and_away(first_obs)
-    goal = _xy(options, "goal", ps + params.tasks.goal_distance * away)
-    kc = _float(options, "kc", 1.0)
-    delta0 = _num(options, "delta0", "m", "um", 1e-6, 0.0, positive=False)
-    push_speed = _num(options, "push_speed", "m_s", "um_s", 1e-6, 0.4e-3)
-    travel_speed = _num(options, "travel_speed", "m_s", "um_s", 1e-6, 1.0e-3)
-    resolved = {"goal_m": goal.tolist(), "kc": kc, "delta0_m": delta0, "push_speed_m_s": push_speed,
-                "travel_speed_m_s": travel_speed}
-    try:
-        block = FrontPushTask("push", goal=goal, kc=kc, delta0=delta0, n_spheres=n, push_speed=push_speed,
-                              travel_speed=travel_speed)
-    except MagctlError as err:
-        raise TaskError(f"front-push: {err}") from None
-    return _push_diagram("front-push", block, first_obs, options, params, resolved)
+    """Front-push sphere 0 to ``goal`` (default 750 µm beyond it, away from the robot), §V-A."""
+    return _push("front-push", first_obs, options)
 
 
 @register_task("side-push")
 def _side_push(first_obs: Observation, options: dict, params: Params) -> Task:
-    """Side-push sphere 0 to ``goal`` (default 300 µm beyond it, away from the robot; §VI), §V-B."""
-    from magctl.control.push.side import SidePushTask
-
-    n = _need_spheres("side-push", first_obs, 1)
-    ps, away = _sphere_and_away(first_obs)
-    goal = _xy(options, "goal", ps + params.tasks.side_goal_distance * away)
-    ks = _float(options, "ks", 0.9)
-    model = str(options.get("model", "lin"))
-    resolved = {"goal_m": goal.tolist(), "ks": ks, "model": model}
-    try:
-        block = SidePushTask("push", goal=goal, ks=ks, model=model, n_spheres=n)
-    except MagctlError as err:
-        raise TaskError(f"side-push: {err}") from None
-    return _push_diagram("side-push", block, first_obs, options, params, resolved)
+    """Side-push sphere 0 to ``goal`` (default 300 µm from it, square to the robot's line), §V-B."""
+    return _push("side-push", first_obs, options)
 
 
 @register_task("assemble")
 def _assemble(first_obs: Observation, options: dict, params: Params) -> Task:
     """Assemble sphere 0 onto sphere 1 by side-pushing along the adjusted line (§V-C, eq 21)."""
-    from magctl.control.push.assembly import AssemblyTask
-
-    n = _need_spheres("assemble", first_obs, 2)
-    theta = _num(options, "theta_n", "rad", "deg", np.pi / 180.0, np.deg2rad(30.0), positive=False)
-    ks = _float(options, "ks", 0.9)
-    resolved = {"theta_n_rad": theta, "ks": ks}
-    try:
-        block = AssemblyTask("push", n_spheres=n, theta_n=theta, ks=ks)
-    except MagctlError as err:
-        raise TaskError(f"assemble: {err}") from None
-    return _push_diagram("assemble", block, first_obs, options, params, resolved)
+    return _push("assemble", first_obs, options)

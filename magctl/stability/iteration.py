@@ -35,6 +35,7 @@ from magctl.control.push.common import (
     check_positive,
     side_model,
 )
+from magctl.core.checks import check_finite
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.linear import Gain, Integrator, Sum
@@ -457,8 +458,8 @@ def _poles_doc(poles) -> list:
 
 def front_report(kc: float, delta0_um: float = 0.0, trials: int = 20000, seed: int = 0) -> dict:
     """Everything ``magctl stability front`` prints (µm in keys)."""
-    kc = _finite("--kc", kc)
-    delta0 = _finite("--delta0-um", delta0_um) * UM
+    kc = check_finite("--kc", kc)
+    delta0 = check_finite("--delta0-um", delta0_um) * UM
     loop = front_loop(kc)
     doc = {
         "loop": "front", "equations": "eq 13-15", "kc": kc, "delta0_um": delta0 / UM,
@@ -499,7 +500,7 @@ def fluid_side_plant(gaps=None) -> TabulatedSideModel:
 def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM, goal_um: float = SIDE_GOAL / UM,
                 ratio: float | None = None, plant: str = "exp") -> dict:
     """Everything ``magctl stability side`` prints (µm in keys); ``plant`` is ``exp`` (eq 22) or ``fluid``."""
-    ks = _finite("--ks", ks)
+    ks = check_finite("--ks", ks)
     mdl = side_model(model)
     min_gap = check_positive("--min-gap-um", min_gap_um) * UM
     goal = check_positive("--goal-um", goal_um) * UM
@@ -511,7 +512,7 @@ def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM,
     d_act_max = float(plant.displacement(max(float(mdl.gap(d_max_model)), min_gap)))
     d_range = np.linspace(SIDE_EPS, d_act_max, 200)
     r_local = local_ratio(d_range, mdl, plant)
-    rho = 1.0 if ratio is None else _finite("--ratio", ratio)
+    rho = 1.0 if ratio is None else check_finite("--ratio", ratio)
     paper = side_loop(ks, rho)
     full_p = side_full_poles(ks, rho)
     full_verdict, full_damping = classify(full_p)
@@ -544,16 +545,6 @@ def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM,
             "stable_gain_range_note": "K_s converging from every start 10-300 um within 30 attempts",
         },
     }
-
-
-def _finite(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise MagctlError(f"{name}={value!r} is not a number") from None
-    if not np.isfinite(v):
-        raise MagctlError(f"{name}={value!r} must be finite")
-    return v
 
 
 __all__ = [

@@ -11,9 +11,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from magctl.control.push.common import CONVERGED  # noqa: E402
+from magctl.control.status import Status, status_counts  # noqa: E402
 from magctl.loops import Experiment
-from magctl.studies.trials import run_push_trials, status_counts  # noqa: E402
+from magctl.studies.trials import run_push_trials  # noqa: E402
 
 _MEMO: dict[str, dict] = {}
 
@@ -55,7 +55,7 @@ def summarise(result: dict) -> dict:
     status = np.asarray(result["status"])
     attempts = np.asarray(result["attempts"])
     max_att = result["error_um"].shape[1] - 1
-    conv = status == CONVERGED
+    conv = status == Status.CONVERGED
     by_attempt = [float(np.mean(conv & (attempts <= a))) for a in range(1, max_att + 1)]
     err = carried_errors(result)
     return {

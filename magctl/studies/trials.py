@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.control.push.common import RUNNING, STATUS_NAMES
+from magctl.control.status import Status
 from magctl.core import simulate
-from magctl.loops import UM, Experiment, geometry, push_loop
+from magctl.core.units import UM
+from magctl.loops import Experiment, geometry, push_loop
 from magctl.plant.fluid.params import sphere_params
 
 
@@ -24,7 +25,9 @@ def task_error(kind: str, spheres: np.ndarray, goal: np.ndarray, radius: float) 
     return np.linalg.norm(spheres[..., 1, :] - spheres[..., 0, :], axis=-1) - 2 * radius
 
 
-RECORD = ["task.status", "task.attempt", "spheres.spheres", "plant.position", "plant.heading", "task.correction"]
+STATUS, ATTEMPT, CORRECTION = "controller/task.status", "controller/task.attempt", "controller/task.correction"
+SPHERES, ROBOT, HEADING = "plant/spheres.spheres", "plant/robot.position", "plant/robot.heading"
+RECORD = [STATUS, ATTEMPT, SPHERES, ROBOT, HEADING, CORRECTION]
 
 
 def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 150,
@@ -41,7 +44,7 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
     trials = list(trials)
     batch = len(trials)
     diagram = push_loop(exp)
-    task = diagram.blocks["task"]
+    task = diagram.blocks["controller"].blocks["task"]
     g = geometry(exp.kind)
     radius = sphere_params().radius
     max_att = int(task.max_attempts)
@@ -51,7 +54,7 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
     along = along / np.linalg.norm(along)
     signed = np.full((batch, max_att + 1), np.nan)
     signed[:, 0] = (g["goal"] - g["spheres"][0]) @ along
-    status = np.full(batch, RUNNING, dtype=np.int64)
+    status = np.full(batch, Status.RUNNING, dtype=np.int64)
     attempts = np.zeros(batch, dtype=np.int64)
     frames = np.full(batch, exp.max_frames, dtype=np.int64)
     correction = np.zeros(batch)
@@ -62,27 +65,27 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
         steps = min(chunk_frames, exp.max_frames - done_frames)
         res = simulate(diagram, steps, batch=batch, seed=seed, trials=trials, record=RECORD, state=state)
         state = res.final_state
-        st, att = res["task.status"], res["task.attempt"]
-        err = task_error(exp.kind, res["spheres.spheres"], g["goal"], radius)
+        st, att = res[STATUS], res[ATTEMPT]
+        err = task_error(exp.kind, res[SPHERES], g["goal"], radius)
         prev = np.concatenate([attempts[:, None], att[:, :-1]], axis=1)
         bumped = att > prev
         rows, cols = np.nonzero(bumped)
         slot = np.minimum(att[rows, cols], max_att)
         errors[rows, slot] = err[rows, cols]
-        signed[rows, slot] = np.einsum("ki,i->k", g["goal"] - res["spheres.spheres"][rows, cols, 0], along)
-        ended = (st != RUNNING) & (status == RUNNING)[:, None]
+        signed[rows, slot] = np.einsum("ki,i->k", g["goal"] - res[SPHERES][rows, cols, 0], along)
+        ended = (st != Status.RUNNING) & (status == Status.RUNNING)[:, None]
         first_end = np.where(ended.any(axis=1), ended.argmax(axis=1), -1)
         newly = first_end >= 0
         frames[newly] = done_frames + first_end[newly]
         status, attempts = st[:, -1].copy(), att[:, -1].copy()
-        correction = res["task.correction"][:, -1].copy()
+        correction = res[CORRECTION][:, -1].copy()
         if keep_paths:
             for k in RECORD:
                 paths[k].append(res[k])
         done_frames += steps
-        if not (status == RUNNING).any():
+        if not (status == Status.RUNNING).any():
             break
-    final = task_error(exp.kind, res["spheres.spheres"][:, -1][:, None], g["goal"], radius)[:, 0]
+    final = task_error(exp.kind, res[SPHERES][:, -1][:, None], g["goal"], radius)[:, 0]
     out = {
         "status": status, "attempts": attempts, "error_um": errors / UM, "signed_error_um": signed / UM,
         "final_error_um": final / UM,
@@ -90,11 +93,6 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
     }
     if keep_paths:
         cat = {k: np.concatenate(v, axis=1) for k, v in paths.items()}
-        out.update(t=np.arange(cat["plant.position"].shape[1]) * diagram.dt, robot_xy=cat["plant.position"],
-                   robot_heading=cat["plant.heading"], spheres_xy=cat["spheres.spheres"])
+        out.update(t=np.arange(cat[ROBOT].shape[1]) * diagram.dt, robot_xy=cat[ROBOT],
+                   robot_heading=cat[HEADING], spheres_xy=cat[SPHERES])
     return out
-
-
-def status_counts(status: np.ndarray) -> dict[str, int]:
-    """Trials per termination status, by name."""
-    return {name: int((status == code).sum()) for code, name in STATUS_NAMES.items()}

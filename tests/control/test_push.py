@@ -155,10 +155,11 @@ def test_front_push_runs_on_the_plant_blocks():
     """The task closes the loop through the real drive/coils/robot, fluid spheres, camera, tracker and servo."""
     from magctl.loops import Experiment, geometry, push_loop
 
-    exp = Experiment("front", task=dict(kc=1.0, delta0=127 * UM, max_attempts=3, arrive_tol=20 * UM), servo="tuned")
-    res = simulate(push_loop(exp), 1500, batch=2, seed=0, record=["task.status", "task.attempt", "spheres.spheres"])
-    status = res["task.status"][:, -1]
+    exp = Experiment("front", task=dict(kc=1.0, delta0=127 * UM, max_attempts=3, arrive_tol=20 * UM, servo="tuned"))
+    status_, attempt, spheres = "controller/task.status", "controller/task.attempt", "plant/spheres.spheres"
+    res = simulate(push_loop(exp), 1500, batch=2, seed=0, record=[status_, attempt, spheres])
+    status = res[status_][:, -1]
     assert set(status) <= {CONVERGED, ATTEMPT_LIMIT}
-    assert np.all(res["task.attempt"][:, -1] >= 1)
-    err = np.linalg.norm(res["spheres.spheres"][:, -1, 0] - geometry("front")["goal"], axis=1)
+    assert np.all(res[attempt][:, -1] >= 1)
+    err = np.linalg.norm(res[spheres][:, -1, 0] - geometry("front")["goal"], axis=1)
     assert np.all(err[status == CONVERGED] < 75 * UM + 20 * UM)  # eq 12 on the estimate; tracker error margin

@@ -72,22 +72,22 @@ def test_no_windup_after_long_saturation():
 
 
 @pytest.mark.parametrize("step_um", [500.0, 1000.0, 2000.0])
-def test_default_reproduces_paper_overshoot_and_tuned_removes_it(step_um):
+def test_paper_setting_reproduces_paper_overshoot_and_tuned_removes_it(step_um):
     start = np.array([1e-3, 1e-3])
     target = start + [step_um * 1e-6, 0.0]
     over = {}
-    for setting in ("default", "tuned"):
+    for setting in ("paper", "tuned"):
         sv = Servo("servo", params=servo_params(setting))
         res = simulate(servo_step_diagram(sv, delay_frames=2, start=start), 450, inputs={"target": target})
         over[setting] = simulated_overshoot(res["position"], start, target)[0]
         assert np.linalg.norm(res["position"][0, -1] - target) < 15e-6
     # paper §VI-A: "overshoots the goal position by about 100 µm"
-    assert 80e-6 < over["default"] < 120e-6
+    assert 80e-6 < over["paper"] < 120e-6
     assert over["tuned"] < 7.5e-6
 
 
 def test_speed_max_is_paper_speed():
-    assert servo_params("default").speed_max == pytest.approx(0.4e-3)  # paper §IV-C: 0.4 mm/s
+    assert servo_params("paper").speed_max == pytest.approx(0.4e-3)  # paper §IV-C: 0.4 mm/s
 
 
 @pytest.mark.parametrize("kw, word", [({"kp": 0.0}, "kp"), ({"kp": np.nan}, "kp"), ({"ki": -1.0}, "ki"),
@@ -98,12 +98,12 @@ def test_bad_servo_parameters(kw, word):
 
 
 def test_unknown_setting():
-    with pytest.raises(ParameterError, match="no setting"):
+    with pytest.raises(ParameterError, match="no servo setting"):
         servo_params("fastest")
 
 
 def test_noisy_loop_trial_does_not_depend_on_batch():
-    sv = Servo("servo", params=servo_params("default"), hold_input=True)
+    sv = Servo("servo", params=servo_params("paper"), hold_input=True)
     d = servo_step_diagram(sv, delay_frames=2, tracker_mode="kalman", predict=True, position_noise_px=0.5,
                            drop_probability=0.05)
     batch = simulate(d, 120, batch=4, seed=11, inputs={"target": [2e-3, 1e-3]})

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.control.push.common import UM, check_positive, cross, norm, rotate, unit
+from magctl.control.push.common import sphere_radii, with_defaults
 from magctl.control.push.front import FrontAssemblyTask
 from magctl.control.push.side import SidePushTask
+from magctl.core.batched import cross, norm, rotate, unit
+from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 
 
@@ -34,15 +36,18 @@ class AssemblyTask(SidePushTask):
     """
 
     def __init__(self, name: str = "assembly", *, n_spheres: int = 2, moved: int = 0, fixed: int = 1,
-                 theta_n: float = np.deg2rad(30.0), radii=(105 * UM, 105 * UM), eps_as: float = 10 * UM, **kw):
+                 theta_n: float | None = None, radii=None, eps_as: float | None = None, **kw):
         if moved == fixed or not (0 <= moved < n_spheres and 0 <= fixed < n_spheres):
             raise MagctlError(f"assembly {name!r}: sphere indices {moved}, {fixed} must differ and be < {n_spheres}")
-        theta = float(theta_n)
+        p = with_defaults("assembly", theta_n=theta_n, eps_as=eps_as, ks=kw.pop("ks", None))
+        theta = float(p["theta_n"])
         if not 0 <= theta < np.pi / 2:
-            raise MagctlError(f"assembly {name!r}: theta_n={theta_n!r} rad must be in [0, pi/2)")
+            raise MagctlError(f"assembly {name!r}: theta_n={theta!r} rad must be in [0, pi/2)")
         self.theta_n = theta
+        radii = sphere_radii() if radii is None else radii
         self.radii = (check_positive("radius 1", radii[0]), check_positive("radius 2", radii[1]))
-        self.eps_as = check_positive("eps_as", eps_as, allow_zero=True)
+        self.eps_as = check_positive("eps_as", p["eps_as"], allow_zero=True)
+        kw["ks"] = p["ks"]
         super().__init__(name, n_spheres=n_spheres, sphere=moved, **kw)
         self.sphere_indices = (int(moved), int(fixed))
 

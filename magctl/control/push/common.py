@@ -7,21 +7,20 @@ constants below are theirs, converted.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from magctl.config import load_model
+from magctl.control.status import Status
+from magctl.core.batched import norm
+from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
+from magctl.core.units import UM
 
-UM = 1e-6
+RUNNING, CONVERGED, ATTEMPT_LIMIT = Status.RUNNING, Status.CONVERGED, Status.ATTEMPT_LIMIT
+TRACKING_LOST, SPHERE_LOST, STALLED = Status.TRACKING_LOST, Status.SPHERE_LOST, Status.STALLED
 
-# --- task status codes (the ``status`` port) ---------------------------------------------------
-RUNNING = 0
-CONVERGED = 1
-ATTEMPT_LIMIT = 2
-TRACKING_LOST = 3
-SPHERE_LOST = 4
-STATUS_NAMES = {RUNNING: "running", CONVERGED: "converged", ATTEMPT_LIMIT: "attempt_limit",
-                TRACKING_LOST: "tracking_lost", SPHERE_LOST: "sphere_lost"}
 
 
 # --- side-push models: gap D_g ↔ displacement D_s -----------------------------------------------
@@ -144,45 +143,6 @@ def side_model(name: str):
     raise MagctlError(f"side-push model {name!r} is not known; use 'lin' (eq 23) or 'exp' (eq 22)")
 
 
-# --- small batched geometry helpers ------------------------------------------------------------
-def norm(v: np.ndarray) -> np.ndarray:
-    """Euclidean norm over the last axis."""
-    return np.sqrt(np.einsum("...i,...i->...", v, v))
-
-
-def unit(v: np.ndarray, fallback=(1.0, 0.0)) -> np.ndarray:
-    """Unit vectors along the last axis (``fallback`` where the vector is zero)."""
-    n = norm(v)[..., None]
-    return np.where(n > 0, v / np.where(n > 0, n, 1.0), np.asarray(fallback, dtype=float))
-
-
-def perp(v: np.ndarray) -> np.ndarray:
-    """``v`` rotated by +90°."""
-    return np.stack([-v[..., 1], v[..., 0]], axis=-1)
-
-
-def check_positive(name: str, value: float, allow_zero: bool = False) -> float:
-    """``value`` as a float, or a :class:`MagctlError` naming ``name``."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise MagctlError(f"{name}={value!r} is not a number") from None
-    if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
-        raise MagctlError(f"{name}={value!r} must be {'non-negative' if allow_zero else 'positive'} and finite")
-    return v
-
-
-def rotate(v: np.ndarray, angle) -> np.ndarray:
-    """Rotate 2-vectors ``v`` (…, 2) by ``angle`` (scalar or per row) counter-clockwise."""
-    c, s = np.cos(angle), np.sin(angle)
-    return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
-
-
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """z-component of the 2-D cross product."""
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-
-
 def around(robot: np.ndarray, obstacle: np.ndarray, target: np.ndarray, clearance, step=np.pi / 4) -> np.ndarray:
     """Next waypoint from ``robot`` to ``target`` that keeps ``clearance`` from ``obstacle``.
 
@@ -207,9 +167,55 @@ def around(robot: np.ndarray, obstacle: np.ndarray, target: np.ndarray, clearanc
     return np.where(blocked[:, None], wp, target)
 
 
+# --- parameters: models/push.toml ---------------------------------------------------------------
+_KEYWORD = {"settle": "settle_frames", "max_lost": "max_lost_frames", "phase_timeout": "phase_timeout_frames"}
+_INTEGER = ("max_attempts", "settle_frames", "max_lost_frames", "phase_timeout_frames")
+_NOT_TASK_KEYWORDS = ("goal_distance",)
+
+
+def task_parameters(table: str) -> dict[str, tuple[Any, str]]:
+    """Push-task parameters as keyword → (SI default, SI unit): ``models/push.toml`` ``[common]`` overlaid
+    with ``[table]`` (``"front"``, ``"side"`` or ``"assembly"``); counts come back as ``int``, strings
+    with unit ``""``."""
+    params = load_model("push")
+    out: dict[str, tuple[Any, str]] = {}
+    for name in ("common", table):
+        t = params[name]
+        for key in t:
+            if key in _NOT_TASK_KEYWORDS:
+                continue
+            keyword = _KEYWORD.get(key, key)
+            value = int(t[key]) if keyword in _INTEGER else t[key]
+            out[keyword] = (value, t.units[key])
+    return out
+
+
+def task_defaults(table: str) -> dict:
+    """Keyword defaults (SI) of a push task (see :func:`task_parameters`)."""
+    return {k: v for k, (v, _unit) in task_parameters(table).items()}
+
+
+def with_defaults(table: str, **given) -> dict:
+    """``given`` with every None replaced by its :func:`task_defaults` value."""
+    defaults = task_defaults(table)
+    return {k: defaults[k] if v is None else v for k, v in given.items()}
+
+
+def sphere_radii() -> tuple[float, float]:
+    """``(R_1, R_2)`` of eq 21 (m): the sphere radius of ``models/sphere.toml`` for both."""
+    r = float(load_model("sphere").sphere.radius)
+    return r, r
+
+
+def goal_distance(table: str) -> float:
+    """Default goal distance of a task (m): how far beyond the sphere, away from the robot (§VI)."""
+    return float(load_model("push")[table].goal_distance)
+
+
 # --- the batched attempt-level state machine shared by every push task ---------------------------
 START = 0
-DONE = 99
+FINISHED = 99
+"""Phase of a trial whose status is no longer ``RUNNING``."""
 
 
 class PushTask:
@@ -303,7 +309,7 @@ class PushTask:
         if ok.any():
             self._step(state, new, r, spheres, ok)
         done = new["status"] != RUNNING
-        new["phase"] = np.where(done, DONE, new["phase"])
+        new["phase"] = np.where(done, FINISHED, new["phase"])
         target = np.where(np.isnan(new["target"]), r, new["target"])
         speed = np.where(done, 0.0, new["speed"])
         out = {
@@ -337,9 +343,6 @@ class PushTask:
         new["status"] = np.where(conv, CONVERGED, np.where(limit, ATTEMPT_LIMIT, new["status"]))
         return mask & ~conv & ~limit
 
-
-STALLED = 5
-STATUS_NAMES[STALLED] = "stalled"
 
 
 def arrived(r: np.ndarray, target: np.ndarray, tol: float) -> np.ndarray:

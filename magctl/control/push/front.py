@@ -19,8 +19,11 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.control.learning import LearningLaw, front_push_law
-from magctl.control.push.common import CONVERGED, UM, PushTask, around, arrived, check_positive, norm, unit
+from magctl.control.push.common import FINISHED, PushTask, around, arrived, sphere_radii, with_defaults
+from magctl.control.status import Status
+from magctl.core.batched import norm, unit
 from magctl.core.block import Block
+from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 
 APPROACH, PUSH, RETRACT, SETTLE = 1, 2, 3, 4
@@ -67,25 +70,32 @@ class FrontPushTask(PushTask, Block):
     :mod:`magctl.control.push.common`), ``attempt`` (), ``phase`` (), ``correction`` () m (δ).
     """
 
-    PHASES = {0: "start", APPROACH: "approach", PUSH: "push", RETRACT: "retract", SETTLE: "settle", 99: "done"}
+    PHASES = {0: "start", APPROACH: "approach", PUSH: "push", RETRACT: "retract", SETTLE: "settle",
+              FINISHED: "finished"}
 
-    def __init__(self, name: str = "front_push", *, goal, kc: float = 1.0, delta0: float = 0.0,
-                 law: LearningLaw | None = None, n_spheres: int = 1, sphere: int = 0, eps: float = 75 * UM,
-                 push_tol: float | None = None, max_attempts: int = 10, contact: float = 250 * UM,
-                 approach: float = 700 * UM, retract: float = 700 * UM, clearance: float = 650 * UM,
-                 arrive_tol: float = 10 * UM, push_speed: float = 0.4e-3, travel_speed: float = 1.0e-3,
-                 settle_frames: int = 10, max_lost_frames: int = 30, phase_timeout_frames: int = 3000,
-                 workspace: float = 5e-3):
-        self._check_common("front push", name, goal=goal, n_spheres=n_spheres, sphere=sphere, eps=eps,
-                           max_attempts=max_attempts, clearance=clearance, arrive_tol=arrive_tol,
-                           travel_speed=travel_speed, settle_frames=settle_frames, max_lost_frames=max_lost_frames,
-                           phase_timeout_frames=phase_timeout_frames, workspace=workspace)
-        self.law = law if law is not None else front_push_law(kc, delta0)
+    def __init__(self, name: str = "front_push", *, goal, kc: float | None = None, delta0: float | None = None,
+                 law: LearningLaw | None = None, n_spheres: int = 1, sphere: int = 0, eps: float | None = None,
+                 push_tol: float | None = None, max_attempts: int | None = None, contact: float | None = None,
+                 approach: float | None = None, retract: float | None = None, clearance: float | None = None,
+                 arrive_tol: float | None = None, push_speed: float | None = None, travel_speed: float | None = None,
+                 settle_frames: int | None = None, max_lost_frames: int | None = None,
+                 phase_timeout_frames: int | None = None, workspace: float | None = None):
+        p = with_defaults("front", kc=kc, delta0=delta0, eps=eps, max_attempts=max_attempts, contact=contact,
+                          approach=approach, retract=retract, clearance=clearance, arrive_tol=arrive_tol,
+                          push_speed=push_speed, travel_speed=travel_speed, settle_frames=settle_frames,
+                          max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
+                          workspace=workspace)
+        self._check_common("front push", name, goal=goal, n_spheres=n_spheres, sphere=sphere, eps=p["eps"],
+                           max_attempts=p["max_attempts"], clearance=p["clearance"], arrive_tol=p["arrive_tol"],
+                           travel_speed=p["travel_speed"], settle_frames=p["settle_frames"],
+                           max_lost_frames=p["max_lost_frames"], phase_timeout_frames=p["phase_timeout_frames"],
+                           workspace=p["workspace"])
+        self.law = law if law is not None else front_push_law(p["kc"], p["delta0"])
         self.push_tol = self.eps if push_tol is None else check_positive("push_tol", push_tol)
-        self.contact = check_positive("contact", contact)
-        self.approach = check_positive("approach", approach)
-        self.retract = check_positive("retract", retract)
-        self.push_speed = check_positive("push_speed", push_speed)
+        self.contact = check_positive("contact", p["contact"])
+        self.approach = check_positive("approach", p["approach"])
+        self.retract = check_positive("retract", p["retract"])
+        self.push_speed = check_positive("push_speed", p["push_speed"])
         ins, outs = self._ports(n_spheres)
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
 
@@ -121,7 +131,7 @@ class FrontPushTask(PushTask, Block):
         # start: already there?
         start = ok & (ph == 0)
         if start.any():
-            new["status"] = np.where(start & done, CONVERGED, new["status"])
+            new["status"] = np.where(start & done, Status.CONVERGED, new["status"])
             self._begin(new, start & ~done, r, spheres)
         # approach → push
         app = ok & (ph == APPROACH) & arrived(r, new["p_ri"], self.arrive_tol)
@@ -162,10 +172,12 @@ class FrontAssemblyTask(FrontPushTask):
     """
 
     def __init__(self, name: str = "front_assembly", *, n_spheres: int = 2, moved: int = 0, fixed: int = 1,
-                 radii=(105 * UM, 105 * UM), eps_as: float = 10 * UM, **kw):
+                 radii=None, eps_as: float | None = None, **kw):
         if moved == fixed or not (0 <= moved < n_spheres and 0 <= fixed < n_spheres):
             raise MagctlError(f"assembly {name!r}: sphere indices {moved}, {fixed} must differ and be < {n_spheres}")
+        radii = sphere_radii() if radii is None else radii
         self.radii = (check_positive("radius 1", radii[0]), check_positive("radius 2", radii[1]))
+        eps_as = with_defaults("assembly", eps_as=eps_as)["eps_as"]
         self.eps_as = check_positive("eps_as", eps_as, allow_zero=True)
         kw.setdefault("goal", (0.0, 0.0))
         super().__init__(name, n_spheres=n_spheres, sphere=moved, **kw)

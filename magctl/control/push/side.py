@@ -21,20 +21,11 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.control.learning import LearningLaw, side_push_law
-from magctl.control.push.common import (
-    CONVERGED,
-    UM,
-    PushTask,
-    around,
-    arrived,
-    check_positive,
-    cross,
-    norm,
-    perp,
-    side_model,
-    unit,
-)
+from magctl.control.push.common import FINISHED, PushTask, around, arrived, side_model, with_defaults
+from magctl.control.status import Status
+from magctl.core.batched import cross, norm, perp, unit
 from magctl.core.block import Block
+from magctl.core.checks import check_positive
 from magctl.core.ports import Port
 
 REPOSITION, PASS, SETTLE = 1, 2, 3
@@ -68,21 +59,29 @@ class SidePushTask(PushTask, Block):
     Ports: as :class:`~magctl.control.push.front.FrontPushTask`; ``correction`` is ``Δ``.
     """
 
-    PHASES = {0: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", 99: "done"}
+    PHASES = {0: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", FINISHED: "finished"}
 
-    def __init__(self, name: str = "side_push", *, goal=(0.0, 0.0), ks: float = 0.9, model="lin",
+    def __init__(self, name: str = "side_push", *, goal=(0.0, 0.0), ks: float | None = None, model=None,
                  law: LearningLaw | None = None, fixed_gap: float | None = None, n_spheres: int = 1,
-                 sphere: int = 0, min_gap: float = 370 * UM, eps: float = 7.5 * UM, max_attempts: int = 30,
-                 behind: float = 1e-3, ahead: float = 1e-3, clearance: float = 650 * UM,
-                 arrive_tol: float = 10 * UM, pass_speed: float = 0.4e-3, travel_speed: float = 1.0e-3,
-                 settle_frames: int = 10, max_lost_frames: int = 30, phase_timeout_frames: int = 3000,
-                 workspace: float = 5e-3):
-        self._check_common("side push", name, goal=goal, n_spheres=n_spheres, sphere=sphere, eps=eps,
-                           max_attempts=max_attempts, clearance=clearance, arrive_tol=arrive_tol,
-                           travel_speed=travel_speed, settle_frames=settle_frames, max_lost_frames=max_lost_frames,
-                           phase_timeout_frames=phase_timeout_frames, workspace=workspace)
+                 sphere: int = 0, min_gap: float | None = None, eps: float | None = None,
+                 max_attempts: int | None = None, behind: float | None = None, ahead: float | None = None,
+                 clearance: float | None = None, arrive_tol: float | None = None, pass_speed: float | None = None,
+                 travel_speed: float | None = None, settle_frames: int | None = None,
+                 max_lost_frames: int | None = None, phase_timeout_frames: int | None = None,
+                 workspace: float | None = None):
+        p = with_defaults("side", ks=ks, model=model, min_gap=min_gap, eps=eps, max_attempts=max_attempts,
+                          behind=behind, ahead=ahead, clearance=clearance, arrive_tol=arrive_tol,
+                          pass_speed=pass_speed, travel_speed=travel_speed, settle_frames=settle_frames,
+                          max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
+                          workspace=workspace)
+        self._check_common("side push", name, goal=goal, n_spheres=n_spheres, sphere=sphere, eps=p["eps"],
+                           max_attempts=p["max_attempts"], clearance=p["clearance"], arrive_tol=p["arrive_tol"],
+                           travel_speed=p["travel_speed"], settle_frames=p["settle_frames"],
+                           max_lost_frames=p["max_lost_frames"], phase_timeout_frames=p["phase_timeout_frames"],
+                           workspace=p["workspace"])
+        model, min_gap, behind, ahead, pass_speed = p["model"], p["min_gap"], p["behind"], p["ahead"], p["pass_speed"]
         self.model = side_model(model) if isinstance(model, str) else model
-        self.law = law if law is not None else side_push_law(ks)
+        self.law = law if law is not None else side_push_law(p["ks"])
         self.fixed_gap = None if fixed_gap is None else check_positive("fixed_gap", fixed_gap)
         self.min_gap = check_positive("min_gap", min_gap)
         self.d_max = float(self.model.displacement(self.min_gap))
@@ -140,7 +139,7 @@ class SidePushTask(PushTask, Block):
         s, *_, done = self._geometry(new, r, spheres)
         start = ok & (ph == 0)
         if start.any():
-            new["status"] = np.where(start & done, CONVERGED, new["status"])
+            new["status"] = np.where(start & done, Status.CONVERGED, new["status"])
             self._begin(new, start & ~done, r, spheres)
         rep = ok & (ph == REPOSITION) & arrived(r, new["start"], self.arrive_tol)
         self._enter(new, rep, PASS)

@@ -1,0 +1,39 @@
+"""A gate between camera and tracker that drops every frame in a time window: forced tracking loss."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magctl import FRAME_PERIOD_S
+from magctl.core.block import Block
+from magctl.core.ports import DIMENSIONLESS, Port
+
+
+class Blackout(Block):
+    """Camera frames dropped during a time window ``[t0, t1)``: ``valid_out = valid ∧ ¬blackout``.
+
+    Sits between the camera and the tracker so that a blackout is a real loss of detections
+    (the tracker coasts, then reports ``lost``), for tests of the controller's loss handling.
+
+    Parameters
+    ----------
+    window : (float, float) or None
+        ``[t0, t1)`` in s of plant time; None passes every frame.
+    """
+
+    def __init__(self, name: str = "blackout", window=None, dt: float = FRAME_PERIOD_S):
+        self.window = None if window is None else (float(window[0]), float(window[1]))
+        super().__init__(name, inputs=[Port("valid", (), DIMENSIONLESS, "bool")],
+                         outputs=[Port("valid_out", (), DIMENSIONLESS, "bool")], dt=dt, feedthrough=True)
+
+    def initial_state(self, batch, rng=None):
+        return {"k": 0}
+
+    def output(self, state, u):
+        w = self.window
+        if w is not None and w[0] <= state["k"] * self.dt < w[1]:
+            return {"valid_out": np.zeros_like(u["valid"])}
+        return {"valid_out": u["valid"]}
+
+    def update(self, state, u):
+        return {"k": state["k"] + 1}
