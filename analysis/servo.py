@@ -93,9 +93,9 @@ def run(ctx: StudyContext) -> StudyResult:
             f"| {r['gain_margin']:.2f} | {r['phase_margin_deg']:.1f} | {r['overshoot_percent']:.1f} "
             f"| {r['kinematic_overshoot_um']:.1f} | {r['drive_chain_overshoot_mean_um']:.1f} ± "
             f"{r['drive_chain_overshoot_std_um']:.1f} |")
-    summary += ["", "The paper setting's overshoot comes from the integral filling during the constant-speed (saturated) "
-                "approach plus the camera lag (≈ v/Kp + v·d·T); the linear model alone (no saturation) predicts a "
-                "different, step-dependent number. Tuned: P-only with conditional-integration anti-windup."]
+    summary += ["", "The paper setting's overshoot comes from the integral filling during the constant-speed "
+                "(saturated) approach plus the camera lag (≈ v/Kp + v·d·T); the linear model alone (no saturation) "
+                "predicts a different, step-dependent number. Tuned: P-only with conditional-integration anti-windup."]
     paper = [
         PaperRow("servo overshoot (paper setting)", f"~{PAPER_OVERSHOOT_UM:.0f} µm (§VI-A)",
                  f"{d['drive_chain_overshoot_mean_um']:.0f} µm", "drive → coils → robot chain, 1 mm step"),

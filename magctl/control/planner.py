@@ -44,16 +44,6 @@ def segment_clearance(p0: np.ndarray, p1: np.ndarray, centres: np.ndarray) -> np
     return np.linalg.norm(centres - (p0 + t[:, None] * d), axis=1)
 
 
-def path_clearance(path: np.ndarray, centres: np.ndarray) -> float:
-    """Smallest distance from any sphere centre to the polyline ``path`` (K, 2); inf without spheres."""
-    centres = np.asarray(centres, dtype=float).reshape(-1, 2)
-    if len(centres) == 0:
-        return float("inf")
-    if len(path) == 1:
-        return float(np.linalg.norm(centres - path[0], axis=1).min())
-    return float(min(segment_clearance(a, b, centres).min() for a, b in zip(path[:-1], path[1:], strict=True)))
-
-
 class Grid:
     """Cell geometry of the workspace ``bounds = (xmin, ymin, xmax, ymax)`` with cell side ``h``."""
 

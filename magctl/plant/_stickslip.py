@@ -122,7 +122,3 @@ def speed(p: StickSlipParams, b_xy, b_osc, freq) -> np.ndarray:
     freq = np.maximum(np.asarray(freq, dtype=float), 0.0)
     return freq * step_length(p, rocking_amplitude(p, b_xy, b_osc, freq))
 
-
-def mean_tilt(theta_a) -> np.ndarray:
-    """Cycle-mean ``|θ|`` of a sinusoidal rock of amplitude ``θ_a``: ``(2/π) θ_a``."""
-    return (2.0 / np.pi) * np.asarray(theta_a)

@@ -486,10 +486,8 @@ def fluid_side_plant(gaps=None) -> TabulatedSideModel:
 
     Runs the fluid scenario once per call (seconds); gaps default to 370–900 µm.
     """
-    try:
-        from magctl.plant.fluid.scenarios import sidepush_curve
-    except ImportError as err:  # pragma: no cover - the fluid package is part of magctl
-        raise MagctlError(f"the fluid model is not available: {err}") from None
+    from magctl.plant.fluid.scenarios import sidepush_curve
+
     gaps = np.linspace(MIN_GAP, 900 * UM, 12) if gaps is None else np.asarray(gaps, dtype=float)
     res = sidepush_curve(gaps)
     d = np.abs(res.along)

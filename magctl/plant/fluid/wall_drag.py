@@ -78,11 +78,6 @@ def paper_force(radius, viscosity, flow, velocity, gap, roughness):
     return 6 * np.pi * viscosity * radius * (flow * f_shear + velocity * (f_trans + rot * f_rot))
 
 
-def free_stream_drag(radius, viscosity, flow, velocity):
-    """eq 9: ``F_D ≈ 6πμR (U - V_p)`` [N]."""
-    return 6 * np.pi * viscosity * radius * (np.asarray(flow) - np.asarray(velocity))
-
-
 # --- accurate mode -----------------------------------------------------------------------------
 def lubrication_coefficients(gap_ratio):
     """Goldman, Cox & Brenner (1967a,b) near-contact asymptotes ``(f_t, f_r, t_t, t_r, f_s, t_s)``."""
