@@ -233,9 +233,13 @@ class PushTask:
     ``STALLED``. Finished trials hold the robot where it was.
     """
 
-    def _check_common(self, what: str, name: str, *, goal, n_spheres, sphere, eps, max_attempts, clearance,
-                      arrive_tol, travel_speed, settle_frames, max_lost_frames, phase_timeout_frames, workspace):
-        """Validate and store the parameters every push task shares; errors name the task and the parameter."""
+    def _check_common(self, what: str, name: str, params: dict, *, goal, n_spheres, sphere):
+        """Validate and store the parameters every push task shares (from ``params``, the task's
+        :func:`with_defaults`); errors name the task and the parameter."""
+        eps, max_attempts, clearance = params["eps"], params["max_attempts"], params["clearance"]
+        arrive_tol, travel_speed, settle_frames = params["arrive_tol"], params["travel_speed"], params["settle_frames"]
+        max_lost_frames, phase_timeout_frames = params["max_lost_frames"], params["phase_timeout_frames"]
+        workspace = params["workspace"]
         if not 0 <= int(sphere) < int(n_spheres):
             raise MagctlError(f"{what} {name!r}: sphere index {sphere} not in 0..{int(n_spheres) - 1}")
         if int(max_attempts) < 1:

@@ -85,11 +85,7 @@ class FrontPushTask(PushTask, Block):
                           push_speed=push_speed, travel_speed=travel_speed, settle_frames=settle_frames,
                           max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
                           workspace=workspace)
-        self._check_common("front push", name, goal=goal, n_spheres=n_spheres, sphere=sphere, eps=p["eps"],
-                           max_attempts=p["max_attempts"], clearance=p["clearance"], arrive_tol=p["arrive_tol"],
-                           travel_speed=p["travel_speed"], settle_frames=p["settle_frames"],
-                           max_lost_frames=p["max_lost_frames"], phase_timeout_frames=p["phase_timeout_frames"],
-                           workspace=p["workspace"])
+        self._check_common("front push", name, p, goal=goal, n_spheres=n_spheres, sphere=sphere)
         self.law = law if law is not None else front_push_law(p["kc"], p["delta0"])
         self.push_tol = self.eps if push_tol is None else check_positive("push_tol", push_tol)
         self.contact = check_positive("contact", p["contact"])

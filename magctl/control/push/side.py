@@ -74,11 +74,7 @@ class SidePushTask(PushTask, Block):
                           pass_speed=pass_speed, travel_speed=travel_speed, settle_frames=settle_frames,
                           max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
                           workspace=workspace)
-        self._check_common("side push", name, goal=goal, n_spheres=n_spheres, sphere=sphere, eps=p["eps"],
-                           max_attempts=p["max_attempts"], clearance=p["clearance"], arrive_tol=p["arrive_tol"],
-                           travel_speed=p["travel_speed"], settle_frames=p["settle_frames"],
-                           max_lost_frames=p["max_lost_frames"], phase_timeout_frames=p["phase_timeout_frames"],
-                           workspace=p["workspace"])
+        self._check_common("side push", name, p, goal=goal, n_spheres=n_spheres, sphere=sphere)
         model, min_gap, behind, ahead, pass_speed = p["model"], p["min_gap"], p["behind"], p["ahead"], p["pass_speed"]
         self.model = side_model(model) if isinstance(model, str) else model
         self.law = law if law is not None else side_push_law(p["ks"])
