@@ -46,8 +46,8 @@ def compute(ctx: StudyContext) -> Computed:
     results = {"trials": n, "eps_as_um": EPS_AS_UM, "methods": summaries, "plant": PLANT.describe()}
     data = {"final_gap_um": {label: np.asarray(r["final_error_um"]) for label, r in runs.items()},
             "assembled": {label: np.asarray(r["status"]) == CONVERGED for label, r in runs.items()},
-            "front_trial": trial_path(exps["front-push assembly"], ctx.seed),
-            "side_trial": trial_path(exps["side-push assembly (θ_n=30°)"], ctx.seed)}
+            "front_trial": trial_path(ctx, exps["front-push assembly"]),
+            "side_trial": trial_path(ctx, exps["side-push assembly (θ_n=30°)"])}
     return Computed(results, data)
 
 

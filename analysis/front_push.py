@@ -69,7 +69,7 @@ def compute(ctx: StudyContext) -> Computed:
     results = {"trials_per_controller": n, "epsilon_um": EPS_UM, "model_delta0_um": d_model * 1e6,
                "naive_steady_error_um": steady_error(runs["K_c=0, δ(0)=0"]), "controllers": summaries,
                "plant": PLANT.describe()}
-    return Computed(results, {"runs": runs, "animated": trial_path(exps[best], ctx.seed)})
+    return Computed(results, {"runs": runs, "animated": trial_path(ctx, exps[best])})
 
 
 def draw(computed: Computed, ctx: StudyContext) -> list:

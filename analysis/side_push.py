@@ -64,7 +64,7 @@ def compute(ctx: StudyContext) -> Computed:
         summaries[label]["overshoot_fraction"] = overshoot_fraction(r, EPS_UM)
     results = {"trials_per_controller": n, "epsilon_um": EPS_UM, "controllers": summaries,
                "plant": PLANT.describe()}
-    return Computed(results, {"runs": runs, "animated": trial_path(exps["lin, K_s=0.9"], ctx.seed)})
+    return Computed(results, {"runs": runs, "animated": trial_path(ctx, exps["lin, K_s=0.9"])})
 
 
 def draw(computed: Computed, ctx: StudyContext) -> list:

@@ -60,11 +60,26 @@ def run_experiments(ctx, exps: dict[str, Experiment], n_trials: int) -> tuple[di
     return {label: found[label][1] for label in exps}, {label: found[label][0] for label in exps}
 
 
-def trial_path(exp: Experiment, seed: int) -> dict:
-    """Trial 0 of ``exp`` with its trajectories (``t``, ``robot_xy``, ``robot_heading``, ``spheres_xy``), for a GIF."""
-    r = run_push_trials([0], seed, exp=exp, keep_paths=True)
-    return {"t": r["t"], "robot_xy": r["robot_xy"][0], "robot_heading": r["robot_heading"][0],
+def path_key(exp: Experiment, seed: int) -> str:
+    """What identifies the trajectories of trial 0 of ``exp`` from root ``seed`` in a trial cache."""
+    return repr(("push-path", exp, int(seed)))
+
+
+def trial_path(ctx, exp: Experiment) -> dict:
+    """Trial 0 of ``exp`` with its trajectories, for a GIF: ``t`` (s), ``robot_xy`` ``(T, 2)`` (m),
+    ``robot_heading`` ``(T,)`` (rad), ``spheres_xy`` ``(T, N, 2)`` (m) and ``title``.
+
+    Taken from ``ctx.trial_cache`` like :func:`run_experiments` takes trials, else run and stored.
+    """
+    key = path_key(exp, ctx.seed)
+    hit = ctx.trial_cache.lookup(key, (ctx.study, *ctx.reuses))
+    if hit is not None:
+        return hit[1]
+    r = run_push_trials([0], ctx.seed, exp=exp, keep_paths=True)
+    path = {"t": r["t"], "robot_xy": r["robot_xy"][0], "robot_heading": r["robot_heading"][0],
             "spheres_xy": r["spheres_xy"][0], "title": exp.label or exp.kind}
+    ctx.trial_cache.store(key, ctx.study, path)
+    return path
 
 
 def carried_errors(result: dict) -> np.ndarray:
