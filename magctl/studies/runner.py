@@ -99,34 +99,35 @@ class StudyResult:
 
 
 class TrialCache:
-    """Trial results shared between the studies of one run, each entry tagged with the study that stored it.
+    """Trial results shared between the studies of one run, each entry held under the study that stored it.
 
     Keys are whatever identifies a batch of trials completely (for push trials: the
     experiment, the number of trials and the root seed; the executor does not enter,
     since a trial's result does not depend on it). A study looks entries up through
     :meth:`lookup` with the studies it may take them from, so reuse happens only where a
-    study declares it (``REUSES``).
+    study declares it (``REUSES``). Two studies that store the same key keep one entry
+    each: neither overwrites the other's.
     """
 
     def __init__(self) -> None:
-        self._entries: dict[str, tuple[str, Any]] = {}
+        self._entries: dict[tuple[str, str], Any] = {}
 
     def __len__(self) -> int:
         return len(self._entries)
 
     def __contains__(self, key: str) -> bool:
-        return key in self._entries
+        return any(k == key for _, k in self._entries)
 
     def store(self, key: str, producer: str, value: Any) -> None:
         """Keep ``value`` under ``key``, stored by study ``producer``."""
-        self._entries[key] = (producer, value)
+        self._entries[(producer, key)] = value
 
     def lookup(self, key: str, allowed: Iterable[str]) -> tuple[str, Any] | None:
-        """``(producer, value)`` if ``key`` was stored by one of the ``allowed`` studies, else None."""
-        hit = self._entries.get(key)
-        if hit is None or hit[0] not in set(allowed):
-            return None
-        return hit
+        """``(producer, value)`` for the first of the ``allowed`` studies that stored ``key``, else None."""
+        for producer in allowed:
+            if (producer, key) in self._entries:
+                return producer, self._entries[(producer, key)]
+        return None
 
 
 @dataclass
@@ -253,7 +254,25 @@ def get(name: str) -> ModuleType:
 
 
 def compute(name: str, ctx: StudyContext) -> Computed:
-    """Run study ``name``'s compute step only (no figures, no matplotlib)."""
+    """Run study ``name``'s compute step only (no figures, no matplotlib).
+
+    Parameters
+    ----------
+    name : str
+        Study name (its ``NAME``).
+    ctx : StudyContext
+        Passed on with ``study`` set to ``name`` and ``reuses`` to the module's ``REUSES``;
+        the trial cache is the same object.
+
+    Returns
+    -------
+    Computed
+
+    Raises
+    ------
+    MagctlError
+        No such study, or its compute step returned something else than :class:`Computed`.
+    """
     module = get(name)
     ctx = dataclasses.replace(ctx, study=name, reuses=tuple(getattr(module, "REUSES", ())))
     computed = module.compute(ctx)
@@ -263,9 +282,22 @@ def compute(name: str, ctx: StudyContext) -> Computed:
 
 
 def run_study(name: str, ctx: StudyContext, *, figures: bool = True) -> StudyResult:
-    """Compute study ``name``, draw its figures (unless ``figures`` is False) and summarise it."""
+    """Compute study ``name``, draw its figures and summarise it.
+
+    Parameters
+    ----------
+    name : str
+        Study name.
+    ctx : StudyContext
+    figures : bool
+        False: no ``draw`` step (no files written, matplotlib not needed).
+
+    Returns
+    -------
+    StudyResult
+        ``results`` from compute, ``figures`` from draw, ``summary`` and ``paper`` from summarise.
+    """
     module = get(name)
-    ctx = dataclasses.replace(ctx, study=name, reuses=tuple(getattr(module, "REUSES", ())))
     computed = compute(name, ctx)
     paths = list(module.draw(computed, ctx)) if figures else []
     summary, paper = module.summarise(computed)

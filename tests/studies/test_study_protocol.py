@@ -113,6 +113,10 @@ def test_trial_cache_gives_entries_only_to_the_studies_allowed():
     assert cache.lookup("k", ("convergence", "front-push")) == ("front-push", 42)
     assert cache.lookup("k", ("convergence",)) is None
     assert cache.lookup("other", ("front-push",)) is None
+    cache.store("k", "convergence", 43)  # its own entry; the front-push one stays
+    assert len(cache) == 2
+    assert cache.lookup("k", ("convergence", "front-push")) == ("convergence", 43)
+    assert cache.lookup("k", ("front-push",)) == ("front-push", 42)
 
 
 @pytest.fixture
