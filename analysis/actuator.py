@@ -7,18 +7,14 @@ docs/plant-actuator.md.
 
 from __future__ import annotations
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from magctl import FRAME_PERIOD_S  # noqa: E402
-from magctl.core import Diagram, simulate  # noqa: E402
-from magctl.plant.coils import CoilActuator, load_coils  # noqa: E402
-from magctl.plant.drive import Drive, actuated_robot, load_drive  # noqa: E402
-from magctl.plant.robot import StickSlipRobot, heading_time_constant, load_robot  # noqa: E402
-from magctl.studies.runner import PaperRow, StudyContext, StudyResult  # noqa: E402
+from magctl import FRAME_PERIOD_S
+from magctl.core import Diagram, simulate
+from magctl.plant.coils import CoilActuator, load_coils
+from magctl.plant.drive import Drive, actuated_robot, load_drive
+from magctl.plant.robot import StickSlipRobot, heading_time_constant, load_robot
+from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "actuator"
 TITLE = "Coil actuator and stick-slip robot: speed–frequency curve and heading response"
@@ -27,6 +23,8 @@ ORDER = 5
 PAPER_SPEED = 0.4e-3  # paper §IV-C
 PAPER_TILT = np.pi / 8  # paper §IV-C
 CST_TO_PA_S = 1e-6 * 950.0  # 20 cSt silicone oil at 950 kg/m³ (models/fluid.toml)
+STRONG_OSC_FIELD = 8e-3  # T: a rocking command the vertical coils' voltage limit attenuates at high frequency
+WEAK_FIELD_FRACTION = 0.1  # heading step also at this fraction of the static field
 
 
 def coils_and_robot(robot_params, coils) -> Diagram:
@@ -54,7 +52,8 @@ def speed_curve(robot_params, coils, b_static, b_osc, freqs, steps=4):
             o["saturated"][:, -1])
 
 
-def run(ctx: StudyContext) -> StudyResult:
+def compute(ctx: StudyContext) -> Computed:
+    """Speed–frequency curves (20/50 cSt, coil-limited strong command), the nominal drive chain, heading steps."""
     robot, coils, drive_set = load_robot(), load_coils(), load_drive()
     drive = Drive("drive", robot, coils, drive_set)
     b0, bo = drive_set.static_field, drive_set.osc_field
@@ -62,9 +61,7 @@ def run(ctx: StudyContext) -> StudyResult:
 
     v20, tilt20, _, _ = speed_curve(robot, coils, b0, bo, freqs)
     v50, _, _, _ = speed_curve(robot.with_viscosity(50 * CST_TO_PA_S), coils, b0, bo, freqs)
-    # a strong rocking command that the vertical coils' voltage limit attenuates at high frequency
-    bo_strong = 8e-3
-    v_strong, _, bdel_strong, sat_strong = speed_curve(robot, coils, b0, bo_strong, freqs)
+    v_strong, _, _, sat_strong = speed_curve(robot, coils, b0, STRONG_OSC_FIELD, freqs)
     k = int(np.argmax(v20))
     f_att = float(freqs[np.argmax(sat_strong)]) if sat_strong.any() else float("nan")
 
@@ -77,42 +74,13 @@ def run(ctx: StudyContext) -> StudyResult:
     tilt_nom = float(res.outputs["tilt"][0, -1])
 
     # heading step response: 90° turn of the aligning field, nominal and weak field
-    fields = np.array([b0, 0.1 * b0])
+    fields = np.array([b0, WEAK_FIELD_FRACTION * b0])
     hsteps = 12
     bot = StickSlipRobot("robot", robot, variability=False)
     hd = Diagram("h", [bot], inputs={"b": "robot.b_static_delivered", "bo": "robot.b_osc_delivered",
                                      "f": "robot.freq_delivered"}, outputs={"heading": "robot.heading"})
     hres = simulate(hd, hsteps, batch=2, inputs={"b": np.stack([0 * fields, fields], 1), "bo": 0.0, "f": 0.0})
-    head = hres.outputs["heading"]
     taus = heading_time_constant(robot, fields)
-    t = np.arange(hsteps) * FRAME_PERIOD_S
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    ax = axes[0]
-    ax.semilogx(freqs, v20 * 1e3, label="20 cSt (paper's oil)")
-    ax.semilogx(freqs, v50 * 1e3, label="50 cSt")
-    ax.semilogx(freqs, v_strong * 1e3, "--", label=f"20 cSt, b_osc = {bo_strong * 1e3:.0f} mT (coil-limited)")
-    ax.axhline(PAPER_SPEED * 1e3, color="k", lw=0.8, ls=":", label="paper: 0.4 mm/s")
-    ax.axvline(drive.nominal_freq, color="grey", lw=0.8, ls=":")
-    ax.set_xlabel("field frequency (Hz)")
-    ax.set_ylabel("robot speed (mm/s)")
-    ax.set_title(f"Speed vs frequency (B0 = {b0 * 1e3:.1f} mT, b_osc = {bo * 1e3:.2f} mT)")
-    ax.legend(fontsize=8)
-    ax = axes[1]
-    tf = np.linspace(0, t[-1], 400)
-    for j, (b, tau) in enumerate(zip(fields, taus)):
-        closed = np.pi / 2 + 2 * np.arctan(np.tan(-np.pi / 4) * np.exp(-tf / tau))
-        (line,) = ax.plot(tf * 1e3, np.degrees(closed), lw=1,
-                          label=f"closed form, |B| = {b * 1e3:.1f} mT, τ = {tau * 1e3:.1f} ms")
-        ax.plot(t * 1e3, np.degrees(head[j]), "o", ms=4, color=line.get_color(),
-                label=f"block at 30 Hz, |B| = {b * 1e3:.1f} mT")
-    ax.set_xlabel("time (ms)")
-    ax.set_ylabel("heading (deg)")
-    ax.set_title("Heading after a 90° turn of the field")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig_path = ctx.figure_path("actuator")
-    fig.savefig(fig_path, dpi=110)
-    plt.close(fig)
 
     results = {
         "static_field_mT": b0 * 1e3,
@@ -129,18 +97,78 @@ def run(ctx: StudyContext) -> StudyResult:
         "heading_time_constant_weak_field_s": float(taus[1]),
         "coil_time_constants_s": [c.time_constant for c in coils.coils],
         "drive_max_speed_um_s": drive_set.max_speed * 1e6,
-        "frequencies_Hz": freqs[::20],
-        "speed_20cSt_um_s": v20[::20] * 1e6,
-        "tilt_20cSt_rad": tilt20[::20],
+        "frequencies_Hz": freqs[::20].tolist(),
+        "speed_20cSt_um_s": (v20[::20] * 1e6).tolist(),
+        "tilt_20cSt_rad": tilt20[::20].tolist(),
     }
-    tau_coils = [c.time_constant for c in coils.coils]
+    data = {"freqs_Hz": freqs, "v20_m_s": v20, "v50_m_s": v50, "v_strong_m_s": v_strong, "peak_index": k,
+            "static_field_T": b0, "osc_field_T": bo, "nominal_freq_Hz": drive.nominal_freq,
+            "v_nominal_m_s": v_nom, "tilt_nominal_rad": tilt_nom,
+            "heading_t_s": np.arange(hsteps) * FRAME_PERIOD_S, "heading_rad": hres.outputs["heading"],
+            "heading_fields_T": fields, "heading_taus_s": taus}
+    return Computed(results, data)
+
+
+def heading_closed_form(t, tau):
+    """Heading after the aligning field turns by 90° at t = 0 from heading 0: ``π/2 + 2 atan(tan(−π/4) e^(−t/τ))``.
+
+    The solution of ``τ ψ' = sin(π/2 − ψ)``, the overdamped alignment of the magnet with the field.
+    """
+    return np.pi / 2 + 2 * np.arctan(np.tan(-np.pi / 4) * np.exp(-np.asarray(t) / tau))
+
+
+def draw(computed: Computed, ctx: StudyContext) -> list:
+    """Speed versus frequency, and the heading step against its closed form."""
+    from magctl.studies.figures import pyplot
+
+    plt = pyplot()
+    d = computed.data
+    freqs, b0, bo = d["freqs_Hz"], d["static_field_T"], d["osc_field_T"]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    ax = axes[0]
+    ax.semilogx(freqs, d["v20_m_s"] * 1e3, label="20 cSt (paper's oil)")
+    ax.semilogx(freqs, d["v50_m_s"] * 1e3, label="50 cSt")
+    ax.semilogx(freqs, d["v_strong_m_s"] * 1e3, "--",
+                label=f"20 cSt, b_osc = {STRONG_OSC_FIELD * 1e3:.0f} mT (coil-limited)")
+    ax.axhline(PAPER_SPEED * 1e3, color="k", lw=0.8, ls=":", label="paper: 0.4 mm/s")
+    ax.axvline(d["nominal_freq_Hz"], color="grey", lw=0.8, ls=":")
+    ax.set_xlabel("field frequency (Hz)")
+    ax.set_ylabel("robot speed (mm/s)")
+    ax.set_title(f"Speed vs frequency (B0 = {b0 * 1e3:.1f} mT, b_osc = {bo * 1e3:.2f} mT)")
+    ax.legend(fontsize=8)
+    ax = axes[1]
+    t = d["heading_t_s"]
+    tf = np.linspace(0, t[-1], 400)
+    for j, (b, tau) in enumerate(zip(d["heading_fields_T"], d["heading_taus_s"])):
+        (line,) = ax.plot(tf * 1e3, np.degrees(heading_closed_form(tf, tau)), lw=1,
+                          label=f"closed form, |B| = {b * 1e3:.1f} mT, τ = {tau * 1e3:.1f} ms")
+        ax.plot(t * 1e3, np.degrees(d["heading_rad"][j]), "o", ms=4, color=line.get_color(),
+                label=f"block at 30 Hz, |B| = {b * 1e3:.1f} mT")
+    ax.set_xlabel("time (ms)")
+    ax.set_ylabel("heading (deg)")
+    ax.set_title("Heading after a 90° turn of the field")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig_path = ctx.figure_path("actuator")
+    fig.savefig(fig_path, dpi=110)
+    plt.close(fig)
+    return [fig_path]
+
+
+def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
+    """Nominal speed and tilt, the speed peak, the coil limit and the heading time constants against §II, §IV-C."""
+    r, d = computed.results, computed.data
+    v20, v50, k, freqs = d["v20_m_s"], d["v50_m_s"], d["peak_index"], d["freqs_Hz"]
+    v_nom, tilt_nom = d["v_nominal_m_s"], d["tilt_nominal_rad"]
+    taus, fields = d["heading_taus_s"], d["heading_fields_T"]
+    b0, f_att, tau_coils = d["static_field_T"], r["strong_command_saturates_above_Hz"], r["coil_time_constants_s"]
     summary = [
-        f"- Nominal command {PAPER_SPEED * 1e3:.1f} mm/s → {drive.nominal_freq:.1f} Hz; simulated "
+        f"- Nominal command {PAPER_SPEED * 1e3:.1f} mm/s → {d['nominal_freq_Hz']:.1f} Hz; simulated "
         f"{v_nom * 1e3:.3f} mm/s, mean tilt {tilt_nom:.3f} rad (paper π/8 = {PAPER_TILT:.3f}).",
         f"- Speed peaks at {v20[k] * 1e3:.2f} mm/s at {freqs[k]:.0f} Hz (20 cSt), "
-        f"{v50.max() * 1e3:.2f} mm/s at 50 cSt; stops above {results['stop_frequency_Hz']:.0f} Hz "
+        f"{v50.max() * 1e3:.2f} mm/s at 50 cSt; stops above {r['stop_frequency_Hz']:.0f} Hz "
         "when the rocking lag drops below the break-away angle.",
-        f"- A {bo_strong * 1e3:.0f} mT rocking command is voltage-limited by the vertical coils above "
+        f"- A {STRONG_OSC_FIELD * 1e3:.0f} mT rocking command is voltage-limited by the vertical coils above "
         f"{f_att:.0f} Hz (saturated flag set).",
         f"- Heading time constant {taus[0] * 1e3:.1f} ms at {b0 * 1e3:.1f} mT "
         f"({taus[1] * 1e3:.0f} ms at {fields[1] * 1e3:.1f} mT); coil L/R "
@@ -156,4 +184,4 @@ def run(ctx: StudyContext) -> StudyResult:
         PaperRow("top speed in oil", "~4 mm/s (Mag-µBot literature)", f"{v20[k] * 1e3:.2f} mm/s",
                  "calibrated lower; the drive needs only ≤ 1 mm/s"),
     ]
-    return StudyResult(NAME, results, [fig_path], summary, paper)
+    return summary, paper

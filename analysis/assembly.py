@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.control.push.common import CONVERGED
+from magctl.control.status import Status
 from magctl.loops import Experiment, Variability, geometry
-from magctl.studies.push import animate_one, run_experiments, summarise
-from magctl.studies.runner import PaperRow, StudyContext, StudyResult
+from magctl.studies.push import controller_summary, run_experiments, trial_path
+from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "assembly"
 TITLE = "Figs 3, 9, 15 — two-sphere assembly: front push vs side push"
@@ -37,24 +37,33 @@ def experiments() -> dict[str, Experiment]:
     }
 
 
-def run(ctx: StudyContext) -> StudyResult:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def compute(ctx: StudyContext) -> Computed:
+    """Run both assembly methods; their final gaps, and trial 0 of each for the GIFs."""
     n = ctx.n_trials(DEFAULT_TRIALS)
     exps = experiments()
-    results = run_experiments(ctx, exps, n)
-    summaries = {label: summarise(r) for label, r in results.items()}
+    runs, _ = run_experiments(ctx, exps, n)
+    summaries = {label: controller_summary(r) for label, r in runs.items()}
+    results = {"trials": n, "eps_as_um": EPS_AS_UM, "methods": summaries, "plant": PLANT.describe()}
+    data = {"final_gap_um": {label: np.asarray(r["final_error_um"]) for label, r in runs.items()},
+            "assembled": {label: np.asarray(r["status"]) == Status.CONVERGED for label, r in runs.items()},
+            "front_trial": trial_path(ctx, exps["front-push assembly"]),
+            "side_trial": trial_path(ctx, exps["side-push assembly (θ_n=30°)"])}
+    return Computed(results, data)
+
+
+def draw(computed: Computed, ctx: StudyContext) -> list:
+    """Histogram of the final gaps (cf. Figs 3, 15) and a GIF of each method."""
+    from magctl.studies.figures import animate_trial, pyplot
+
+    plt = pyplot()
+    d = computed.data
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for label, r in results.items():
-        gaps = np.asarray(r["final_error_um"])
-        ax.hist(gaps, bins=30, alpha=0.6, label=f"{label}: {np.mean(r['status'] == CONVERGED):.0%} assembled")
+    for label, gaps in d["final_gap_um"].items():
+        ax.hist(gaps, bins=30, alpha=0.6, label=f"{label}: {np.mean(d['assembled'][label]):.0%} assembled")
     ax.axvline(EPS_AS_UM, color="k", ls="--", lw=0.8, label=f"ε_as = {EPS_AS_UM:g} µm (eq 21)")
     ax.set_xlabel("final surface gap between the spheres (µm)")
     ax.set_ylabel("trials")
-    ax.set_title(f"Two-sphere assembly, {n} trials each (cf. Figs 3, 15)", fontsize=10)
+    ax.set_title(f"Two-sphere assembly, {computed.results['trials']} trials each (cf. Figs 3, 15)", fontsize=10)
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -62,12 +71,16 @@ def run(ctx: StudyContext) -> StudyResult:
     fig.savefig(hist, dpi=120)
     plt.close(fig)
     goal = geometry("assembly")["goal"]
-    figs = [hist,
-            animate_one(exps["front-push assembly"], ctx.figure_path("assembly_front", ".gif"), ctx.seed, goal),
-            animate_one(exps["side-push assembly (θ_n=30°)"], ctx.figure_path("assembly_side", ".gif"), ctx.seed,
-                        goal)]
+    return [hist, animate_trial(d["front_trial"], ctx.figure_path("assembly_front", ".gif"), goal),
+            animate_trial(d["side_trial"], ctx.figure_path("assembly_side", ".gif"), goal)]
+
+
+def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
+    """Share assembled and attempts of each method, against the paper's Figs 3 and 15."""
+    r = computed.results
+    summaries = r["methods"]
     front, side = summaries["front-push assembly"], summaries["side-push assembly (θ_n=30°)"]
-    summary = [f"{n} trials each; plant: {PLANT.describe()}.", "",
+    summary = [f"{r['trials']} trials each; plant: {r['plant']}.", "",
                "| method | assembled (eq 21) | mean attempts | median final gap (µm) |", "|---|---|---|---|"]
     for label, s in summaries.items():
         summary.append(f"| {label} | {s['converged_fraction']:.0%} | {s['mean_attempts_all']:.1f} | "
@@ -78,5 +91,4 @@ def run(ctx: StudyContext) -> StudyResult:
         PaperRow("assembly by side pushing, θ_n = 30°", "succeeds (after two side pushes, Fig 15f)",
                  f"{side['converged_fraction']:.0%} assembled, {side['mean_attempts_all']:.1f} mean attempts"),
     ]
-    return StudyResult(NAME, {"trials": n, "eps_as_um": EPS_AS_UM, "methods": summaries, "plant": PLANT.describe()},
-                       figs, summary, paper)
+    return summary, paper

@@ -1,25 +1,23 @@
 """Fig 14 — mean positioning error versus attempt for the best front and side controllers.
 
-Reuses the trials of the ``front-push`` and ``side-push`` studies when they ran in the
-same process (``magctl reproduce``); runs just the two controllers otherwise.
+Declares ``REUSES = ("front-push", "side-push")``: in ``magctl reproduce`` it takes those two
+controllers' trials from the run's trial cache, where the front-push and side-push studies
+left them, and says so in its summary; run alone it runs just the two controllers.
 """
 
 from __future__ import annotations
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from magctl.studies import runner as studies  # noqa: E402
-from magctl.studies.push import carried_errors, run_experiments, summarise  # noqa: E402
-from magctl.studies.runner import PaperRow, StudyContext, StudyResult  # noqa: E402
+from magctl.studies import runner as studies
+from magctl.studies.push import carried_errors, controller_summary, reuse_note, run_experiments
+from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "convergence"
 TITLE = "Fig 14 — error versus attempt for the best front and side controllers"
 ORDER = 52
 DEFAULT_TRIALS = 100
+REUSES = ("front-push", "side-push")
 
 
 def attempts_until(summary: dict, share: float) -> int | None:
@@ -28,17 +26,42 @@ def attempts_until(summary: dict, share: float) -> int | None:
     return hits[0] if hits else None
 
 
-def run(ctx: StudyContext) -> StudyResult:
+def compute(ctx: StudyContext) -> Computed:
+    """Errors after every attempt of the best front (K_c=1, model δ(0)) and side (lin, K_s=0.9) controllers."""
     n = ctx.n_trials(DEFAULT_TRIALS)
     front, side = studies.get("front-push"), studies.get("side-push")
     f_exp = front.controllers(front.model_delta0())
     f_label = next(k for k in f_exp if k.startswith("K_c=1,") and "δ(0)=0" not in k)
     s_label = "lin, K_s=0.9"
-    runs = run_experiments(ctx, {f_label: f_exp[f_label], s_label: side.experiments()[s_label]}, n)
+    runs, sources = run_experiments(ctx, {f_label: f_exp[f_label], s_label: side.experiments()[s_label]}, n)
     f_err, s_err = carried_errors(runs[f_label]), carried_errors(runs[s_label])
+    f_sum, s_sum = controller_summary(runs[f_label]), controller_summary(runs[s_label])
+    results = {
+        "front_controller": f_label, "side_controller": s_label, "trials": n,
+        "front_mean_error_um": np.nanmean(f_err, axis=0).tolist(),
+        "side_mean_error_um": np.nanmean(s_err, axis=0).tolist(),
+        "front_all_converged_after_attempts": attempts_until(f_sum, 1.0),
+        "side_all_converged_after_attempts": attempts_until(s_sum, 1.0),
+        "front_95pct_converged_after_attempts": attempts_until(f_sum, 0.95),
+        "side_95pct_converged_after_attempts": attempts_until(s_sum, 0.95),
+        "trials_from_study": sources,
+    }
+    return Computed(results, {"front_error_um": f_err, "side_error_um": s_err,
+                              "front_converged_by_attempt": f_sum["converged_by_attempt"],
+                              "side_converged_by_attempt": s_sum["converged_by_attempt"],
+                              "front_eps_um": front.EPS_UM, "side_eps_um": side.EPS_UM,
+                              "front_max_attempts": front.MAX_ATTEMPTS, "side_max_attempts": side.MAX_ATTEMPTS})
+
+
+def draw(computed: Computed, ctx: StudyContext) -> list:
+    """Fig 14: mean and median error versus attempt, front and side side by side."""
+    from magctl.studies.figures import pyplot
+
+    plt = pyplot()
+    r, d = computed.results, computed.data
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for ax, err, eps, label in ((axes[0], f_err, front.EPS_UM, f"front: {f_label}"),
-                                (axes[1], s_err, side.EPS_UM, f"side: {s_label}")):
+    for ax, err, eps, label in ((axes[0], d["front_error_um"], d["front_eps_um"], f"front: {r['front_controller']}"),
+                                (axes[1], d["side_error_um"], d["side_eps_um"], f"side: {r['side_controller']}")):
         xs = np.arange(err.shape[1])
         lo, mid, hi = np.nanpercentile(err, [25, 50, 75], axis=0)
         ax.plot(xs, np.nanmean(err, axis=0), "o-", ms=3, label=f"{label}: mean")
@@ -50,37 +73,39 @@ def run(ctx: StudyContext) -> StudyResult:
         ax.set_ylabel("positioning error (µm)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    fig.suptitle(f"Positioning error over {n} trials (cf. Fig 14)", fontsize=10)
+    fig.suptitle(f"Positioning error over {r['trials']} trials (cf. Fig 14)", fontsize=10)
     fig.tight_layout()
     path = ctx.figure_path("convergence")
     fig.savefig(path, dpi=120)
     plt.close(fig)
-    f_sum, s_sum = summarise(runs[f_label]), summarise(runs[s_label])
-    f_all, s_all = attempts_until(f_sum, 1.0), attempts_until(s_sum, 1.0)
-    f_95, s_95 = attempts_until(f_sum, 0.95), attempts_until(s_sum, 0.95)
-    results = {
-        "front_controller": f_label, "side_controller": s_label, "trials": n,
-        "front_mean_error_um": np.nanmean(f_err, axis=0).tolist(),
-        "side_mean_error_um": np.nanmean(s_err, axis=0).tolist(),
-        "front_all_converged_after_attempts": f_all, "side_all_converged_after_attempts": s_all,
-        "front_95pct_converged_after_attempts": f_95, "side_95pct_converged_after_attempts": s_95,
-    }
+    return [path]
+
+
+def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
+    """Attempts until every (and 95 % of the) trials were within ε_p, against the paper's Fig 14."""
+    r, d = computed.results, computed.data
+    f_label, s_label = r["front_controller"], r["side_controller"]
+    f_all, s_all = r["front_all_converged_after_attempts"], r["side_all_converged_after_attempts"]
+    f_95, s_95 = r["front_95pct_converged_after_attempts"], r["side_95pct_converged_after_attempts"]
 
     def after(a, limit: int) -> str:
         return f"after {a} attempts" if a is not None else f"not within the {limit}-attempt limit"
 
-    def every(a, limit: int, summ: dict) -> str:
+    def every(a, limit: int, by_attempt: list) -> str:
         if a is not None:
             return after(a, limit)
-        return f"{after(a, limit)} ({1 - summ['converged_by_attempt'][-1]:.0%} still outside then)"
+        return f"{after(a, limit)} ({1 - by_attempt[-1]:.0%} still outside then)"
 
-    f_lim, s_lim = front.MAX_ATTEMPTS, side.MAX_ATTEMPTS
+    f_lim, s_lim = d["front_max_attempts"], d["side_max_attempts"]
     summary = [f"Best front controller {f_label}: every trial within ε_p (eq 12, as the task measures it) "
-               f"{every(f_all, f_lim, f_sum)}, 95 % {after(f_95, f_lim)}; paper: all after 4.",
-               f"Best side controller {s_label}: every trial within ε_p {every(s_all, s_lim, s_sum)}, "
-               f"95 % {after(s_95, s_lim)}; paper: all after 10."]
+               f"{every(f_all, f_lim, d['front_converged_by_attempt'])}, 95 % {after(f_95, f_lim)}; "
+               "paper: all after 4.",
+               f"Best side controller {s_label}: every trial within ε_p "
+               f"{every(s_all, s_lim, d['side_converged_by_attempt'])}, "
+               f"95 % {after(s_95, s_lim)}; paper: all after 10.",
+               "", reuse_note(r["trials_from_study"], NAME)]
     paper = [PaperRow("attempts until all trials within ε_p, front (best)", "4",
                       f"{after(f_all, f_lim)}; 95 % {after(f_95, f_lim)}"),
              PaperRow("attempts until all trials within ε_p, side (best)", "10",
                       f"{after(s_all, s_lim)}; 95 % {after(s_95, s_lim)}")]
-    return StudyResult(NAME, results, [path], summary, paper)
+    return summary, paper

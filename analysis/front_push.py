@@ -14,18 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.control.push.common import ATTEMPT_LIMIT
+from magctl.control.status import Status
 from magctl.loops import Experiment, Variability, geometry
 from magctl.plant.fluid.scenarios import release_displacement
-from magctl.studies.push import (
-    animate_one,
-    controller_table,
-    plot_convergence,
-    plot_errors,
-    run_experiments,
-    summarise,
-)
-from magctl.studies.runner import PaperRow, StudyContext, StudyResult
+from magctl.studies.push import controller_summary, controller_table, run_experiments, trial_path
+from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "front-push"
 TITLE = "Figs 10–11 — front pushing: six controllers in closed loop"
@@ -43,7 +36,7 @@ def model_delta0() -> float:
 
 def steady_error(result: dict) -> float:
     """Median final error of the trials that used every attempt (the loop's steady state), in µm."""
-    limit = np.asarray(result["status"]) == ATTEMPT_LIMIT
+    limit = np.asarray(result["status"]) == Status.ATTEMPT_LIMIT
     final = np.asarray(result["final_error_um"])
     return float(np.median(final[limit] if limit.any() else final))
 
@@ -65,30 +58,46 @@ def controllers(delta_model: float) -> dict[str, Experiment]:
     return out
 
 
-def run(ctx: StudyContext) -> StudyResult:
+def compute(ctx: StudyContext) -> Computed:
+    """Run the six controllers and reduce their trials; trial 0 of the fastest one kept for the GIF."""
     n = ctx.n_trials(DEFAULT_TRIALS)
     d_model = model_delta0()
     exps = controllers(d_model)
-    results = run_experiments(ctx, exps, n)
-    summaries = {label: summarise(r) for label, r in results.items()}
-    naive = summaries["K_c=0, δ(0)=0"]
-    steady_naive = steady_error(results["K_c=0, δ(0)=0"])
-    figs = [
-        plot_convergence(summaries, ctx.figure_path("front_push_convergence"),
-                         f"Front pushing, {n} trials per controller (cf. Fig 10)", MAX_ATTEMPTS),
-        plot_errors({k: results[k] for k in ("K_c=0, δ(0)=0", "K_c=0.5, δ(0)=0", "K_c=1, δ(0)=0")},
-                    ctx.figure_path("front_push_errors"), "Front pushing error (cf. Fig 11)", EPS_UM),
-    ]
+    runs, _ = run_experiments(ctx, exps, n)
+    summaries = {label: controller_summary(r) for label, r in runs.items()}
     best = min(summaries, key=lambda k: summaries[k]["mean_attempts_all"])
-    g = geometry("front")
-    figs.append(animate_one(exps[best], ctx.figure_path("front_push", ".gif"), ctx.seed, g["goal"]))
+    results = {"trials_per_controller": n, "epsilon_um": EPS_UM, "model_delta0_um": d_model * 1e6,
+               "naive_steady_error_um": steady_error(runs["K_c=0, δ(0)=0"]), "controllers": summaries,
+               "plant": PLANT.describe()}
+    return Computed(results, {"runs": runs, "animated": trial_path(ctx, exps[best])})
 
+
+def draw(computed: Computed, ctx: StudyContext) -> list:
+    """Fig 10 (converged vs attempts), Fig 11 (error vs attempt) and a GIF of one push."""
+    from magctl.studies.figures import animate_trial, plot_convergence, plot_errors
+
+    r, runs = computed.results, computed.data["runs"]
+    n = r["trials_per_controller"]
+    return [
+        plot_convergence(r["controllers"], ctx.figure_path("front_push_convergence"),
+                         f"Front pushing, {n} trials per controller (cf. Fig 10)", MAX_ATTEMPTS),
+        plot_errors({k: runs[k] for k in ("K_c=0, δ(0)=0", "K_c=0.5, δ(0)=0", "K_c=1, δ(0)=0")},
+                    ctx.figure_path("front_push_errors"), "Front pushing error (cf. Fig 11)", EPS_UM),
+        animate_trial(computed.data["animated"], ctx.figure_path("front_push", ".gif"), geometry("front")["goal"]),
+    ]
+
+
+def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
+    """The controller table and the paper's front-push claims beside ours."""
+    r = computed.results
+    summaries, n, steady_naive = r["controllers"], r["trials_per_controller"], r["naive_steady_error_um"]
+    naive = summaries["K_c=0, δ(0)=0"]
     kc1 = {k: v for k, v in summaries.items() if k.startswith("K_c=1,")}
     kc05 = {k: v for k, v in summaries.items() if k.startswith("K_c=0.5,")}
     mean_att = {k: v["mean_attempts_all"] for k, v in summaries.items()}
     summary = [
-        f"{n} trials per controller; plant: {PLANT.describe()}.",
-        f"Model δ(0) = {d_model * 1e6:.0f} µm (the fluid model's D_p,r; paper's simulation: 127 µm).",
+        f"{n} trials per controller; plant: {r['plant']}.",
+        f"Model δ(0) = {r['model_delta0_um']:.0f} µm (the fluid model's D_p,r; paper's simulation: 127 µm).",
         "",
         *controller_table(summaries, MAX_ATTEMPTS, ("final error (µm, median)", "final_error_um_median")),
     ]
@@ -104,9 +113,4 @@ def run(ctx: StudyContext) -> StudyResult:
     ] + [PaperRow(f"front push N_p, {label}", "Fig 10 (bars)",
                   f"{s['mean_attempts_all']:.2f} ({s['converged_fraction']:.0%} converged)")
          for label, s in summaries.items()]
-    return StudyResult(
-        NAME,
-        {"trials_per_controller": n, "epsilon_um": EPS_UM, "model_delta0_um": d_model * 1e6,
-         "naive_steady_error_um": steady_naive, "controllers": summaries, "plant": PLANT.describe()},
-        figs, summary, paper,
-    )
+    return summary, paper

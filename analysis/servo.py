@@ -1,4 +1,4 @@
-"""Servo study: the 30 Hz PI visual-servo loop, paper-like vs tuned (the default) (paper §II, §VI-A).
+"""Servo study: the 30 Hz PI visual-servo loop, paper-like setting vs tuned, the default (paper §II, §VI-A).
 
 The paper's servo overshot the goal by about 100 µm (constant robot speed and
 image-processing lag). The study shows the step response of both settings in
@@ -9,18 +9,14 @@ loop's poles and margins.
 
 from __future__ import annotations
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from magctl.control.servo import Servo, servo_params  # noqa: E402
-from magctl.core import Constant, Diagram, simulate  # noqa: E402
-from magctl.sensing.camera import Camera, camera_params  # noqa: E402
-from magctl.sensing.tracker import Tracker  # noqa: E402
-from magctl.stability.servo import analyse, simulated_overshoot, step_report  # noqa: E402
-from magctl.studies.runner import PaperRow, StudyContext, StudyResult  # noqa: E402
+from magctl.control.servo import Servo, servo_params
+from magctl.core import Constant, Diagram, simulate
+from magctl.sensing.camera import Camera, camera_params
+from magctl.sensing.tracker import Tracker
+from magctl.stability.servo import analyse, simulated_overshoot, step_report
+from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "servo"
 TITLE = "PI visual servo: ~100 µm overshoot of §VI-A (paper setting) vs tuned; poles and margins"
@@ -50,12 +46,13 @@ def drive_chain_loop(servo: Servo, latency: int, noise_px: float) -> Diagram:
     return Diagram("loop", blocks, conns, inputs={"target": "servo.target"}, outputs={"position": "plant.position"})
 
 
-def run(ctx: StudyContext) -> StudyResult:
+def compute(ctx: StudyContext) -> Computed:
+    """Poles, margins and 1 mm step responses (linear, kinematic, Monte Carlo drive chain) of both settings."""
     cam = camera_params().camera
     latency, noise_px = int(cam.latency), float(cam.position_noise)
     trials = ctx.n_trials(DEFAULT_TRIALS)
     target = START + [STEP, 0.0]
-    results, curves, reports = {}, {}, {}
+    settings, curves, reports = {}, {}, {}
     for setting in ("paper", "tuned"):
         servo = Servo("servo", params=servo_params(setting))
         rep = analyse(servo.kp, servo.ki, latency)
@@ -66,7 +63,7 @@ def run(ctx: StudyContext) -> StudyResult:
         final = np.linalg.norm(mc["position"][:, -1] - target, axis=1) * 1e6
         reports[setting] = rep
         curves[setting] = (kin, (mc["position"][:, :, 0] - START[0]) * 1e6)
-        results[setting] = {
+        settings[setting] = {
             **rep.to_dict(STEP * 1e6),
             "anti_windup": servo.anti_windup,
             "kinematic_overshoot_um": kin["sim_overshoot_um"],
@@ -74,28 +71,41 @@ def run(ctx: StudyContext) -> StudyResult:
             "drive_chain_overshoot_std_um": float(over.std()),
             "drive_chain_final_error_mean_um": float(final.mean()),
         }
-        results[setting]["linear_overshoot_um"] = results[setting].pop("overshoot_um")
+        settings[setting]["linear_overshoot_um"] = settings[setting].pop("overshoot_um")
+    results = {"step_um": STEP * 1e6, "delay_frames": latency, "trials": trials, "settings": settings}
+    return Computed(results, {"curves": curves, "reports": reports, "noise_px": noise_px})
 
-    figs = [_step_figure(ctx, curves), _pole_figure(ctx, reports)]
+
+def draw(computed: Computed, ctx: StudyContext) -> list:
+    """The step responses of both settings and their closed-loop poles."""
+    return [_step_figure(ctx, computed.data["curves"]), _pole_figure(ctx, computed.data["reports"])]
+
+
+def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
+    """Table of both settings (poles, margins, overshoots) and the paper's ~100 µm overshoot beside ours."""
+    r = computed.results
+    results = r["settings"]
     d, t = results["paper"], results["tuned"]
     summary = [
-        f"Step of {STEP * 1e3:g} mm, camera lag {latency} frames, speed cap 400 µm/s, {trials} Monte Carlo trials "
-        f"on the drive → coils → robot chain with {noise_px:g} px camera noise.",
+        f"Step of {r['step_um'] / 1e3:g} mm, camera lag {r['delay_frames']} frames, speed cap 400 µm/s, "
+        f"{r['trials']} Monte Carlo trials on the drive → coils → robot chain with {computed.data['noise_px']:g} px "
+        "camera noise.",
         "",
         "| setting | kp 1/s | ki 1/s² | anti-windup | max pole magnitude | GM | PM ° | linear OS % | kinematic OS µm "
         "| drive-chain OS µm |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for name, r in results.items():
-        zmax = max(p["abs"] for p in r["poles"])
+    for name, s in results.items():
+        zmax = max(p["abs"] for p in s["poles"])
         summary.append(
-            f"| {name} | {r['kp_per_s']:g} | {r['ki_per_s2']:g} | {'yes' if r['anti_windup'] else 'no'} | {zmax:.3f} "
-            f"| {r['gain_margin']:.2f} | {r['phase_margin_deg']:.1f} | {r['overshoot_percent']:.1f} "
-            f"| {r['kinematic_overshoot_um']:.1f} | {r['drive_chain_overshoot_mean_um']:.1f} ± "
-            f"{r['drive_chain_overshoot_std_um']:.1f} |")
+            f"| {name} | {s['kp_per_s']:g} | {s['ki_per_s2']:g} | {'yes' if s['anti_windup'] else 'no'} | {zmax:.3f} "
+            f"| {s['gain_margin']:.2f} | {s['phase_margin_deg']:.1f} | {s['overshoot_percent']:.1f} "
+            f"| {s['kinematic_overshoot_um']:.1f} | {s['drive_chain_overshoot_mean_um']:.1f} ± "
+            f"{s['drive_chain_overshoot_std_um']:.1f} |")
     summary += ["", "The paper setting's overshoot comes from the integral filling during the constant-speed "
-                "(saturated) approach plus the camera lag (≈ v/Kp + v·d·T); the linear model alone (no saturation) "
-                "predicts a different, step-dependent number. Tuned: P-only with conditional-integration anti-windup."]
+                "(saturated) "
+                "approach plus the camera lag (≈ v/Kp + v·d·T); the linear model alone (no saturation) predicts a "
+                "different, step-dependent number. Tuned: P-only with conditional-integration anti-windup."]
     paper = [
         PaperRow("servo overshoot (paper setting)", f"~{PAPER_OVERSHOOT_UM:.0f} µm (§VI-A)",
                  f"{d['drive_chain_overshoot_mean_um']:.0f} µm", "drive → coils → robot chain, 1 mm step"),
@@ -103,11 +113,13 @@ def run(ctx: StudyContext) -> StudyResult:
                  "P-only, anti-windup"),
         PaperRow("robot speed", "0.4 mm/s (§IV-C)", "400 µm/s cap", "servo speed limit"),
     ]
-    results = {"step_um": STEP * 1e6, "delay_frames": latency, "trials": trials, "settings": results}
-    return StudyResult(NAME, results, figs, summary, paper)
+    return summary, paper
 
 
 def _step_figure(ctx, curves):
+    from magctl.studies.figures import pyplot
+
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
     colours = {"paper": "tab:red", "tuned": "tab:blue"}
     for name, (kin, mc) in curves.items():
@@ -134,6 +146,9 @@ def _step_figure(ctx, curves):
 
 
 def _pole_figure(ctx, reports):
+    from magctl.studies.figures import pyplot
+
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
     th = np.linspace(0, 2 * np.pi, 200)
     ax.plot(np.cos(th), np.sin(th), color="k", lw=0.8)

@@ -15,15 +15,13 @@ from __future__ import annotations
 
 from magctl.loops import Experiment, Variability, geometry
 from magctl.studies.push import (
-    animate_one,
+    controller_summary,
     controller_table,
     overshoot_fraction,
-    plot_convergence,
-    plot_errors,
     run_experiments,
-    summarise,
+    trial_path,
 )
-from magctl.studies.runner import PaperRow, StudyContext, StudyResult
+from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "side-push"
 TITLE = "Figs 12–13 — side pushing: fixed gaps, models and learning in closed loop"
@@ -56,22 +54,40 @@ def experiments() -> dict[str, Experiment]:
             for label, kw in CONTROLLERS.items()}
 
 
-def run(ctx: StudyContext) -> StudyResult:
+def compute(ctx: StudyContext) -> Computed:
+    """Run the six controllers and reduce their trials; trial 0 of lin, K_s=0.9 kept for the GIF."""
     n = ctx.n_trials(DEFAULT_TRIALS)
     exps = experiments()
-    results = run_experiments(ctx, exps, n)
-    summaries = {label: summarise(r) for label, r in results.items()}
-    for label, r in results.items():
+    runs, _ = run_experiments(ctx, exps, n)
+    summaries = {label: controller_summary(r) for label, r in runs.items()}
+    for label, r in runs.items():
         summaries[label]["overshoot_fraction"] = overshoot_fraction(r, EPS_UM)
-    figs = [
-        plot_convergence(summaries, ctx.figure_path("side_push_convergence"),
+    results = {"trials_per_controller": n, "epsilon_um": EPS_UM, "controllers": summaries,
+               "plant": PLANT.describe()}
+    return Computed(results, {"runs": runs, "animated": trial_path(ctx, exps["lin, K_s=0.9"])})
+
+
+def draw(computed: Computed, ctx: StudyContext) -> list:
+    """Fig 12 (converged vs attempts), Fig 13 (error vs attempt) and a GIF of one push."""
+    from magctl.studies.figures import animate_trial, plot_convergence, plot_errors
+
+    r, runs = computed.results, computed.data["runs"]
+    n = r["trials_per_controller"]
+    return [
+        plot_convergence(r["controllers"], ctx.figure_path("side_push_convergence"),
                          f"Side pushing, {n} trials per controller (cf. Fig 12)", MAX_ATTEMPTS),
-        plot_errors({k: results[k] for k in ("D_g=370 µm fixed", "D_g=500 µm fixed", "lin, K_s=0", "lin, K_s=0.9")},
+        plot_errors({k: runs[k] for k in ("D_g=370 µm fixed", "D_g=500 µm fixed", "lin, K_s=0", "lin, K_s=0.9")},
                     ctx.figure_path("side_push_errors"), "Side pushing error (cf. Fig 13)", EPS_UM, log=True),
-        animate_one(exps["lin, K_s=0.9"], ctx.figure_path("side_push", ".gif"), ctx.seed, geometry("side")["goal"]),
+        animate_trial(computed.data["animated"], ctx.figure_path("side_push", ".gif"), geometry("side")["goal"]),
     ]
+
+
+def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
+    """The controller table and the paper's side-push claims beside ours."""
+    r = computed.results
+    summaries, n = r["controllers"], r["trials_per_controller"]
     summary = [
-        f"{n} trials per controller; plant: {PLANT.describe()}.",
+        f"{n} trials per controller; plant: {r['plant']}.",
         "",
         *controller_table(summaries, MAX_ATTEMPTS, ("pushed past the goal", "overshoot_fraction")),
     ]
@@ -86,5 +102,4 @@ def run(ctx: StudyContext) -> StudyResult:
     ] + [PaperRow(f"side push N_p, {label}", "Fig 12 (bars)",
                   f"{s['mean_attempts_all']:.1f} ({s['converged_fraction']:.0%} converged)")
          for label, s in summaries.items()]
-    return StudyResult(NAME, {"trials_per_controller": n, "epsilon_um": EPS_UM, "controllers": summaries,
-                              "plant": PLANT.describe()}, figs, summary, paper)
+    return summary, paper

@@ -10,16 +10,12 @@ uncalibrated one.
 
 from __future__ import annotations
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from magctl.plant.fluid.calibration import EQ22_A, EQ22_B, calibrate, eq22, eq23_gap  # noqa: E402
-from magctl.plant.fluid.flow import robot_flow  # noqa: E402
-from magctl.plant.fluid.scenarios import contact_threshold, sidepush_curve, sidepush_fit  # noqa: E402
-from magctl.studies.runner import PaperRow, StudyContext, StudyResult  # noqa: E402
+from magctl.plant.fluid.calibration import EQ22_A, EQ22_B, calibrate, eq22, eq23_gap
+from magctl.plant.fluid.flow import robot_flow
+from magctl.plant.fluid.scenarios import contact_threshold, sidepush_curve, sidepush_fit
+from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "sidepush-curve"
 TITLE = "Fig 6 — side-push displacement D_s versus side gap D_g"
@@ -27,9 +23,12 @@ ORDER = 30
 
 PAPER_THRESHOLD = 370e-6   # paper §IV-D
 PAPER_R2 = 0.9971          # paper §VI-B
+UM = 1e6  # m → µm
+FLOW_SPEED = 0.4e-3  # robot speed of the flow map figure, m/s
 
 
-def run(ctx: StudyContext) -> StudyResult:
+def compute(ctx: StudyContext) -> Computed:
+    """D_s(D_g) uncalibrated and calibrated, the contact threshold, eq 22-form fits, and the flow map."""
     gaps = np.linspace(200e-6, 650e-6, 24)
     res = sidepush_curve(gaps)
     threshold = contact_threshold()
@@ -38,21 +37,65 @@ def run(ctx: StudyContext) -> StudyResult:
     cal = calibrate()
     cal_curves = {k: sidepush_curve(gaps, roughness=cal[k]) for k in ("joint", "release")}
     cal_fit = {k: sidepush_fit(gaps[~c.contact], c.displacement[~c.contact]) for k, c in cal_curves.items()}
+    results = {
+        "points": [{"gap_um": gg * UM, "displacement_um": d * UM, "along_um": al * UM, "contact": bool(c)}
+                   for gg, d, al, c in zip(gaps, res.displacement, res.along, res.contact, strict=True)],
+        "fit": {"a_um": a * UM, "b_per_um": b / UM, "r2": r2},
+        "contact_threshold_um": threshold * UM,
+        "paper": {"a_um": EQ22_A * UM, "b_per_um": EQ22_B / UM, "r2": PAPER_R2,
+                  "contact_threshold_um": PAPER_THRESHOLD * UM},
+        "calibrated": {
+            k: {"roughness_um": cal[k] * UM,
+                "fit": {"a_um": cal_fit[k][0] * UM, "b_per_um": cal_fit[k][1] / UM, "r2": cal_fit[k][2]},
+                "displacement_um": (cal_curves[k].displacement * UM).tolist()}
+            for k in ("joint", "release")},
+    }
+    at = np.array([370e-6, 500e-6, 650e-6])
+    data = {"gaps_m": gaps, "displacement_m": res.displacement, "contact": res.contact, "fit_m": (a, b, r2),
+            "threshold_m": threshold, "roughness_m": {k: cal[k] for k in ("joint", "release")},
+            "calibrated_displacement_m": {k: c.displacement for k, c in cal_curves.items()},
+            "at_m": at, "at_displacement_m": np.interp(at, gaps, res.displacement), "flow": flow_map(FLOW_SPEED)}
+    return Computed(results, data)
 
-    um = 1e6
+
+def flow_map(speed: float) -> dict:
+    """The robot's flow at the sphere-centre height on a 181 × 181 grid, ±900 µm (cf. the paper's Fig 5a).
+
+    Returns ``x``, ``y`` (m), ``u`` (flow, m/s, ``(…, 3)``), ``ratio`` (|u_xy| / speed, NaN inside the
+    robot), ``footprint`` (m, closed polygon) and ``height`` (m).
+    """
+    flow = robot_flow()
+    x = np.linspace(-900e-6, 900e-6, 181)
+    xx, yy = np.meshgrid(x, x)
+    xy = np.stack([xx, yy], -1)
+    u = flow.lookup(xy, np.broadcast_to([speed, 0.0], xy.shape))      # robot moving forward (+x)
+    mag = np.linalg.norm(u[..., :2], axis=-1) / speed
+    mag[flow.geometry.contains(np.concatenate([xy, np.full(xx.shape + (1,), flow.height)], -1))] = np.nan
+    foot = np.vstack([flow.geometry.footprint, flow.geometry.footprint[:1]])
+    return {"x": xx, "y": yy, "u": u, "ratio": mag, "footprint": foot, "height": flow.height, "speed": speed}
+
+
+def draw(computed: Computed, ctx: StudyContext) -> list:
+    """Fig 6 (D_s vs D_g with eq 22/23 and the calibrated curves) and the flow map."""
+    from magctl.studies.figures import pyplot
+
+    plt = pyplot()
+    d = computed.data
+    gaps, disp, free = d["gaps_m"], d["displacement_m"], ~d["contact"]
+    a, b, r2 = d["fit_m"]
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    ax.semilogy(gaps[free] * um, res.displacement[free] * um, "o", color="C0", label="magctl (ε = 25 nm)")
-    ax.semilogy(gaps[~free] * um, res.displacement[~free] * um, "x", color="C0", label="magctl, contact")
+    ax.semilogy(gaps[free] * UM, disp[free] * UM, "o", color="C0", label="magctl (ε = 25 nm)")
+    ax.semilogy(gaps[~free] * UM, disp[~free] * UM, "x", color="C0", label="magctl, contact")
     g = np.linspace(200e-6, 650e-6, 200)
-    ax.semilogy(g * um, a * np.exp(-b * g) * um, "-", color="C0", lw=1, label=f"magctl fit (R²={r2:.4f})")
-    ax.semilogy(g * um, eq22(g) * um, "k--", label="paper eq 22 (Sim Fit)")
+    ax.semilogy(g * UM, a * np.exp(-b * g) * UM, "-", color="C0", lw=1, label=f"magctl fit (R²={r2:.4f})")
+    ax.semilogy(g * UM, eq22(g) * UM, "k--", label="paper eq 22 (Sim Fit)")
     ds = np.linspace(1e-6, 79e-6, 100)   # eq 23 over D_g = 200-620 µm
-    ax.semilogy(eq23_gap(ds) * um, ds * um, "k:", label="paper eq 23 (Sim Fit Lin)")
-    for k, c, col in (("joint", cal_curves["joint"], "C2"), ("release", cal_curves["release"], "C3")):
-        ax.semilogy(gaps * um, c.displacement * um, ".-", color=col, lw=0.8,
-                    label=f"calibrated ε = {cal[k] * um:.2f} µm ({k})")
-    ax.axvline(threshold * um, color="C0", lw=0.8)
-    ax.axvline(PAPER_THRESHOLD * um, color="k", lw=0.8, ls="--")
+    ax.semilogy(eq23_gap(ds) * UM, ds * UM, "k:", label="paper eq 23 (Sim Fit Lin)")
+    for k, col in (("joint", "C2"), ("release", "C3")):
+        ax.semilogy(gaps * UM, d["calibrated_displacement_m"][k] * UM, ".-", color=col, lw=0.8,
+                    label=f"calibrated ε = {d['roughness_m'][k] * UM:.2f} µm ({k})")
+    ax.axvline(d["threshold_m"] * UM, color="C0", lw=0.8)
+    ax.axvline(PAPER_THRESHOLD * UM, color="k", lw=0.8, ls="--")
     ax.set_xlabel("D_g: side gap, robot centre line to sphere centre (µm)")
     ax.set_ylabel("D_s: sphere displacement (µm)")
     ax.set_title("Fig 6: side-push (vertical lines: contact threshold, magctl solid, paper dashed)", fontsize=9)
@@ -62,69 +105,54 @@ def run(ctx: StudyContext) -> StudyResult:
     path = ctx.figure_path("sidepush_curve")
     fig.savefig(path, dpi=120)
     plt.close(fig)
-
-    flow_path = _flow_figure(ctx)
-
-    results = {
-        "points": [{"gap_um": gg * um, "displacement_um": d * um, "along_um": al * um, "contact": bool(c)}
-                   for gg, d, al, c in zip(gaps, res.displacement, res.along, res.contact, strict=True)],
-        "fit": {"a_um": a * um, "b_per_um": b / um, "r2": r2},
-        "contact_threshold_um": threshold * um,
-        "paper": {"a_um": EQ22_A * um, "b_per_um": EQ22_B / um, "r2": PAPER_R2,
-                  "contact_threshold_um": PAPER_THRESHOLD * um},
-        "calibrated": {
-            k: {"roughness_um": cal[k] * um,
-                "fit": {"a_um": cal_fit[k][0] * um, "b_per_um": cal_fit[k][1] / um, "r2": cal_fit[k][2]},
-                "displacement_um": (cal_curves[k].displacement * um).tolist()}
-            for k in ("joint", "release")},
-    }
-    at = np.array([370e-6, 500e-6, 650e-6])
-    ours = np.interp(at, gaps, res.displacement)
-    summary = [
-        f"- contact threshold: {threshold * um:.0f} µm (paper 370 µm)",
-        f"- fit D_s = {a * um:.0f} µm · exp(-{b / um:.5f}/µm · D_g), R² = {r2:.4f} "
-        f"(paper eq 22: 1755 µm · exp(-0.009042/µm · D_g), R² = 0.9971)",
-        "- D_s at D_g = 370 / 500 / 650 µm: " + " / ".join(f"{v * um:.1f}" for v in ours)
-        + " µm (eq 22: " + " / ".join(f"{v * um:.1f}" for v in eq22(at)) + " µm)",
-        f"- calibrated ε: joint fit {cal['joint'] * um:.2f} µm, D_p,r-matched {cal['release'] * um:.2f} µm "
-        "(see the release study and docs/fluid.md)",
-    ]
-    paper = [
-        PaperRow("side-push contact threshold D_g", "≈ 370 µm (sim)", f"{threshold * um:.0f} µm",
-                 "sphere overlaps the robot footprint during the pass"),
-        PaperRow("eq 22 a", "1755 µm", f"{a * um:.0f} µm", "exponential fit of non-contact points"),
-        PaperRow("eq 22 b", "0.009042 /µm", f"{b / um:.5f} /µm", "our flow decays more slowly with gap"),
-        PaperRow("D_s at D_g = 500 µm", f"{eq22(500e-6) * um:.1f} µm (eq 22)", f"{ours[1] * um:.1f} µm",
-                 "uncalibrated, ε = 25 nm"),
-    ]
-    return StudyResult(NAME, results, [path, flow_path], summary, paper)
+    return [path, _flow_figure(d["flow"], ctx)]
 
 
-def _flow_figure(ctx: StudyContext):
+def _flow_figure(flow: dict, ctx: StudyContext):
     """Top view of the robot's flow at the sphere-centre height (cf. the paper's Fig 5a)."""
-    flow = robot_flow()
-    speed = 0.4e-3
-    x = np.linspace(-900e-6, 900e-6, 181)
-    xx, yy = np.meshgrid(x, x)
-    xy = np.stack([xx, yy], -1)
-    u = flow.lookup(xy, np.broadcast_to([speed, 0.0], xy.shape))      # robot moving forward (+x)
-    mag = np.linalg.norm(u[..., :2], axis=-1) / speed
-    mag[flow.geometry.contains(np.concatenate([xy, np.full(xx.shape + (1,), flow.height)], -1))] = np.nan
+    from magctl.studies.figures import pyplot
+
+    plt = pyplot()
+    xx, yy, u, speed = flow["x"], flow["y"], flow["u"], flow["speed"]
     fig, ax = plt.subplots(figsize=(6, 5))
-    um = 1e6
-    cs = ax.contourf(xx * um, yy * um, mag, levels=np.linspace(0, 1, 21), cmap="viridis")
+    cs = ax.contourf(xx * UM, yy * UM, flow["ratio"], levels=np.linspace(0, 1, 21), cmap="viridis")
     k = slice(None, None, 12)
-    ax.quiver(xx[k, k] * um, yy[k, k] * um, u[k, k, 0], u[k, k, 1], color="w", scale=speed * 12)
-    foot = np.vstack([flow.geometry.footprint, flow.geometry.footprint[:1]])
-    ax.plot(foot[:, 0] * um, foot[:, 1] * um, "r-", lw=1)
+    ax.quiver(xx[k, k] * UM, yy[k, k] * UM, u[k, k, 0], u[k, k, 1], color="w", scale=speed * 12)
+    foot = flow["footprint"]
+    ax.plot(foot[:, 0] * UM, foot[:, 1] * UM, "r-", lw=1)
     fig.colorbar(cs, ax=ax, label="|u| / robot speed")
     ax.set_aspect("equal")
     ax.set_xlabel("x (µm), robot moving towards +x (concave face at +x)")
     ax.set_ylabel("y (µm)")
-    ax.set_title(f"Flow at the sphere-centre height z = {flow.height * um:.0f} µm\n"
+    ax.set_title(f"Flow at the sphere-centre height z = {flow['height'] * UM:.0f} µm\n"
                  "(red: footprint; white: solid at this height)", fontsize=9)
     fig.tight_layout()
     path = ctx.figure_path("flow_map")
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
+    """Threshold, fit and D_s at three gaps against eq 22; the calibrated ε."""
+    d = computed.data
+    a, b, r2 = d["fit_m"]
+    threshold, cal, at, ours = d["threshold_m"], d["roughness_m"], d["at_m"], d["at_displacement_m"]
+    summary = [
+        f"- contact threshold: {threshold * UM:.0f} µm (paper 370 µm)",
+        f"- fit D_s = {a * UM:.0f} µm · exp(-{b / UM:.5f}/µm · D_g), R² = {r2:.4f} "
+        f"(paper eq 22: 1755 µm · exp(-0.009042/µm · D_g), R² = 0.9971)",
+        "- D_s at D_g = 370 / 500 / 650 µm: " + " / ".join(f"{v * UM:.1f}" for v in ours)
+        + " µm (eq 22: " + " / ".join(f"{v * UM:.1f}" for v in eq22(at)) + " µm)",
+        f"- calibrated ε: joint fit {cal['joint'] * UM:.2f} µm, D_p,r-matched {cal['release'] * UM:.2f} µm "
+        "(see the release study and docs/fluid.md)",
+    ]
+    paper = [
+        PaperRow("side-push contact threshold D_g", "≈ 370 µm (sim)", f"{threshold * UM:.0f} µm",
+                 "sphere overlaps the robot footprint during the pass"),
+        PaperRow("eq 22 a", "1755 µm", f"{a * UM:.0f} µm", "exponential fit of non-contact points"),
+        PaperRow("eq 22 b", "0.009042 /µm", f"{b / UM:.5f} /µm", "our flow decays more slowly with gap"),
+        PaperRow("D_s at D_g = 500 µm", f"{eq22(500e-6) * UM:.1f} µm (eq 22)", f"{ours[1] * UM:.1f} µm",
+                 "uncalibrated, ε = 25 nm"),
+    ]
+    return summary, paper

@@ -5,24 +5,118 @@ Paper §V-A/§V-B (eq 13–15, 18–20, 22–23) and the checks of docs/push-con
 
 from __future__ import annotations
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from magctl.control.push.common import ExpSideModel, LinSideModel  # noqa: E402
-from magctl.stability import iteration as S  # noqa: E402
-from magctl.studies.runner import PaperRow, StudyResult  # noqa: E402
+from magctl.control.push.common import ExpSideModel, LinSideModel
+from magctl.stability import iteration as S
+from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "stability"
 TITLE = "Iteration-domain stability of front and side pushing (eq 13-23)"
 ORDER = 10
 DEFAULT_TRIALS = 20000
 UM = 1e-6
+FRONT_CASES = [(0.0, 0.0), (0.0, 127 * UM), (0.5, 0.0), (1.0, 0.0), (1.0, 127 * UM), (1.0, 300 * UM)]
+"""(K_c, δ(0) [m]) of the front-push convergence comparison."""
+SIDE_RATIOS = (0.5, 1.0, 1.5, 2.5)
+"""Model ratios of the side-push pole paths."""
 
 
-def _pole_paths(ctx):
+def _pole_paths() -> dict:
+    kc = np.linspace(0, 2.2, 45)
+    ks = np.linspace(0, 3, 61)
+    return {"kc": kc, "front": np.array([S.front_loop(k).poles[0] for k in kc]), "ks": ks,
+            "side": {rho: np.array([np.sort_complex(S.side_full_poles(k, rho)) for k in ks]) for rho in SIDE_RATIOS}}
+
+
+def _regions() -> dict:
+    gains = np.linspace(0, 4, 400)
+    ratios = np.linspace(0.01, 3, 300)
+    return {"gains": gains, "ratios": ratios,
+            "stable": {loop: S.sweep(gains, ratios, loop)["stable"] for loop in ("paper", "full")}}
+
+
+def _front_convergence(trials: int, seed: int) -> tuple[dict, dict]:
+    out, curves = {}, {}
+    n = np.arange(1, S.FRONT_MAX_ATTEMPTS + 1)
+    for kc, d0 in FRONT_CASES:
+        mk = S.front_attempts_markov(kc, d0)
+        mc = S.front_attempts_monte_carlo(kc, d0, trials=trials, seed=seed)
+        label = f"K_c={kc:g}, delta0={d0 / UM:g} um"
+        curves[label] = (np.cumsum(mk[:-1]), np.cumsum(mc[:-1]))
+        out[label] = {
+            "kc": kc, "delta0_um": d0 / UM, "p_converged_by_attempt_markov": np.cumsum(mk[:-1]).tolist(),
+            "p_converged_by_attempt_monte_carlo": np.cumsum(mc[:-1]).tolist(),
+            "mean_attempts_markov": float((n * mk[:-1]).sum() + (S.FRONT_MAX_ATTEMPTS + 1) * mk[-1]),
+            "max_abs_diff_markov_mc": float(np.max(np.abs(mk - mc))),
+        }
+    return out, curves
+
+
+def _side_maps(seed: int) -> tuple[dict, dict]:
+    cases = {
+        "naive D_g=370 um": {"ks": 0.0, "fixed_gap": 370 * UM},
+        "naive D_g=500 um": {"ks": 0.0, "fixed_gap": 500 * UM},
+        "exp, K_s=0": {"ks": 0.0, "model": "exp"},
+        "lin, K_s=0": {"ks": 0.0, "model": "lin"},
+        "lin, K_s=0.5": {"ks": 0.5, "model": "lin"},
+        "lin, K_s=0.9": {"ks": 0.9, "model": "lin"},
+        "lin, K_s=0.9, eq 18 as printed": {"ks": 0.9, "model": "lin", "printed_sign": True},
+    }
+    out, curves = {}, {}
+    for label, kw in cases.items():
+        r = S.side_attempt_map(kw.pop("ks"), S.SIDE_GOAL, **kw)
+        e = np.abs(r["error"][0]) / UM
+        curves[label] = e
+        mc = S.side_attempt_map(np.full(2000, 0.9 if "0.9" in label else (0.5 if "0.5" in label else 0.0)),
+                                S.SIDE_GOAL, noise_rel=0.15, seed=seed, **kw)
+        out[label] = {"attempts": int(r["attempts"][0]), "error_um": e[np.isfinite(e)].tolist(),
+                      "p_converged_30_noise15pct": float(np.mean(mc["attempts"] >= 0))}
+    return out, curves
+
+
+def compute(ctx: StudyContext) -> Computed:
+    """Front and side loops' poles, stable regions, convergence (Markov vs Monte Carlo) and attempt maps."""
+    trials = ctx.n_trials(DEFAULT_TRIALS)
+    exp, lin = ExpSideModel(), LinSideModel()
+    d_act_max = float(exp.displacement(S.MIN_GAP))
+    r_local = S.local_ratio(np.linspace(S.SIDE_EPS, d_act_max, 200))
+    r_lo, r_hi = float(r_local.min()), float(r_local.max())
+    front, front_curves = _front_convergence(trials, ctx.seed)
+    side, side_curves = _side_maps(ctx.seed)
+    nl = S.side_nonlinear_gain_range("lin")
+    tangent_slope = float(exp.slope(500 * UM))
+    tangent_icpt = float(exp.gap(500 * UM) - tangent_slope * 500 * UM) / UM
+    results = {
+        "front_stable_gain_range": [0.0, 2.0],
+        "front_pole_kc1": float(S.front_loop(1.0).poles[0].real),
+        "front_damping": {str(k): S.front_loop(k).damping for k in (0.5, 1.0, 1.5, 2.1)},
+        "front_convergence": front,
+        "side_local_ratio_range": [r_lo, r_hi],
+        "side_paper_test_gain_max_over_range": 2.0 / r_hi,
+        "side_full_loop_gain_max_at_ratio_1": S.side_full_stable_range(1.0)[1],
+        "side_nonlinear_stable_gain_range": None if nl["range"] is None else list(nl["range"]),
+        "side_maps": side,
+        "eq23_tangent_at_ds500um": {"slope": tangent_slope, "intercept_um": tangent_icpt},
+        "eq23_printed": {"slope": float(lin.slope_), "intercept_um": float(lin.intercept / UM)},
+    }
+    data = {"pole_paths": _pole_paths(), "regions": _regions(), "front_curves": front_curves,
+            "side_curves": side_curves, "front_kc1_damping": S.front_loop(1.0).damping}
+    return Computed(results, data)
+
+
+def draw(computed: Computed, ctx: StudyContext) -> list:
+    """Pole paths, stable regions, front convergence (Markov vs Monte Carlo) and side attempt maps."""
+    r, d = computed.results, computed.data
+    r_lo, r_hi = r["side_local_ratio_range"]
+    return [_draw_pole_paths(d["pole_paths"], ctx), _draw_regions(d["regions"], r_lo, r_hi, ctx),
+            _draw_front_convergence(d["front_curves"], ctx), _draw_side_maps(d["side_curves"], ctx)]
+
+
+def _draw_pole_paths(pp: dict, ctx: StudyContext):
+    from magctl.studies.figures import pyplot
+
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 5))
     th = np.linspace(0, 2 * np.pi, 400)
     for ax in axes:
@@ -32,19 +126,16 @@ def _pole_paths(ctx):
         ax.set_aspect("equal")
         ax.set_xlabel("Re z")
         ax.set_ylabel("Im z")
-    kc = np.linspace(0, 2.2, 45)
-    p = np.array([S.front_loop(k).poles[0] for k in kc])
-    sc = axes[0].scatter(p.real, p.imag, c=kc, cmap="viridis", s=14)
+    p = pp["front"]
+    sc = axes[0].scatter(p.real, p.imag, c=pp["kc"], cmap="viridis", s=14)
     for k in (0.5, 1.0, 2.0):
         axes[0].annotate(f"K_c={k:g}", (1 - k, 0), textcoords="offset points", xytext=(0, 10 + 10 * (k == 1)),
                          ha="center", fontsize=8)
     fig.colorbar(sc, ax=axes[0], label="K_c", shrink=0.7)
     axes[0].set_title("front push, eq 15: pole 1 - K_c")
-    ks = np.linspace(0, 3, 61)
-    for rho, mk in ((0.5, "o"), (1.0, "s"), (1.5, "^"), (2.5, "x")):
-        poles = np.array([np.sort_complex(S.side_full_poles(k, rho)) for k in ks])
-        axes[1].scatter(poles.real.ravel(), poles.imag.ravel(), c=np.repeat(ks, 2), cmap="plasma", s=10, marker=mk,
-                        label=f"ratio {rho:g}")
+    for (rho, poles), mk in zip(pp["side"].items(), ("o", "s", "^", "x"), strict=True):
+        axes[1].scatter(poles.real.ravel(), poles.imag.ravel(), c=np.repeat(pp["ks"], 2), cmap="plasma", s=10,
+                        marker=mk, label=f"ratio {rho:g}")
     axes[1].legend(fontsize=8, loc="lower left")
     axes[1].set_title("side push with feed-forward path: K_s = 0..3")
     axes[1].set_xlim(-2.2, 1.3)
@@ -56,14 +147,15 @@ def _pole_paths(ctx):
     return path
 
 
-def _regions(ctx, r_lo, r_hi):
-    gains = np.linspace(0, 4, 400)
-    ratios = np.linspace(0.01, 3, 300)
+def _draw_regions(reg: dict, r_lo: float, r_hi: float, ctx: StudyContext):
+    from magctl.studies.figures import pyplot
+
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.5), sharey=True)
     for ax, loop, title in ((axes[0], "paper", "eq 20: |1 - K_s ratio| < 1"),
                             (axes[1], "full", "with feed-forward path (2 states)")):
-        stable = S.sweep(gains, ratios, loop)["stable"]
-        ax.contourf(ratios, gains, stable.astype(float), levels=[-0.5, 0.5, 1.5], colors=["#f4c7c3", "#c8e6c9"])
+        ax.contourf(reg["ratios"], reg["gains"], reg["stable"][loop].astype(float), levels=[-0.5, 0.5, 1.5],
+                    colors=["#f4c7c3", "#c8e6c9"])
         ax.axvspan(r_lo, r_hi, color="0.5", alpha=0.15, label="local ratio, eq 23 vs eq 22")
         for k in (0.5, 0.9):
             ax.axhline(k, color="k", ls="--", lw=0.8)
@@ -78,23 +170,15 @@ def _regions(ctx, r_lo, r_hi):
     return path
 
 
-def _front_convergence(ctx, trials):
-    cases = [(0.0, 0.0), (0.0, 127 * UM), (0.5, 0.0), (1.0, 0.0), (1.0, 127 * UM), (1.0, 300 * UM)]
-    out = {}
+def _draw_front_convergence(curves: dict, ctx: StudyContext):
+    from magctl.studies.figures import pyplot
+
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     n = np.arange(1, S.FRONT_MAX_ATTEMPTS + 1)
-    for kc, d0 in cases:
-        mk = S.front_attempts_markov(kc, d0)
-        mc = S.front_attempts_monte_carlo(kc, d0, trials=trials, seed=ctx.seed)
-        label = f"K_c={kc:g}, delta0={d0 / UM:g} um"
-        line, = ax.plot(n, np.cumsum(mk[:-1]), "-", label=label)
-        ax.plot(n, np.cumsum(mc[:-1]), "o", color=line.get_color(), ms=3)
-        out[label] = {
-            "kc": kc, "delta0_um": d0 / UM, "p_converged_by_attempt_markov": np.cumsum(mk[:-1]),
-            "p_converged_by_attempt_monte_carlo": np.cumsum(mc[:-1]),
-            "mean_attempts_markov": float((n * mk[:-1]).sum() + (S.FRONT_MAX_ATTEMPTS + 1) * mk[-1]),
-            "max_abs_diff_markov_mc": float(np.max(np.abs(mk - mc))),
-        }
+    for label, (markov, monte_carlo) in curves.items():
+        line, = ax.plot(n, markov, "-", label=label)
+        ax.plot(n, monte_carlo, "o", color=line.get_color(), ms=3)
     ax.set_xlabel("pushing attempts")
     ax.set_ylabel("fraction converged (eps_p = 75 um)")
     ax.set_title("front push, D_p,r ~ N(300, 75^2) um: Markov (lines), Monte Carlo (dots)", fontsize=9)
@@ -103,29 +187,16 @@ def _front_convergence(ctx, trials):
     path = ctx.figure_path("stability_front_convergence")
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    return path, out
+    return path
 
 
-def _side_maps(ctx):
-    cases = {
-        "naive D_g=370 um": {"ks": 0.0, "fixed_gap": 370 * UM},
-        "naive D_g=500 um": {"ks": 0.0, "fixed_gap": 500 * UM},
-        "exp, K_s=0": {"ks": 0.0, "model": "exp"},
-        "lin, K_s=0": {"ks": 0.0, "model": "lin"},
-        "lin, K_s=0.5": {"ks": 0.5, "model": "lin"},
-        "lin, K_s=0.9": {"ks": 0.9, "model": "lin"},
-        "lin, K_s=0.9, eq 18 as printed": {"ks": 0.9, "model": "lin", "printed_sign": True},
-    }
-    out = {}
+def _draw_side_maps(curves: dict, ctx: StudyContext):
+    from magctl.studies.figures import pyplot
+
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
-    for label, kw in cases.items():
-        r = S.side_attempt_map(kw.pop("ks"), S.SIDE_GOAL, **kw)
-        e = np.abs(r["error"][0]) / UM
+    for label, e in curves.items():
         ax.semilogy(np.arange(e.size), np.maximum(e, 0.1), ".-", label=label)
-        mc = S.side_attempt_map(np.full(2000, 0.9 if "0.9" in label else (0.5 if "0.5" in label else 0.0)),
-                                S.SIDE_GOAL, noise_rel=0.15, seed=ctx.seed, **kw)
-        out[label] = {"attempts": int(r["attempts"][0]), "error_um": e[np.isfinite(e)],
-                      "p_converged_30_noise15pct": float(np.mean(mc["attempts"] >= 0))}
     ax.axhline(7.5, color="k", ls=":", lw=0.8)
     ax.set_xlabel("pushing attempts")
     ax.set_ylabel("|positioning error| (um)")
@@ -135,39 +206,21 @@ def _side_maps(ctx):
     path = ctx.figure_path("stability_side_maps")
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    return path, out
+    return path
 
 
-def run(ctx) -> StudyResult:
-    trials = ctx.n_trials(DEFAULT_TRIALS)
-    exp, lin = ExpSideModel(), LinSideModel()
-    d_act_max = float(exp.displacement(S.MIN_GAP))
-    r_local = S.local_ratio(np.linspace(S.SIDE_EPS, d_act_max, 200))
-    r_lo, r_hi = float(r_local.min()), float(r_local.max())
-    figs = [_pole_paths(ctx), _regions(ctx, r_lo, r_hi)]
-    fpath, front = _front_convergence(ctx, trials)
-    spath, side = _side_maps(ctx)
-    figs += [fpath, spath]
-    nl = S.side_nonlinear_gain_range("lin")
-    tangent_slope = float(exp.slope(500 * UM))
-    tangent_icpt = float(exp.gap(500 * UM) - tangent_slope * 500 * UM) / UM
-    results = {
-        "front_stable_gain_range": [0.0, 2.0],
-        "front_pole_kc1": S.front_loop(1.0).poles[0].real,
-        "front_damping": {str(k): S.front_loop(k).damping for k in (0.5, 1.0, 1.5, 2.1)},
-        "front_convergence": front,
-        "side_local_ratio_range": [r_lo, r_hi],
-        "side_paper_test_gain_max_over_range": 2.0 / r_hi,
-        "side_full_loop_gain_max_at_ratio_1": S.side_full_stable_range(1.0)[1],
-        "side_nonlinear_stable_gain_range": nl["range"],
-        "side_maps": side,
-        "eq23_tangent_at_ds500um": {"slope": tangent_slope, "intercept_um": tangent_icpt},
-        "eq23_printed": {"slope": lin.slope_, "intercept_um": lin.intercept / UM},
-    }
+def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
+    """The paper's stability claims (eq 15, 20, 18, 23) beside ours."""
+    r = computed.results
+    front, side = r["front_convergence"], r["side_maps"]
+    r_lo, r_hi = r["side_local_ratio_range"]
+    tangent = r["eq23_tangent_at_ds500um"]
+    nl_range = r["side_nonlinear_stable_gain_range"]
+    nl_range = None if nl_range is None else tuple(nl_range)
     best_front = front["K_c=1, delta0=127 um"]
     paper = [
         PaperRow("front K_c stable range", "0 < K_c < 2", "0 < K_c < 2 (pole 1 - K_c)"),
-        PaperRow("front K_c = 1", "critically damped", S.front_loop(1.0).damping + " (dead-beat, pole 0)"),
+        PaperRow("front K_c = 1", "critically damped", computed.data["front_kc1_damping"] + " (dead-beat, pole 0)"),
         PaperRow("front naive steady error", "~200 um", "200 um with 300 um release, 100 um overshoot",
                  "attempt map, overshoot as the paper explains it"),
         PaperRow("front best: converged by attempt 4", "all 10 trials (Fig 14)",
@@ -185,14 +238,14 @@ def run(ctx) -> StudyResult:
         PaperRow("eq 18 sign", "+K_s [D_s,act - D_s,des]",
                  "diverges as printed; converges with -K_s", "see docs/push-control.md"),
         PaperRow("eq 23: F linearised about D_s = 500 um", "-5.29 D_s + 621 um",
-                 f"tangent there: {tangent_slope:.3f} D_s + {tangent_icpt:.0f} um",
+                 f"tangent there: {tangent['slope']:.3f} D_s + {tangent['intercept_um']:.0f} um",
                  "eq 23 fits eq 22 near D_g ~ 500 um (D_s ~ 20 um)"),
     ]
     summary = [
         "Front push (eq 15): pole 1 - K_c; K_c = 1 is dead-beat (the paper's 'critically damped').",
         f"Side push: the local slope ratio of eq 23 against eq 22 spans {r_lo:.2f}..{r_hi:.2f}; the paper's test "
         f"over that range would allow only K_s < {2 / r_hi:.2f}, yet the bounded nonlinear map converges from every "
-        f"start for K_s in {nl['range']} (grid 0..6).",
+        f"start for K_s in {nl_range} (grid 0..6).",
         "Eq 18 as printed diverges (positive feedback through the decreasing F); the code uses -K_s.",
     ]
-    return StudyResult(NAME, results, figs, summary, paper)
+    return summary, paper

@@ -32,12 +32,13 @@ def _common(p) -> None:
     p.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://127.0.0.1:8786")
     p.add_argument("--workers", type=int, default=None, help="local worker processes")
     p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--no-figures", action="store_true", help="compute and summarise only; draw no figures")
 
 
-def _context(args, name: str) -> studies.StudyContext:
+def _context(args, name: str, cache: studies.TrialCache | None = None) -> studies.StudyContext:
     return studies.StudyContext(
         out=args.out / name, trials=args.trials, seed=args.seed, scheduler=args.scheduler,
-        workers=args.workers, quiet=args.quiet,
+        workers=args.workers, quiet=args.quiet, trial_cache=cache if cache is not None else studies.TrialCache(),
     )
 
 
@@ -46,7 +47,7 @@ def cmd_study(args) -> int:
         for name, module in studies.discover().items():
             print(f"{name:18s} {getattr(module, 'TITLE', '')}")
         return 0
-    result = studies.run_study(args.name, _context(args, args.name))
+    result = studies.run_study(args.name, _context(args, args.name), figures=not args.no_figures)
     doc = {"study": result.name, **result.results, "figures": [str(f) for f in result.figures]}
     emit(args, doc, lambda _: "\n".join([f"# {result.name}", *result.summary,
                                          *(f"figure: {f}" for f in result.figures)]))
@@ -55,12 +56,14 @@ def cmd_study(args) -> int:
 
 def cmd_reproduce(args) -> int:
     found = studies.discover()
+    studies.check_reuses(found)
+    cache = studies.TrialCache()  # one per run: studies that declare REUSES take trials from it
     results, timings = [], {}
     for name in found:
         if not args.quiet:
             print(f"[reproduce] {name} …", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
-        results.append(studies.run_study(name, _context(args, name)))
+        results.append(studies.run_study(name, _context(args, name, cache), figures=not args.no_figures))
         timings[name] = time.perf_counter() - t0
     args.out.mkdir(parents=True, exist_ok=True)
     doc = {

@@ -1,34 +1,52 @@
-"""Reductions and figures shared by the closed-loop push studies (Figs 10–15)."""
+"""Reductions shared by the closed-loop push studies (Figs 10–15); their figures are in
+:mod:`magctl.studies.figures`. Nothing here imports matplotlib."""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from magctl.control.status import Status, status_counts  # noqa: E402
+from magctl.control.status import Status, status_counts
 from magctl.loops import Experiment
-from magctl.studies.trials import run_push_trials  # noqa: E402
-
-_MEMO: dict[str, dict] = {}
+from magctl.studies.trials import run_push_trials
 
 
-def run_experiments(ctx, exps: dict[str, Experiment], n_trials: int) -> dict[str, dict]:
+def trials_key(exp: Experiment, n_trials: int, seed: int) -> str:
+    """What identifies ``n_trials`` trials of ``exp`` from root ``seed`` in a trial cache.
+
+    The executor is not part of it: trial ``k``'s result does not depend on where it ran.
+    """
+    return repr(("push-trials", exp, int(n_trials), int(seed)))
+
+
+def run_experiments(ctx, exps: dict[str, Experiment], n_trials: int) -> tuple[dict[str, dict], dict[str, str]]:
     """``n_trials`` trials of every experiment, all on one executor at once.
 
-    Each controller runs as few, large lockstep batches as keep the workers busy. Results
-    are memoised within a process, so studies that share a controller (``convergence``)
-    do not run it twice.
+    Each controller runs as few, large lockstep batches as keep the workers busy.
+    Trials already in ``ctx.trial_cache`` — stored by this study or by one it names in
+    ``REUSES`` — are taken from there; the rest are run and stored under ``ctx.study``.
+
+    Parameters
+    ----------
+    ctx : StudyContext
+    exps : dict of str to Experiment
+        Controllers by label.
+    n_trials : int
+
+    Returns
+    -------
+    results : dict of str to dict
+        :func:`~magctl.studies.trials.run_push_trials` output of each label.
+    sources : dict of str to str
+        The study whose run produced each label's trials (``ctx.study`` when run here).
     """
     from magctl.sweep import default_workers, run_sweeps
 
-    keys = {label: repr((exp, n_trials, ctx.seed, ctx.scheduler)) for label, exp in exps.items()}
-    todo = {label: exp for label, exp in exps.items() if keys[label] not in _MEMO}
+    allowed = (ctx.study, *ctx.reuses)
+    keys = {label: trials_key(exp, n_trials, ctx.seed) for label, exp in exps.items()}
+    found = {label: ctx.trial_cache.lookup(key, allowed) for label, key in keys.items()}
+    todo = {label: exp for label, exp in exps.items() if found[label] is None}
     if todo:
         workers = ctx.workers or default_workers()
         chunks_per_job = max(1, math.ceil(workers / len(todo)))
@@ -37,8 +55,31 @@ def run_experiments(ctx, exps: dict[str, Experiment], n_trials: int) -> dict[str
                           scheduler=ctx.scheduler, workers=ctx.workers, progress=not ctx.quiet,
                           desc=f"{len(todo)} controllers")
         for label, result in done.items():
-            _MEMO[keys[label]] = result
-    return {label: _MEMO[keys[label]] for label in exps}
+            ctx.trial_cache.store(keys[label], ctx.study, result)
+            found[label] = (ctx.study, result)
+    return {label: found[label][1] for label in exps}, {label: found[label][0] for label in exps}
+
+
+def path_key(exp: Experiment, seed: int) -> str:
+    """What identifies the trajectories of trial 0 of ``exp`` from root ``seed`` in a trial cache."""
+    return repr(("push-path", exp, int(seed)))
+
+
+def trial_path(ctx, exp: Experiment) -> dict:
+    """Trial 0 of ``exp`` with its trajectories, for a GIF: ``t`` (s), ``robot_xy`` ``(T, 2)`` (m),
+    ``robot_heading`` ``(T,)`` (rad), ``spheres_xy`` ``(T, N, 2)`` (m) and ``title``.
+
+    Taken from ``ctx.trial_cache`` like :func:`run_experiments` takes trials, else run and stored.
+    """
+    key = path_key(exp, ctx.seed)
+    hit = ctx.trial_cache.lookup(key, (ctx.study, *ctx.reuses))
+    if hit is not None:
+        return hit[1]
+    r = run_push_trials([0], ctx.seed, exp=exp, keep_paths=True)
+    path = {"t": r["t"], "robot_xy": r["robot_xy"][0], "robot_heading": r["robot_heading"][0],
+            "spheres_xy": r["spheres_xy"][0], "title": exp.label or exp.kind}
+    ctx.trial_cache.store(key, ctx.study, path)
+    return path
 
 
 def carried_errors(result: dict) -> np.ndarray:
@@ -50,7 +91,7 @@ def carried_errors(result: dict) -> np.ndarray:
     return err
 
 
-def summarise(result: dict) -> dict:
+def controller_summary(result: dict) -> dict:
     """Plain numbers of one controller's trials."""
     status = np.asarray(result["status"])
     attempts = np.asarray(result["attempts"])
@@ -77,6 +118,18 @@ def overshoot_fraction(result: dict, eps_um: float) -> float:
     return float(np.mean(np.nanmin(signed, axis=1) < -eps_um))
 
 
+def reuse_note(sources: dict[str, str], study: str) -> str:
+    """One sentence saying which controllers' trials came from which other study (or that none did)."""
+    by_study: dict[str, list[str]] = {}
+    for label, src in sources.items():
+        if src != study:
+            by_study.setdefault(src, []).append(label)
+    if not by_study:
+        return "Trials computed by this study (no other study's trials were available to reuse)."
+    parts = [f"{', '.join(labels)} from the {src} study" for src, labels in by_study.items()]
+    return "Trials reused: " + "; ".join(parts) + "."
+
+
 def controller_table(summaries: dict[str, dict], max_attempts: int, extra: tuple[str, str] | None = None) -> list[str]:
     """Markdown table of the controllers' convergence; ``extra`` = (column title, summary key) for one more column."""
     head = f"| controller | converged | N_p (converged) | mean attempts (failures at {max_attempts}) |"
@@ -93,58 +146,3 @@ def controller_table(summaries: dict[str, dict], max_attempts: int, extra: tuple
             row += f" {value:.0%} |" if isinstance(value, float) and value <= 1 else f" {value:.0f} |"
         lines.append(row)
     return lines
-
-
-def plot_convergence(summaries: dict[str, dict], path: Path, title: str, max_attempts: int) -> Path:
-    """Fig 10/12 style: fraction of converged trials versus pushing attempts."""
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for label, s in summaries.items():
-        xs = np.arange(1, len(s["converged_by_attempt"]) + 1)
-        n_p = s["mean_attempts_converged"]
-        tag = f"N_p = {n_p:.1f}" if n_p is not None else "never"
-        ax.step(xs, 100 * np.asarray(s["converged_by_attempt"]), where="post", label=f"{label} ({tag})")
-    ax.set_xlim(1, max_attempts)
-    ax.set_ylim(-2, 102)
-    ax.set_xlabel("pushing attempts")
-    ax.set_ylabel("converged trials (%)")
-    ax.set_title(title, fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
-
-
-def plot_errors(results: dict[str, dict], path: Path, title: str, eps_um: float, log: bool = False) -> Path:
-    """Fig 11/13 style: error versus attempt — median, interquartile band and trial 0 of each controller."""
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for i, (label, r) in enumerate(results.items()):
-        err = carried_errors(r)
-        xs = np.arange(err.shape[1])
-        lo, mid, hi = np.nanpercentile(err, [25, 50, 75], axis=0)
-        col = f"C{i}"
-        ax.plot(xs, mid, color=col, label=label)
-        ax.fill_between(xs, lo, hi, color=col, alpha=0.15)
-        ax.plot(xs, r["error_um"][0], color=col, ls=":", lw=0.8)
-    ax.axhline(eps_um, color="k", ls="--", lw=0.8, label=f"ε_p = {eps_um:g} µm")
-    if log:
-        ax.set_yscale("log")
-    ax.set_xlabel("pushing attempt")
-    ax.set_ylabel("positioning error (µm)")
-    ax.set_title(title + "\n(line: median; band: 25–75 %; dotted: trial 0)", fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
-
-
-def animate_one(exp: Experiment, path: Path, seed: int, goal) -> Path:
-    """A GIF of trial 0 of ``exp``, drawn from the simulation."""
-    from magctl.studies.animate import animate_push
-
-    r = run_push_trials([0], seed, exp=exp, keep_paths=True)
-    return animate_push(r["t"], r["robot_xy"][0], r["robot_heading"][0], r["spheres_xy"][0], path,
-                        goal=goal, title=exp.label or exp.kind)

@@ -1,13 +1,27 @@
 """Studies: one file each in ``analysis/``, run by ``magctl study NAME`` and ``magctl reproduce``.
 
-A study module defines::
+A study is three steps, so that its numbers can be computed (and tested) without
+matplotlib, and its figures redrawn without recomputing::
 
     NAME = "sidepush-curve"          # the command-line name
     TITLE = "Fig 6 — side-push displacement versus gap"
     ORDER = 30                       # position in the report (smaller first)
     DEFAULT_TRIALS = 100             # optional; trials when --trials is not given
+    REUSES = ("front-push",)         # optional; studies whose trials this one may reuse
 
-    def run(ctx: StudyContext) -> StudyResult: ...
+    def compute(ctx: StudyContext) -> Computed: ...
+        # every simulation and reduction; never imports matplotlib
+    def draw(computed: Computed, ctx: StudyContext) -> list[Path]: ...
+        # every figure (matplotlib imported inside), written with ctx.figure_path
+    def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]: ...
+        # the report's Markdown lines and its paper-vs-magctl rows
+
+:func:`run_study` composes the three into a :class:`StudyResult`.
+
+Trials shared between studies go through the context's :class:`TrialCache`, one per
+``magctl reproduce`` run (a fresh one for ``magctl study NAME``). A study sees only the
+entries it stored itself or that a study named in its ``REUSES`` stored; it says in its
+summary which trials it reused, and computes them itself when run alone.
 
 ``analysis/`` is not installed into site-packages; it is found beside the
 package (or at ``$MAGCTL_STUDIES``).
@@ -15,6 +29,7 @@ package (or at ``$MAGCTL_STUDIES``).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import os
 import sys
@@ -25,6 +40,9 @@ from types import ModuleType
 from typing import Any
 
 from magctl.core.errors import MagctlError
+
+STEPS = ("compute", "draw", "summarise")
+"""The functions every study module defines."""
 
 
 @dataclass
@@ -38,8 +56,26 @@ class PaperRow:
 
 
 @dataclass
+class Computed:
+    """What a study's ``compute`` step returns.
+
+    Attributes
+    ----------
+    results : dict
+        Plain JSON-able numbers with unit-suffixed keys (µm, s): what ``results.json`` and
+        ``magctl study NAME --json`` carry.
+    data : dict
+        Whatever else the figures and the summary need (curves, trajectories, SI values);
+        not written out.
+    """
+
+    results: dict[str, Any]
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
 class StudyResult:
-    """What a study returns.
+    """What :func:`run_study` returns.
 
     Attributes
     ----------
@@ -62,6 +98,38 @@ class StudyResult:
     paper: list[PaperRow] = field(default_factory=list)
 
 
+class TrialCache:
+    """Trial results shared between the studies of one run, each entry held under the study that stored it.
+
+    Keys are whatever identifies a batch of trials completely (for push trials: the
+    experiment, the number of trials and the root seed; the executor does not enter,
+    since a trial's result does not depend on it). A study looks entries up through
+    :meth:`lookup` with the studies it may take them from, so reuse happens only where a
+    study declares it (``REUSES``). Two studies that store the same key keep one entry
+    each: neither overwrites the other's.
+    """
+
+    def __init__(self) -> None:
+        self._entries: dict[tuple[str, str], Any] = {}
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, key: str) -> bool:
+        return any(k == key for _, k in self._entries)
+
+    def store(self, key: str, producer: str, value: Any) -> None:
+        """Keep ``value`` under ``key``, stored by study ``producer``."""
+        self._entries[(producer, key)] = value
+
+    def lookup(self, key: str, allowed: Iterable[str]) -> tuple[str, Any] | None:
+        """``(producer, value)`` for the first of the ``allowed`` studies that stored ``key``, else None."""
+        for producer in allowed:
+            if (producer, key) in self._entries:
+                return producer, self._entries[(producer, key)]
+        return None
+
+
 @dataclass
 class StudyContext:
     """Everything a study needs from the command line.
@@ -80,6 +148,13 @@ class StudyContext:
         Local worker processes (default: CPU count).
     quiet : bool
         No progress output.
+    trial_cache : TrialCache
+        Trials shared between the studies of one run; ``magctl reproduce`` hands every
+        study the same one.
+    study : str
+        The study running in this context (set by :func:`run_study`).
+    reuses : tuple of str
+        Studies whose cached trials this one may use (its ``REUSES``, set by :func:`run_study`).
     """
 
     out: Path
@@ -88,8 +163,12 @@ class StudyContext:
     scheduler: str | None = None
     workers: int | None = None
     quiet: bool = False
+    trial_cache: TrialCache = field(default_factory=TrialCache)
+    study: str = ""
+    reuses: tuple[str, ...] = ()
 
     def n_trials(self, default: int) -> int:
+        """Trials to run: ``--trials`` if given, else the study's ``default``."""
         return int(self.trials) if self.trials is not None else int(default)
 
     def progress(self, iterable: Iterable, desc: str, total: int | None = None):
@@ -99,11 +178,13 @@ class StudyContext:
         return progress(iterable, desc=desc, total=total, quiet=self.quiet)
 
     def figure_path(self, stem: str, suffix: str = ".png") -> Path:
+        """``out/stem.suffix``, creating ``out``."""
         self.out.mkdir(parents=True, exist_ok=True)
         return self.out / f"{stem}{suffix}"
 
 
 def studies_dir() -> Path:
+    """The folder of study modules: ``$MAGCTL_STUDIES`` or ``analysis/`` beside the package."""
     env = os.environ.get("MAGCTL_STUDIES")
     return Path(env) if env else Path(__file__).resolve().parents[2] / "analysis"
 
@@ -120,7 +201,11 @@ def _load(path: Path) -> ModuleType:
 
 
 def discover() -> dict[str, ModuleType]:
-    """Every study in ``analysis/``, keyed by NAME, in report order."""
+    """Every study in ``analysis/``, keyed by NAME, in report order.
+
+    A module counts as a study when it defines ``NAME``; it must then define
+    ``compute``, ``draw`` and ``summarise``.
+    """
     folder = studies_dir()
     if not folder.is_dir():
         raise MagctlError(f"study folder {folder} not found (set MAGCTL_STUDIES)")
@@ -130,13 +215,37 @@ def discover() -> dict[str, ModuleType]:
             continue
         module = _load(path)
         name = getattr(module, "NAME", None)
-        if name is None or not callable(getattr(module, "run", None)):
+        if name is None:
             continue
+        missing = [step for step in STEPS if not callable(getattr(module, step, None))]
+        if missing:
+            raise MagctlError(f"study {name!r} ({path.name}) does not define {', '.join(missing)}")
         found[name] = module
     return dict(sorted(found.items(), key=lambda kv: (getattr(kv[1], "ORDER", 100), kv[0])))
 
 
+def check_reuses(studies: dict[str, ModuleType]) -> None:
+    """Check that every ``REUSES`` names a study that comes earlier in ``studies`` (report order).
+
+    Raises
+    ------
+    MagctlError
+        A study reuses one that does not exist, or one that would run after it, so its
+        trials could never be there to reuse.
+    """
+    order = list(studies)
+    for name, module in studies.items():
+        for other in getattr(module, "REUSES", ()):
+            if other not in studies:
+                raise MagctlError(f"study {name!r} reuses trials of {other!r}, which is not a study")
+            if order.index(other) > order.index(name):
+                raise MagctlError(f"study {name!r} reuses trials of {other!r}, which runs after it "
+                                  f"(ORDER {getattr(studies[other], 'ORDER', 100)} > "
+                                  f"{getattr(module, 'ORDER', 100)})")
+
+
 def get(name: str) -> ModuleType:
+    """The study module called ``name``."""
     studies = discover()
     try:
         return studies[name]
@@ -144,9 +253,52 @@ def get(name: str) -> ModuleType:
         raise MagctlError(f"no study {name!r}; studies: {', '.join(studies) or 'none'}") from None
 
 
-def run_study(name: str, ctx: StudyContext) -> StudyResult:
+def compute(name: str, ctx: StudyContext) -> Computed:
+    """Run study ``name``'s compute step only (no figures, no matplotlib).
+
+    Parameters
+    ----------
+    name : str
+        Study name (its ``NAME``).
+    ctx : StudyContext
+        Passed on with ``study`` set to ``name`` and ``reuses`` to the module's ``REUSES``;
+        the trial cache is the same object.
+
+    Returns
+    -------
+    Computed
+
+    Raises
+    ------
+    MagctlError
+        No such study, or its compute step returned something else than :class:`Computed`.
+    """
     module = get(name)
-    result = module.run(ctx)
-    if not isinstance(result, StudyResult):
-        raise MagctlError(f"study {name!r} returned {type(result).__name__}, not a StudyResult")
-    return result
+    ctx = dataclasses.replace(ctx, study=name, reuses=tuple(getattr(module, "REUSES", ())))
+    computed = module.compute(ctx)
+    if not isinstance(computed, Computed):
+        raise MagctlError(f"study {name!r} compute returned {type(computed).__name__}, not Computed")
+    return computed
+
+
+def run_study(name: str, ctx: StudyContext, *, figures: bool = True) -> StudyResult:
+    """Compute study ``name``, draw its figures and summarise it.
+
+    Parameters
+    ----------
+    name : str
+        Study name.
+    ctx : StudyContext
+    figures : bool
+        False: no ``draw`` step (no files written, matplotlib not needed).
+
+    Returns
+    -------
+    StudyResult
+        ``results`` from compute, ``figures`` from draw, ``summary`` and ``paper`` from summarise.
+    """
+    module = get(name)
+    computed = compute(name, ctx)
+    paths = list(module.draw(computed, ctx)) if figures else []
+    summary, paper = module.summarise(computed)
+    return StudyResult(name, computed.results, paths, list(summary), list(paper))

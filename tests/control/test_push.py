@@ -7,13 +7,16 @@ from standin_plant import StandInPlant
 
 from magctl.control.learning import front_push_law, side_push_law
 from magctl.control.push.assembly import AssemblyTask, FrontAssemblyTask
-from magctl.control.push.common import ATTEMPT_LIMIT, CONVERGED, SPHERE_LOST, STALLED, TRACKING_LOST
 from magctl.control.push.front import FrontPushTask
 from magctl.control.push.side import SidePushTask
+from magctl.control.status import Status
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.simulate import simulate
 from magctl.stability import iteration as S
+
+CONVERGED, ATTEMPT_LIMIT, TRACKING_LOST = Status.CONVERGED, Status.ATTEMPT_LIMIT, Status.TRACKING_LOST
+SPHERE_LOST, STALLED = Status.SPHERE_LOST, Status.STALLED
 
 UM = 1e-6
 EXACT = {"arrive_tol": 0.1 * UM}  # the kinematic robot lands exactly on its targets

@@ -12,7 +12,6 @@ from hypothesis import strategies as st
 from scipy.stats import norm
 
 from magctl.cli import build_parser
-from magctl.cli.common import to_jsonable
 from magctl.control.learning import front_push_law, side_push_law
 from magctl.control.push.common import ExpSideModel, LinSideModel, side_model
 from magctl.core.errors import MagctlError
@@ -220,18 +219,6 @@ def test_through_magctl_main(capsys):
     assert main(["stability", "front", "--kc", "1", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["damping"] == "critically damped"
     assert main(["stability", "front", "--kc", "nan", "--json"]) == 2
-
-
-def test_stability_study_runs_and_reports(tmp_path):
-    from magctl.studies import runner as studies
-
-    ctx = studies.StudyContext(out=tmp_path, trials=2000, quiet=True)
-    res = studies.run_study("stability", ctx)
-    assert len(res.figures) == 4 and all(p.exists() and p.stat().st_size > 0 for p in res.figures)
-    assert res.results["front_pole_kc1"] == pytest.approx(0.0)
-    assert res.results["side_maps"]["lin, K_s=0.9, eq 18 as printed"]["attempts"] == -1
-    json.dumps(to_jsonable(res.results))
-    assert any("eq 18" in row.quantity for row in res.paper)
 
 
 def test_tabulated_plant_reproduces_eq_22_and_rejects_bad_tables():

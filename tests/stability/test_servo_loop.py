@@ -87,14 +87,3 @@ def test_cli_errors(capsys):
     assert main(["stability", "servo", "--kp", "-2"]) == 2
     assert "kp" in capsys.readouterr().err
     assert main(["stability", "servo", "--step-um", "0"]) == 2
-
-
-def test_servo_study_reproduces_paper_overshoot(tmp_path):
-    from magctl.studies.runner import StudyContext, run_study
-
-    res = run_study("servo", StudyContext(out=tmp_path, trials=4, quiet=True))
-    s = res.results["settings"]
-    assert 80 < s["paper"]["drive_chain_overshoot_mean_um"] < 120  # paper §VI-A: ~100 µm
-    assert s["tuned"]["drive_chain_overshoot_mean_um"] < 7.5
-    assert all(f.exists() and f.stat().st_size > 0 for f in res.figures)
-    json.dumps(res.results)

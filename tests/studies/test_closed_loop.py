@@ -7,9 +7,11 @@ enough to hold for any seed yet able to fail if the mechanism behind them breaks
 import numpy as np
 import pytest
 
-from magctl.control.push.common import ATTEMPT_LIMIT, CONVERGED
+from magctl.control.status import Status
 from magctl.loops import Experiment, Variability
 from magctl.studies.trials import run_push_trials
+
+CONVERGED, ATTEMPT_LIMIT = Status.CONVERGED, Status.ATTEMPT_LIMIT
 
 UM = 1e-6
 TRIALS = 8
