@@ -48,7 +48,7 @@ from magctl.plant.drive import Drive
 from magctl.plant.fluid.params import sphere_params
 from magctl.plant.robot import StickSlipRobot, load_robot
 from magctl.plant.sphere import Spheres
-from magctl.plant.standin import StandinRobot, StandinSpheres, StandinTracker
+from magctl.plant.standin import FieldGait, KinematicRobot, StandinSpheres, StandinTracker, standin_params
 from magctl.sensing.blackout import Blackout
 from magctl.sensing.camera import Camera
 from magctl.sensing.tracker import Tracker
@@ -322,22 +322,23 @@ def _physics_plant(scene: Scene, var: Variability) -> Diagram:
 
 
 def _standin_plant(scene: Scene, var: Variability) -> Diagram:
-    sd = load_model("rig").standin
-    release = load_model("push").release
+    """Coils → gait → kinematic robot → stand-in spheres → stand-in tracker (:mod:`magctl.plant.standin`)."""
+    sp = standin_params()
     blocks = [
         CoilActuator("coils"),
-        StandinRobot("robot", load_robot(), scene.robot, scene.heading),
-        StandinSpheres("spheres", scene.spheres, sd.robot_contact_radius + sd.sphere_radius,
-                       release_mean=release.mean, release_std=release.std if var.release_scatter > 0 else 0.0,
-                       side_range=sd.side_range, start_robot=scene.robot),
-        StandinTracker("tracker", len(scene.spheres), sd.workspace_half, scene.blackout, scene.robot, scene.heading,
+        FieldGait("gait", load_robot()),
+        KinematicRobot("robot", start=scene.robot, heading0=scene.heading, steer_input=True),
+        StandinSpheres("spheres", scene.spheres, sp.contact_distance, release_mean=sp.release_mean,
+                       release_std=sp.release_std if var.release_scatter > 0 else 0.0, side_range=sp.side_range,
+                       sphere_radius=sp.sphere_radius, start_robot=scene.robot),
+        StandinTracker("tracker", len(scene.spheres), sp.workspace_half, scene.blackout, scene.robot, scene.heading,
                        scene.spheres),
     ]
     wires = [
-        ("coils.b_static_delivered", "robot.b_static_delivered"), ("coils.b_osc_delivered", "robot.b_osc_delivered"),
-        ("coils.freq_delivered", "robot.freq_delivered"),
-        ("robot.position", "spheres.position"), ("robot.heading", "spheres.heading"),
-        ("robot.velocity", "spheres.velocity"), ("robot.position", "tracker.position"),
+        ("coils.b_static_delivered", "gait.b_static_delivered"), ("coils.b_osc_delivered", "gait.b_osc_delivered"),
+        ("coils.freq_delivered", "gait.freq_delivered"),
+        ("gait.speed", "robot.speed"), ("gait.heading", "robot.heading"), ("gait.steer", "robot.steer"),
+        ("robot.position", "spheres.position"), ("robot.position", "tracker.position"),
         ("robot.heading", "tracker.heading"), ("spheres.spheres", "tracker.spheres"),
     ]
     return _plant_diagram(blocks, wires)

@@ -1,150 +1,268 @@
-"""A kinematic STAND-IN plant for the simulated rig.
+"""The kinematic stand-in plant: one robot, one sphere model, one tracker, composed three ways.
 
-These blocks exist so that the rig (adapter, server, runtime, logs) can be
-built and tested before the physical plant blocks of ``magctl.plant`` are
-wired in. They honour the port names, shapes and units of docs/interfaces.md
-but not the physics of the paper:
+The stand-in replaces the paper's physics (stick-slip gait, Stokes flow, camera, Kalman
+tracker) with kinematics and the paper's empirical laws, so that loops run in microseconds
+per frame and their outcome can be checked against closed forms. It keeps the port names,
+shapes and units of docs/interfaces.md. Its blocks:
 
-* coils: the actuator's field-to-current allocation with its current limits (no RL dynamics);
-* robot: the heading follows the static field instantly and the robot moves
-  along it at the steady stick-slip speed of ``magctl.plant.robot.steady_speed``
-  for the delivered field (no heading lag, no speed noise, no tilt output);
-* spheres: pushed by contact (moved out of the robot's contact disc), plus two
-  empirical fluid effects instead of the Stokes-flow model — the side-pass
-  displacement of eq 22 and the release displacement D_p,r ~ N(300, 75²) µm
-  measured in §IV-D; no sphere–sphere contact;
-* tracker: exact positions one frame late; ``lost`` outside the field of view
-  or during a configured blackout.
+* :class:`KinematicRobot` — ``speed``, ``heading`` in; ``position``, ``heading``, ``velocity``
+  out. ``x[k+1] = x[k] + T·speed·(cos h, sin h)``: the robot moves at the commanded speed
+  within one frame and turns at once (the integrator ``P(z) = T/(z − 1)`` of the servo
+  analysis, §II). The **one** kinematic robot of the package.
+* :class:`FieldGait` — the delivered coil field → the steady speed and heading the robot
+  settles to (heading along ``b_static``, speed ``v = f·s(θ_a)`` of
+  :func:`magctl.plant.robot.steady_speed`); with a :class:`KinematicRobot` it is the
+  field-driven stand-in robot.
+* :class:`StraightToTarget` — the ideal servo the iteration-domain attempt maps of
+  :mod:`magctl.stability.iteration` assume: speed and heading that take the robot straight to
+  ``target`` at ``min(speed_cap, v_max)``, landing on it exactly.
+* :class:`StandinSpheres` — spheres pushed by contact, displaced by a side pass (eq 22),
+  pulled back on release by ``D_p,r ~ N(μ, σ²)`` (§IV-D), kept apart from each other.
+* :class:`StandinTracker` — exact positions one frame late; ``lost`` outside the field of
+  view or in a blackout window; spheres reported missing (NaN) in a sphere-loss window.
 
-They are the fast option (``--plant standin``) of :func:`magctl.rig.plant.build_sim_plant`,
-whose default is the physical plant; nothing else in :mod:`magctl.rig` depends on this module.
+Compositions (the blocks are the same objects in each):
+
+1. the rig's fast plant, :func:`magctl.loops.plant` with ``kind="standin"``:
+   ``CoilActuator → FieldGait → KinematicRobot → StandinSpheres → StandinTracker``;
+2. the servo analysis' plant, :func:`magctl.stability.servo.servo_step_diagram`:
+   ``Servo → KinematicRobot → Camera → Tracker``;
+3. the push tasks under the attempt maps' assumptions (tests):
+   ``task → StraightToTarget → KinematicRobot → StandinSpheres → StandinTracker``.
+
+Parameters come from ``models/rig.toml`` ``[standin]`` (geometry, field of view) and
+``models/push.toml`` ``[release]`` (``D_p,r``); see :func:`standin_params`.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
+from magctl.config import load_model
 from magctl.core.block import Block
 from magctl.core.ports import Port
-from magctl.plant.robot import ROBOT_INPUTS, ROBOT_OUTPUTS
-from magctl.rig.interface import CoilMap
+from magctl.plant.robot import ROBOT_INPUTS, steady_speed
 
-FIELD_IN = [Port("b_static", (2,), "T"), Port("b_osc", (), "T"), Port("freq", (), "1/s")]
+__all__ = ["FieldGait", "KinematicRobot", "StandinParams", "StandinSpheres", "StandinTracker", "StraightToTarget",
+           "standin_params"]
+
+_STRAIGHT = np.cos(np.deg2rad(1.0))
+"""Two frames' directions within 1° of each other continue a straight path (eq 22 applies only to those)."""
 
 
-class StandinCoils(Block):
-    """Field command → coil currents with the amplifier limits, no RL dynamics (stand-in for ``magctl.plant.coils``).
+@dataclass(frozen=True)
+class StandinParams:
+    """Parameters of the stand-in plant (SI).
 
-    Currents come from the actuator's allocation (:class:`~magctl.rig.interface.CoilMap`). A static
-    field that would exceed a coil's rating is scaled down (direction kept), the oscillation takes
-    at most the current left, and the command is flagged ``saturated``.
+    Attributes
+    ----------
+    contact_distance : float
+        Robot centre to sphere centre at contact, m (robot contact radius + sphere radius).
+    sphere_radius : float
+        Sphere radius ``a``, m; two spheres closer than ``2a`` are separated.
+    side_range : float
+        Lateral distance beyond which a side pass leaves a sphere alone (eq 22 cut-off), m.
+    workspace_half : float
+        Half side of the tracker's square field of view round the origin, m.
+    release_mean, release_std : float
+        ``μ`` and ``σ`` of ``D_p,r`` (§IV-D), m.
     """
 
-    def __init__(self, name: str, coils: CoilMap, dt: float = FRAME_PERIOD_S):
-        self.coils = coils
-        super().__init__(
-            name,
-            inputs=FIELD_IN,
-            outputs=[Port("currents", (6,), "A"), Port("b_static_delivered", (2,), "T"),
-                     Port("b_osc_delivered", (), "T"), Port("freq_delivered", (), "1/s"),
-                     Port("saturated", (), "1", "bool")],
-            dt=dt, feedthrough=True,
-        )
-        per_t = coils.osc_currents(np.ones(1))[0]
-        self._osc_coils = per_t > 1e-9 * per_t.max()
-        self._osc_per_t = per_t[self._osc_coils]
-
-    def output(self, state, u):
-        bs, bo = u["b_static"], np.abs(u["b_osc"])
-        lim = self.coils.current_limit
-        i_s = self.coils.static_currents(bs)
-        s = np.minimum(1.0, np.min(lim / np.maximum(np.abs(i_s), 1e-300), axis=1))
-        bs_d, i_s = bs * s[:, None], i_s * s[:, None]
-        bo_lim = np.min((lim - np.abs(i_s))[:, self._osc_coils] / self._osc_per_t, axis=1)
-        bo_d = np.minimum(bo, np.maximum(bo_lim, 0.0))
-        return {
-            "currents": i_s,
-            "b_static_delivered": bs_d,
-            "b_osc_delivered": bo_d,
-            "freq_delivered": u["freq"].copy(),
-            "saturated": (s < 1.0) | (bo > bo_lim),
-        }
+    contact_distance: float
+    sphere_radius: float
+    side_range: float
+    workspace_half: float
+    release_mean: float
+    release_std: float
 
 
-class StandinRobot(Block):
-    """Kinematic robot: heading along ``b_static`` at once, steady stick-slip speed along it.
+def standin_params() -> StandinParams:
+    """The stand-in's parameters: ``models/rig.toml`` ``[standin]`` and ``models/push.toml`` ``[release]``."""
+    sd = load_model("rig").standin
+    release = load_model("push").release
+    return StandinParams(contact_distance=float(sd.robot_contact_radius + sd.sphere_radius),
+                         sphere_radius=float(sd.sphere_radius), side_range=float(sd.side_range),
+                         workspace_half=float(sd.workspace_half), release_mean=float(release.mean),
+                         release_std=float(release.std))
 
-    The speed is ``v = f·s(θ_a)`` of :func:`magctl.plant.robot.steady_speed` (the speed the
-    real robot block settles to for a held field), so the drive's inverse of that law commands
-    the intended speed.
+
+def _norm(v: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.einsum("...i,...i->...", v, v))
+
+
+# --- the robot ------------------------------------------------------------------------------------------
+class KinematicRobot(Block):
+    """Kinematic robot: ``x[k+1] = x[k] + T·speed[k]·(cos h[k], sin h[k])``, heading set at once.
+
+    The robot moves at the commanded speed within one frame and turns instantly: the
+    plant ``P(z) = T/(z − 1)`` the linear servo analysis assumes (§II, docs/sensing-servo.md).
+    Its position after ``K`` frames is ``start + T·Σₖ speed[k]·(cos h[k], sin h[k])``.
 
     Parameters
     ----------
-    robot : StickSlipParams
-        Robot parameters (``magctl.plant.robot.load_robot()``).
-    start : (2,) array
+    name : str
+    start : (2,) array_like
         Initial position, m.
     heading0 : float
         Initial heading, rad.
+    steer_input : bool
+        Add an input ``steer`` () bool: the heading follows the ``heading`` input while it is
+        true (a robot aligning to a static field at rest). Without it the heading follows the
+        input while ``speed > 0`` and is held otherwise.
+    dt : float
+        Frame period ``T``, s.
+
+    Ports
+    -----
+    inputs ``speed`` () m/s, ``heading`` () rad [, ``steer`` () bool];
+    outputs ``position`` (2,) m, ``heading`` () rad, ``velocity`` (2,) m/s (over the last frame).
     """
 
-    def __init__(self, name: str, robot, start=(0.0, 0.0), heading0: float = 0.0, dt: float = FRAME_PERIOD_S):
-        self.robot = robot
-        self.start, self.heading0 = np.asarray(start, dtype=float), float(heading0)
-        super().__init__(
-            name,
-            inputs=list(ROBOT_INPUTS),
-            outputs=list(ROBOT_OUTPUTS),
-            dt=dt, feedthrough=False,
-        )
+    def __init__(self, name: str = "robot", *, start=(0.0, 0.0), heading0: float = 0.0, steer_input: bool = False,
+                 dt: float = FRAME_PERIOD_S):
+        self.start = np.asarray(start, dtype=float).reshape(2)
+        self.heading0 = float(heading0)
+        inputs = [Port("speed", (), "m/s"), Port("heading", (), "rad")]
+        if steer_input:
+            inputs.append(Port("steer", (), "1", "bool"))
+        super().__init__(name, inputs=inputs,
+                         outputs=[Port("position", (2,), "m"), Port("heading", (), "rad"),
+                                  Port("velocity", (2,), "m/s")], dt=dt, feedthrough=False)
 
     def initial_state(self, batch, rng=None):
-        return {"p": np.broadcast_to(self.start, (batch, 2)).copy(), "h": np.full(batch, self.heading0),
+        return {"x": np.broadcast_to(self.start, (batch, 2)).copy(), "h": np.full(batch, self.heading0),
                 "v": np.zeros((batch, 2))}
 
     def output(self, state, u):
-        return {"position": state["p"], "heading": state["h"], "velocity": state["v"],
-                "tilt": np.zeros_like(state["h"])}
+        return {"position": state["x"], "heading": state["h"], "velocity": state["v"]}
 
     def update(self, state, u):
-        from magctl.plant.robot import steady_speed
-
-        bs = u["b_static_delivered"]
-        b_xy = np.sqrt(np.einsum("bi,bi->b", bs, bs))
-        h = np.where(b_xy > 0, np.arctan2(bs[:, 1], bs[:, 0]), state["h"])
-        speed = np.where(b_xy > 0, steady_speed(self.robot, b_xy, u["b_osc_delivered"], u["freq_delivered"]), 0.0)
-        v = speed[:, None] * np.stack([np.cos(h), np.sin(h)], axis=1)
-        # new arrays: outputs handed out this step stay untouched
-        return {"p": state["p"] + v * self.dt, "h": h, "v": v}
+        speed, heading = u["speed"], u["heading"]
+        v = speed[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+        steer = u["steer"] if "steer" in u else speed > 0
+        # new arrays: the outputs handed out this frame stay untouched
+        return {"x": state["x"] + self.dt * v, "h": np.where(steer, heading, state["h"]), "v": v}
 
 
-class StandinSpheres(Block):
-    """Spheres moved by contact and by two empirical fluid effects of the paper.
+class FieldGait(Block):
+    """Delivered field → the steady speed and heading of the stick-slip robot (no dynamics).
 
-    Per frame, with the robot moving from ``r₀`` (last frame) to ``r`` along ``d``:
-
-    1. **side pass** (eq 22): a sphere the robot passes on a straight path at lateral
-       centre distance ``D_g`` (contact < D_g < ``side_range``) — its along-track
-       coordinate changes sign — moves ``D_s = 1755 µm · exp(−0.009042 D_g/µm)`` along ``d``;
-    2. **release** (§IV-D, Fig 1d): when the robot moves away from a sphere it was pushing,
-       the sphere follows it for ``D_p,r ~ N(μ, σ²)`` (the experiments' 300 ± 75 µm),
-       at most the robot's step per frame;
-    3. **contact**: a sphere closer than ``contact_distance`` to ``r`` is pushed out along the
-       line of centres.
-
-    No sphere–sphere contact. Its motion lags the robot's by one frame.
+    Heading along the static field ``b_static``; speed ``v = f·s(θ_a)``, the speed the
+    stick-slip robot block settles to for a held field (:func:`magctl.plant.robot.steady_speed`),
+    so the drive's inverse of that law commands the intended speed. No field, no motion and no
+    steering (``steer`` false). Wired into a :class:`KinematicRobot` with ``steer_input=True``
+    it is the field-driven stand-in robot.
 
     Parameters
     ----------
-    start : (N, 2) array
+    name : str
+    robot : StickSlipParams
+        Robot parameters (``magctl.plant.robot.load_robot()``).
+
+    Ports
+    -----
+    inputs ``b_static_delivered`` (2,) T, ``b_osc_delivered`` () T, ``freq_delivered`` () 1/s;
+    outputs ``speed`` () m/s, ``heading`` () rad, ``steer`` () bool. Feedthrough.
+    """
+
+    def __init__(self, name: str, robot, dt: float = FRAME_PERIOD_S):
+        self.robot = robot
+        super().__init__(name, inputs=list(ROBOT_INPUTS),
+                         outputs=[Port("speed", (), "m/s"), Port("heading", (), "rad"),
+                                  Port("steer", (), "1", "bool")], dt=dt, feedthrough=True)
+
+    def output(self, state, u):
+        bs = u["b_static_delivered"]
+        b_xy = _norm(bs)
+        on = b_xy > 0
+        speed = np.where(on, steady_speed(self.robot, b_xy, u["b_osc_delivered"], u["freq_delivered"]), 0.0)
+        return {"speed": speed, "heading": np.arctan2(bs[:, 1], bs[:, 0]), "steer": on}
+
+
+class StraightToTarget(Block):
+    """The ideal servo of the attempt maps: straight to ``target`` at ``min(speed_cap, v_max)``.
+
+    ``speed = min(cap, ‖target − x‖/T)`` with ``cap = min(speed_cap, v_max)`` (0 when
+    ``speed_cap ≤ 0``) and ``heading`` towards the target, so a :class:`KinematicRobot` fed
+    with them lands on the target exactly — the servo the iteration-domain maps of
+    :mod:`magctl.stability.iteration` assume (no overshoot, no shortfall, §V). It reads the
+    robot's true ``position``, not the tracker's estimate.
+
+    Parameters
+    ----------
+    name : str
+    v_max : float
+        Speed limit, m/s.
+
+    Ports
+    -----
+    inputs ``target`` (2,) m, ``speed_cap`` () m/s, ``position`` (2,) m;
+    outputs ``speed`` () m/s, ``heading`` () rad. Feedthrough.
+    """
+
+    def __init__(self, name: str = "servo", *, v_max: float = 1e-3, dt: float = FRAME_PERIOD_S):
+        self.v_max = float(v_max)
+        super().__init__(name, inputs=[Port("target", (2,), "m"), Port("speed_cap", (), "m/s"),
+                                       Port("position", (2,), "m")],
+                         outputs=[Port("speed", (), "m/s"), Port("heading", (), "rad")], dt=dt, feedthrough=True)
+
+    def output(self, state, u):
+        d = u["target"] - u["position"]
+        cap = np.where(u["speed_cap"] > 0, np.minimum(u["speed_cap"], self.v_max), 0.0)
+        return {"speed": np.minimum(cap, _norm(d) / self.dt), "heading": np.arctan2(d[:, 1], d[:, 0])}
+
+
+# --- the spheres ------------------------------------------------------------------------------------------
+class StandinSpheres(Block):
+    """Spheres moved by contact and by two empirical fluid effects of the paper.
+
+    Per frame, with the robot moving from ``r₀`` (last frame) to ``r`` along the unit
+    vector ``d``, every sphere in turn:
+
+    1. **side pass** (eq 22): a sphere the robot passes on a straight path (direction within
+       1° of the last frame's) at lateral centre distance ``D_g``, contact < ``D_g`` <
+       ``side_range`` — its along-track coordinate changes sign — moves
+       ``D_s = 1755 µm · exp(−0.009042 D_g/µm)`` along ``d``, once per straight pass;
+    2. **release** (§IV-D, Fig 1d): when the robot moves away from a sphere it was pushing,
+       the sphere follows it for ``D_p,r ~ N(μ, σ²)`` (the experiments' 300 ± 75 µm; clipped
+       at 0), at most the robot's step per frame. One standard normal draw per trial and
+       frame; a release started this frame uses it. The outputs ``releases`` (count so far)
+       and ``last_release`` (the latest ``D_p,r``) expose the drawn amounts;
+    3. **contact**: a sphere ahead of the moving robot (``(s − r)·d ≥ 0``) and inside its
+       contact disc (lateral offset ``ℓ`` < ``contact_distance`` = ``c``) is carried along ``d``
+       to ``(s − r)·d = √(c² − ℓ²)``, keeping its lateral offset: it sits in the robot's front
+       notch, so a push moves it along the robot's path as the attempt maps assume (§V-A). Any
+       other sphere closer than ``c`` (the robot at rest, or the sphere beside or behind it) is
+       pushed out along the line of centres. A sphere so moved is attached and will be released;
+    4. **sphere–sphere**: two spheres closer than ``2a`` are separated to ``2a`` along their
+       line of centres by moving the one the robot did not drive this frame (by contact or
+       release); if both were driven, the lower-indexed one gives way.
+
+    Motion lags the robot's by one frame (the block reads the robot's position output).
+
+    Parameters
+    ----------
+    name : str
+    start : (N, 2) array_like
         Initial sphere centres, m.
     contact_distance : float
         Robot contact radius plus sphere radius, m.
     release_mean, release_std : float
-        Mean and standard deviation of ``D_p,r``, m.
+        ``μ``, ``σ`` of ``D_p,r``, m (0, 0: no release).
     side_range : float
-        Lateral distance beyond which a pass leaves the sphere alone, m.
+        Lateral distance beyond which a pass leaves the sphere alone, m (0: no side pass).
+    sphere_radius : float
+        ``a``, m (0: spheres pass through each other).
+    start_robot : (2,) array_like
+        Robot position before the first frame, m.
+
+    Ports
+    -----
+    inputs ``position`` (2,) m (the robot's); outputs ``spheres`` (N, 2) m, ``contact`` () bool,
+    ``releases`` () 1 (count), ``last_release`` () m.
     """
 
     # eq 22: D_s = A exp(−k D_g)
@@ -152,17 +270,20 @@ class StandinSpheres(Block):
     SIDE_K = 0.009042e6
 
     def __init__(self, name: str, start, contact_distance: float, *, release_mean: float = 0.0,
-                 release_std: float = 0.0, side_range: float = 0.0, start_robot=(0.0, 0.0), dt: float = FRAME_PERIOD_S):
+                 release_std: float = 0.0, side_range: float = 0.0, sphere_radius: float = 0.0, start_robot=(0.0, 0.0),
+                 dt: float = FRAME_PERIOD_S):
         self.start = np.asarray(start, dtype=float).reshape(-1, 2)
         self.contact_distance = float(contact_distance)
         self.release_mean, self.release_std = float(release_mean), float(release_std)
         self.side_range = float(side_range)
-        self.start_robot = np.asarray(start_robot, dtype=float)
+        self.sphere_radius = float(sphere_radius)
+        self.start_robot = np.asarray(start_robot, dtype=float).reshape(2)
         n = self.start.shape[0]
         super().__init__(
             name,
-            inputs=[Port("position", (2,), "m"), Port("heading", (), "rad"), Port("velocity", (2,), "m/s")],
-            outputs=[Port("spheres", (n, 2), "m"), Port("contact", (), "1", "bool")],
+            inputs=[Port("position", (2,), "m")],
+            outputs=[Port("spheres", (n, 2), "m"), Port("contact", (), "1", "bool"), Port("releases", (), "1"),
+                     Port("last_release", (), "m")],
             dt=dt, feedthrough=False,
         )
 
@@ -175,29 +296,31 @@ class StandinSpheres(Block):
         return {"s": np.broadcast_to(self.start, (batch, n, 2)).copy(), "contact": np.zeros(batch, dtype=bool),
                 "r": np.broadcast_to(self.start_robot, (batch, 2)).copy(), "dir": np.zeros((batch, 2)),
                 "attached": np.zeros((batch, n), dtype=bool), "pending": np.zeros((batch, n)),
-                "passed": np.zeros((batch, n), dtype=bool), "rng": rng}
+                "passed": np.zeros((batch, n), dtype=bool), "releases": np.zeros(batch),
+                "last_release": np.zeros(batch), "rng": rng}
 
     def output(self, state, u):
-        return {"spheres": state["s"], "contact": state["contact"]}
+        return {"spheres": state["s"], "contact": state["contact"], "releases": state["releases"],
+                "last_release": state["last_release"]}
 
     def update(self, state, u):
-        s = state["s"]
         r0, r = state["r"], u["position"]
         draw = state["rng"].standard_normal(()) if state["rng"] is not None else np.zeros(r.shape[0])
+        s = state["s"]
         if s.shape[1] == 0:
             return {**state, "r": r.copy()}
         step = r - r0
-        size = np.sqrt(np.einsum("bi,bi->b", step, step))
+        size = _norm(step)
         moving = size > 1e-12
         d = np.where(moving[:, None], step / np.where(moving, size, 1.0)[:, None], 0.0)
-        straight = moving & (np.einsum("bi,bi->b", d, state["dir"]) > np.cos(np.deg2rad(1.0)))
+        straight = moving & (np.einsum("bi,bi->b", d, state["dir"]) > _STRAIGHT)
         passed = state["passed"] & straight[:, None]  # one displacement per straight pass
-        dd = d[:, None, :]
+        dd = np.broadcast_to(d[:, None, :], s.shape)
 
         # 1. side pass, eq 22
         rel0 = s - r0[:, None, :]
-        a0 = np.einsum("bni,bni->bn", rel0, np.broadcast_to(dd, rel0.shape))
-        a1 = np.einsum("bni,bni->bn", s - r[:, None, :], np.broadcast_to(dd, rel0.shape))
+        a0 = np.einsum("bni,bni->bn", rel0, dd)
+        a1 = np.einsum("bni,bni->bn", s - r[:, None, :], dd)
         lat = np.abs(dd[..., 0] * rel0[..., 1] - dd[..., 1] * rel0[..., 0])
         cross = (straight[:, None] & ~passed & (a0 > 0) & (a1 <= 0) & (lat > self.contact_distance)
                  & (lat < self.side_range))
@@ -205,47 +328,93 @@ class StandinSpheres(Block):
         passed = passed | cross
 
         # 2. release: the sphere follows a robot that moves away from it
-        away = moving[:, None] & (np.einsum("bni,bni->bn", s - r[:, None, :], np.broadcast_to(dd, s.shape)) < 0)
+        away = moving[:, None] & (np.einsum("bni,bni->bn", s - r[:, None, :], dd) < 0)
         release = state["attached"] & away
-        amount = np.maximum(0.0, self.release_mean + self.release_std * draw)[:, None]
-        pending = np.where(release, amount, state["pending"])
+        amount = np.maximum(0.0, self.release_mean + self.release_std * draw)
+        pending = np.where(release, amount[:, None], state["pending"])
         follow = np.where(away, np.minimum(pending, size[:, None]), 0.0)
         s = s + follow[..., None] * dd
         pending = pending - follow
         attached = state["attached"] & ~release
+        started = release.any(axis=1)
 
-        # 3. contact
+        # 3. contact: carried along d in front of a moving robot, else pushed out along the line of centres
+        c = self.contact_distance
         rel = s - r[:, None, :]
-        dist = np.sqrt(np.einsum("bni,bni->bn", rel, rel))
-        over = dist < self.contact_distance * (1 - 1e-9)  # a rounding-level overlap (a following sphere) is none
-        pushed = r[:, None, :] + rel * (self.contact_distance / np.where(dist > 0, dist, 1.0))[..., None]
-        s = np.where(over[..., None], pushed, s)
+        along = np.einsum("bni,bni->bn", rel, dd)
+        lat = np.abs(dd[..., 0] * rel[..., 1] - dd[..., 1] * rel[..., 0])
+        reach = np.sqrt(np.maximum(c * c - lat * lat, 0.0))
+        carried = moving[:, None] & (along > -1e-12) & (lat < c) & (along < reach * (1 - 1e-9))
+        s = s + (carried * (reach - along))[..., None] * dd
+        rel = s - r[:, None, :]
+        dist = _norm(rel)
+        over = dist < c * (1 - 1e-9)  # a rounding-level overlap (a carried or following sphere) is none
+        s = np.where(over[..., None], r[:, None, :] + rel * (c / np.where(dist > 0, dist, 1.0))[..., None], s)
+        over |= carried
         # a sphere left exactly at contact distance still touches (unless the robot is leaving it): whether
         # rounding puts it a hair inside or outside must not decide whether it is released later
-        touching = over | ((dist < self.contact_distance * (1 + 1e-9)) & ~away)
+        touching = over | ((dist < c * (1 + 1e-9)) & ~away)
+
+        # 4. sphere-sphere: the sphere the robot did not drive gives way
+        s = self._separate(s, over | (follow > 0))
         return {"s": s, "contact": over.any(axis=1), "r": r.copy(), "dir": np.where(moving[:, None], d, state["dir"]),
                 "attached": attached | touching, "pending": np.where(touching, 0.0, pending), "passed": passed,
-                "rng": state["rng"]}
+                "releases": state["releases"] + release.sum(axis=1),
+                "last_release": np.where(started, amount, state["last_release"]), "rng": state["rng"]}
+
+    def _separate(self, s: np.ndarray, driven: np.ndarray) -> np.ndarray:
+        n, gap = s.shape[1], 2.0 * self.sphere_radius
+        if n < 2 or gap <= 0:
+            return s
+        s = s.copy()
+        for i in range(n):
+            for j in range(i + 1, n):
+                sep = s[:, j] - s[:, i]
+                dist = _norm(sep)
+                fix = np.where(dist < gap, gap - dist, 0.0)
+                if not fix.any():
+                    continue
+                v = sep / np.where(dist > 0, dist, 1.0)[:, None]
+                move_j = ~driven[:, j]
+                s[:, j] += np.where(move_j, fix, 0.0)[:, None] * v
+                s[:, i] -= np.where(move_j, 0.0, fix)[:, None] * v
+        return s
 
 
+# --- the tracker ------------------------------------------------------------------------------------------
 class StandinTracker(Block):
-    """Exact positions one frame late; ``lost`` outside the field of view or during a blackout.
+    """Exact positions one frame late; tracking and sphere loss by field of view and by window.
+
+    The estimate shown at time ``t = kT`` is the true state of frame ``k − 1``. ``lost`` is
+    true when the robot is outside the square field of view ``|x|, |y| ≤ half_width`` or ``t``
+    lies in the ``blackout`` window; in the ``sphere_loss`` window every sphere estimate is
+    NaN (the tracker reports the spheres missing; the position estimates carry on).
 
     Parameters
     ----------
+    name : str
     n_spheres : int
         Number of spheres.
     half_width : float
-        Half side of the square field of view centred at the origin, m.
-    blackout : (float, float) or None
-        Time window ``[t0, t1)`` in s during which tracking is reported lost.
+        Half side of the field of view centred at the origin, m.
+    blackout, sphere_loss : (float, float) or None
+        Windows ``[t0, t1)`` in s of forced tracking loss / sphere loss (``t1`` may be ``inf``).
+    start, heading0, spheres0
+        The estimate before the first frame (robot position m, heading rad, sphere centres m).
+
+    Ports
+    -----
+    inputs ``position`` (2,) m, ``heading`` () rad, ``spheres`` (N, 2) m;
+    outputs ``robot_est`` (2,) m, ``heading_est`` () rad, ``velocity_est`` (2,) m/s,
+    ``spheres_est`` (N, 2) m, ``lost`` () bool.
     """
 
     def __init__(self, name: str, n_spheres: int, half_width: float, blackout=None, start=(0.0, 0.0),
-                 heading0: float = 0.0, spheres0=None, dt: float = FRAME_PERIOD_S):
+                 heading0: float = 0.0, spheres0=None, *, sphere_loss=None, dt: float = FRAME_PERIOD_S):
         self.half_width = float(half_width)
         self.blackout = None if blackout is None else (float(blackout[0]), float(blackout[1]))
-        self.start = np.asarray(start, dtype=float)
+        self.sphere_loss = None if sphere_loss is None else (float(sphere_loss[0]), float(sphere_loss[1]))
+        self.start = np.asarray(start, dtype=float).reshape(2)
         self.heading0 = float(heading0)
         self.spheres0 = np.zeros((n_spheres, 2)) if spheres0 is None else np.asarray(spheres0, float).reshape(-1, 2)
         super().__init__(
@@ -269,8 +438,14 @@ class StandinTracker(Block):
     def update(self, state, u):
         p = u["position"]
         k = state["k"] + 1
+        t = k * self.dt  # the time at which this estimate is shown
         lost = np.any(np.abs(p) > self.half_width, axis=1)
-        if self.blackout is not None and self.blackout[0] <= k * self.dt < self.blackout[1]:
+        if _within(t, self.blackout):
             lost = np.ones_like(lost)
-        return {"r": p.copy(), "h": u["heading"].copy(), "v": (p - state["r"]) / self.dt,
-                "s": u["spheres"].copy(), "lost": lost, "k": k}
+        s = np.full_like(u["spheres"], np.nan) if _within(t, self.sphere_loss) else u["spheres"].copy()
+        return {"r": p.copy(), "h": u["heading"].copy(), "v": (p - state["r"]) / self.dt, "s": s, "lost": lost,
+                "k": k}
+
+
+def _within(t: float, window) -> bool:
+    return window is not None and window[0] <= t < window[1]

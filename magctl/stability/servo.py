@@ -26,11 +26,10 @@ import control
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.block import Block
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
-from magctl.core.linear import PI, Delay, Gain, Integrator, Sum
-from magctl.core.ports import Port
+from magctl.core.linear import PI, Constant, Delay, Gain, Integrator, Sum
+from magctl.plant.standin import KinematicRobot
 
 
 class ServoAnalysisError(MagctlError):
@@ -183,36 +182,8 @@ def linear_step(kp: float, ki: float, delay_frames: int, step: float, steps: int
 
 
 # --- closed-loop simulation with the servo, camera and tracker blocks --------------------------------
-class KinematicRobot(Block):
-    """Stand-in plant for the servo loop: ``x[k+1] = x[k] + T·speed·(cos h, sin h)``.
-
-    It has the ports of the drive → coils → robot chain seen from the servo (``speed``,
-    ``heading`` in; ``position``, ``heading`` out) and models a robot that moves at the
-    commanded speed within one frame and turns instantly — the plant the linear analysis
-    assumes. Spheres are carried as constants (output ``spheres``) for the camera.
-    """
-
-    def __init__(self, name: str = "robot", *, start=(0.0, 0.0), spheres=(), dt: float = FRAME_PERIOD_S):
-        self.start = np.asarray(start, dtype=float)
-        self.spheres = np.asarray(spheres, dtype=float).reshape(-1, 2)
-        super().__init__(name, inputs=[Port("speed", (), "m/s"), Port("heading", (), "rad")],
-                         outputs=[Port("position", (2,), "m"), Port("heading", (), "rad"),
-                                  Port("spheres", (len(self.spheres), 2), "m")], dt=dt, feedthrough=False)
-
-    def initial_state(self, batch, rng=None):
-        return {"x": np.broadcast_to(self.start, (batch, 2)).copy(), "h": np.zeros(batch),
-                "s": np.broadcast_to(self.spheres, (batch, *self.spheres.shape)).copy()}
-
-    def output(self, state, u):
-        return {"position": state["x"], "heading": state["h"], "spheres": state["s"]}
-
-    def update(self, state, u):
-        step = self.dt * u["speed"]
-        state["x"] = state["x"] + step[:, None] * np.stack([np.cos(u["heading"]), np.sin(u["heading"])], axis=1)
-        state["h"] = np.where(u["speed"] > 0, u["heading"], state["h"])
-        return state
-
-
+# The plant of these simulations is the stand-in's kinematic robot (magctl.plant.standin.KinematicRobot):
+# x[k+1] = x[k] + T·speed·(cos h, sin h), the integrator P(z) = T/(z − 1) of the linear analysis above.
 def servo_step_diagram(servo, *, delay_frames: int, start=(1.0e-3, 1.0e-3), tracker_mode: str = "raw",
                        predict: bool = False, position_noise_px: float = 0.0, heading_noise: float = 0.0,
                        drop_probability: float = 0.0, spheres=(), pixel_size: float | None = None,
@@ -234,15 +205,17 @@ def servo_step_diagram(servo, *, delay_frames: int, start=(1.0e-3, 1.0e-3), trac
     from magctl.sensing.camera import Camera
     from magctl.sensing.tracker import Tracker
 
-    n = int(np.asarray(spheres).reshape(-1, 2).shape[0])
-    robot = KinematicRobot("robot", start=start, spheres=spheres, dt=dt)
+    sph = np.asarray(spheres, dtype=float).reshape(-1, 2)
+    n = sph.shape[0]
+    robot = KinematicRobot("robot", start=start, dt=dt)
+    still = Constant("spheres", sph, shape=sph.shape, unit="m", dt=dt)  # the servo loop leaves them where they are
     cam = Camera("camera", n_spheres=n, latency_frames=delay_frames, position_noise_px=position_noise_px,
                  heading_noise=heading_noise, drop_probability=drop_probability, pixel_size=pixel_size,
-                 primed=(start, 0.0, robot.spheres), dt=dt)
+                 primed=(start, 0.0, sph), dt=dt)
     trk = Tracker("tracker", n_spheres=n, mode=tracker_mode, predict_frames=delay_frames if predict else 0,
                   pixel_size=pixel_size, position_noise_px=position_noise_px, dt=dt)
     conns = [("robot.position", "camera.position"), ("robot.heading", "camera.heading"),
-             ("robot.spheres", "camera.spheres"), ("camera.robot_meas", "tracker.robot_meas"),
+             ("spheres.y", "camera.spheres"), ("camera.robot_meas", "tracker.robot_meas"),
              ("camera.heading_meas", "tracker.heading_meas"), ("camera.spheres_meas", "tracker.spheres_meas"),
              ("camera.valid", "tracker.valid"), ("tracker.robot_est", f"{servo.name}.robot_est"),
              (f"{servo.name}.speed", "robot.speed"), (f"{servo.name}.heading", "robot.heading")]
@@ -251,7 +224,7 @@ def servo_step_diagram(servo, *, delay_frames: int, start=(1.0e-3, 1.0e-3), trac
     inputs = {"target": f"{servo.name}.target"}
     if "speed_cap" in servo.inputs:
         inputs["speed_cap"] = f"{servo.name}.speed_cap"
-    return Diagram("servo_step", [robot, cam, trk, servo], conns, inputs=inputs,
+    return Diagram("servo_step", [robot, still, cam, trk, servo], conns, inputs=inputs,
                    outputs={"position": "robot.position", "arrived": f"{servo.name}.arrived"}, dt=dt)
 
 
