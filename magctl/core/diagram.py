@@ -156,16 +156,16 @@ class Diagram(Block):
         return self.schedule.initial_state(batch, seed=seed, trials=trials)
 
     def output(self, state: State, u):
-        outs = self.schedule.evaluate_outputs(state, u)
-        return self.schedule.exported(outs)
+        leaves, held = list(state["leaves"]), list(state["held"])
+        return self.schedule.exported(self.schedule.run(state["tick"], u, leaves, held, advance=False))
 
     def update(self, state: State, u) -> State:
-        outs = self.schedule.evaluate_outputs(state, u)
-        return self.schedule.advance(state, outs, u)
+        return self.step(state, u)[1]
 
     def step(self, state: State, u):
-        outs = self.schedule.evaluate_outputs(state, u)
-        return self.schedule.exported(outs), self.schedule.advance(state, outs, u)
+        leaves, held = list(state["leaves"]), list(state["held"])
+        outs = self.schedule.run(state["tick"], u, leaves, held)
+        return self.schedule.exported(outs), {"tick": state["tick"] + 1, "leaves": leaves, "held": held}
 
     def to_control(self):
         """The whole diagram as one python-control system (every leaf must be linear)."""
@@ -285,6 +285,12 @@ class Schedule:
             self.leaves.append(Leaf(path, blk, int(round(blk.dt / self.base_dt)), wiring))
         self.outputs = {name: (pos[index[lp]], p) for name, (lp, p) in exported_out.items()}
         self.multirate = any(leaf.ratio != 1 for leaf in self.leaves)
+        # flat per-leaf tables for the step loop
+        self._n = len(self.leaves)
+        self._blocks = [lf.block for lf in self.leaves]
+        self._ratios = [lf.ratio for lf in self.leaves]
+        self._feed = [lf.block.feedthrough for lf in self.leaves]
+        self._wirings = [lf.wiring for lf in self.leaves]
 
     def leaf(self, path: str) -> int:
         for i, lf in enumerate(self.leaves):
@@ -309,7 +315,7 @@ class Schedule:
                 reached.add(i)
         return any(i in reached for i, _ in self.outputs.values())
 
-    # --- execution (used by Diagram as a block and by the simulator) ------------------------------
+    # --- execution: the one step routine behind simulate, Diagram.output/update/step and the rig ------
     def initial_state(self, batch: int, *, seed: int = 0, trials: Sequence[int] | None = None) -> State:
         trials = list(range(batch)) if trials is None else list(trials)
         if len(trials) != batch:
@@ -320,36 +326,56 @@ class Schedule:
             states.append(lf.block.initial_state(batch, rng))
         return {"tick": 0, "leaves": states, "held": [None] * len(self.leaves)}
 
-    def evaluate_outputs(self, state: State, u) -> list[dict]:
-        """Every leaf's outputs at the current tick (held for leaves between their ticks)."""
-        k = state["tick"]
-        outs: list[dict] = [None] * len(self.leaves)  # type: ignore[list-item]
-        ext = u or {}
-        leaf_states = state["leaves"]
-        for i, lf in enumerate(self.leaves):
-            if lf.ratio != 1 and k % lf.ratio and state["held"][i] is not None:
-                outs[i] = state["held"][i]
+    def run(self, tick: int, u, leaf_states: list, held: list, advance: bool = True) -> list[dict]:
+        """One base tick: every leaf's outputs in feedthrough order, then (``advance``) every next state.
+
+        A feedthrough leaf is stepped once (``block.step``: outputs and next state together, its
+        inputs being known); a leaf without feedthrough gives its outputs from its state first and is
+        updated once every output of the tick exists. Next states are held back until all outputs
+        are evaluated, then written into ``leaf_states``; a leaf of period ``r`` base ticks runs
+        on ticks ``k ≡ 0 (mod r)`` and holds its outputs (kept in ``held``) in between.
+
+        ``leaf_states`` and ``held`` are the caller's own lists and are updated in place; the
+        leaf states in them are never modified. Returns the outputs, indexed by leaf (the
+        last entry holds the diagram inputs ``u``).
+        """
+        n = self._n
+        blocks, ratios, feed, wirings = self._blocks, self._ratios, self._feed, self._wirings
+        multirate = self.multirate
+        outs: list = [None] * (n + 1)
+        outs[EXTERNAL] = u or {}
+        pending: list = [None] * n
+        empty: dict = {}
+        for i in range(n):
+            r = ratios[i]
+            if r != 1 and tick % r and held[i] is not None:
+                outs[i] = held[i]
                 continue
-            if lf.block.feedthrough:
-                ui = {p: (ext[q] if j == EXTERNAL else outs[j][q]) for p, j, q in lf.wiring}
+            if feed[i]:
+                ui = {p: outs[j][q] for p, j, q in wirings[i]}
+                if advance:
+                    outs[i], pending[i] = blocks[i].step(leaf_states[i], ui)
+                else:
+                    outs[i] = blocks[i].output(leaf_states[i], ui)
             else:
-                ui = {}
-            outs[i] = lf.block.output(leaf_states[i], ui)
+                outs[i] = blocks[i].output(leaf_states[i], empty)
+            if multirate:
+                held[i] = outs[i]
+        if advance:
+            for i in range(n):
+                r = ratios[i]
+                if r != 1 and tick % r:
+                    continue
+                if feed[i]:
+                    leaf_states[i] = pending[i]
+                else:
+                    leaf_states[i] = blocks[i].update(leaf_states[i], {p: outs[j][q] for p, j, q in wirings[i]})
         return outs
 
     def gather(self, i: int, outs: list[dict], u) -> dict:
+        """The inputs of leaf ``i`` given every leaf's outputs and the diagram inputs ``u``."""
         ext = u or {}
         return {p: (ext[q] if j == EXTERNAL else outs[j][q]) for p, j, q in self.leaves[i].wiring}
-
-    def advance(self, state: State, outs: list[dict], u) -> State:
-        k = state["tick"]
-        new_leaves = list(state["leaves"])
-        for i, lf in enumerate(self.leaves):
-            if lf.ratio != 1 and k % lf.ratio:
-                continue
-            new_leaves[i] = lf.block.update(new_leaves[i], self.gather(i, outs, u))
-        held = list(outs) if self.multirate else state["held"]
-        return {"tick": k + 1, "leaves": new_leaves, "held": held}
 
     def exported(self, outs: list[dict]) -> dict[str, np.ndarray]:
         return {name: outs[i][p] for name, (i, p) in self.outputs.items()}

@@ -129,8 +129,7 @@ class Slow(Block):
         return {"n": state["n"].copy()}
 
     def update(self, state, u):
-        state["n"] = state["n"] + 1
-        return state
+        return {"n": state["n"] + 1}
 
 
 def test_multirate_holds_outputs_between_ticks():
@@ -142,20 +141,19 @@ def test_multirate_holds_outputs_between_ticks():
 class BadAt(Block):
     def __init__(self, step):
         super().__init__("bad", inputs=[Port("u")], outputs=[Port("y")], feedthrough=True)
-        self.step = step
+        self.bad_step = step
 
     def initial_state(self, batch, rng=None):
         return {"k": 0}
 
     def output(self, state, u):
         y = u["u"].copy()
-        if state["k"] == self.step:
+        if state["k"] == self.bad_step:
             y[1] = np.nan
         return {"y": y}
 
     def update(self, state, u):
-        state["k"] += 1
-        return state
+        return {"k": state["k"] + 1}
 
 
 def test_nan_is_reported_with_block_port_step():
