@@ -156,8 +156,14 @@ class Diagram(Block):
         return self.schedule.initial_state(batch, seed=seed, trials=trials)
 
     def output(self, state: State, u):
+        """Exported outputs now; inputs that no exported output depends on may be left out of ``u``."""
         leaves, held = list(state["leaves"]), list(state["held"])
-        return self.schedule.exported(self.schedule.run(state["tick"], u, leaves, held, advance=False))
+        outs = self.schedule.run(state["tick"], u, leaves, held, advance=False)
+        for name, (i, _) in self.schedule.outputs.items():
+            if outs[i] is None:
+                missing = sorted(set(self.inputs) - set(u or {}))
+                raise WiringError(f"diagram {self.name!r}: output {name!r} depends on inputs {missing} not given")
+        return self.schedule.exported(outs)
 
     def update(self, state: State, u) -> State:
         return self.step(state, u)[1]
@@ -352,10 +358,14 @@ class Schedule:
                 outs[i] = held[i]
                 continue
             if feed[i]:
-                ui = {p: outs[j][q] for p, j, q in wirings[i]}
                 if advance:
+                    ui = {p: outs[j][q] for p, j, q in wirings[i]}
                     outs[i], pending[i] = blocks[i].step(leaf_states[i], ui)
                 else:
+                    try:
+                        ui = {p: outs[j][q] for p, j, q in wirings[i]}
+                    except (KeyError, TypeError):
+                        continue  # an input not given (outputs only): this leaf's outputs stay None
                     outs[i] = blocks[i].output(leaf_states[i], ui)
             else:
                 outs[i] = blocks[i].output(leaf_states[i], empty)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import control
 import numpy as np
 
-from magctl.core.block import STREAM, Block
+from magctl.core.block import STREAM, SUBSTATE, Block, flat_state_vars, state_get, state_with
 from magctl.core.diagram import EXTERNAL, Diagram
 from magctl.core.errors import MagctlError, NotLinearError, WiringError
 
@@ -44,7 +44,7 @@ def _state_labels(block: Block, sys, path: str) -> list[str]:
     own = list(getattr(sys, "state_labels", []) or [])
     if own and not all(lbl.startswith("x[") for lbl in own):
         return [f"{path}.{lbl}" for lbl in own]
-    declared = [lbl for v in block.state_vars() if v.real for lbl in v.labels(path)]
+    declared = [lbl for keys, v in _real_entries(block) for lbl in v.labels(path, keys)]
     if len(declared) == sys.nstates:
         return declared
     return [f"{path}.x[{e}]" for e in range(sys.nstates)]
@@ -114,46 +114,58 @@ def diagram_to_control(diagram: Diagram) -> control.StateSpace:
 def trial_zero(block: Block, state: dict, path: str = "") -> dict:
     """Trial 0 of a leaf state, with its random streams switched off (``None``).
 
-    Entries are checked against the block's declaration; a missing entry or a
-    wrong shape raises a :class:`MagctlError` naming the block and the entry.
+    Entries are checked against the block's declaration (nested ones included); an
+    undeclared or missing entry or a wrong shape raises a :class:`MagctlError` naming
+    the block and the entry.
     """
     where = path or block.name
-    if not isinstance(state, dict):
-        raise MagctlError(f"block {where!r}: state must be a dict, got {type(state).__name__}")
-    out = dict(state)
-    declared = block.state_vars()
-    undeclared = sorted(set(state) - {v.name for v in declared})
-    if undeclared:
-        raise MagctlError(f"block {where!r} ({type(block).__name__}): state entries {undeclared} are not "
-                          f"declared in state_vars(), so a linearisation cannot walk them")
-    for v in declared:
-        if v.name not in state:
-            raise MagctlError(f"block {where!r}: state has no entry {v.name!r} (entries: {sorted(state)})")
-        val = state[v.name]
-        if v.dtype == STREAM:
-            out[v.name] = None
-        elif v.batched:
-            arr = np.asarray(val)
-            if arr.shape[1:] != v.shape or arr.shape[0] < 1:
-                raise MagctlError(f"block {where!r}: state entry {v.name!r} has shape {arr.shape}, "
-                                  f"declared (B, {', '.join(map(str, v.shape))})")
-            out[v.name] = arr[:1]
-    return out
+
+    def walk(st, variables, prefix):
+        if not isinstance(st, dict):
+            raise MagctlError(f"block {where!r}: state {'.'.join(prefix) or ''} must be a dict, "
+                              f"got {type(st).__name__}")
+        undeclared = sorted(set(st) - {v.name for v in variables})
+        if undeclared:
+            raise MagctlError(f"block {where!r} ({type(block).__name__}): state entries "
+                              f"{['.'.join((*prefix, k)) for k in undeclared]} are not declared in state_vars(), "
+                              f"so a linearisation cannot walk them")
+        out = dict(st)
+        for v in variables:
+            key = ".".join((*prefix, v.name))
+            if v.name not in st:
+                raise MagctlError(f"block {where!r}: state has no entry {key!r} (entries: {sorted(st)})")
+            val = st[v.name]
+            if v.dtype == SUBSTATE:
+                out[v.name] = walk(val, v.sub, (*prefix, v.name))
+            elif v.dtype == STREAM:
+                out[v.name] = None
+            elif v.batched:
+                arr = np.asarray(val)
+                if arr.shape[1:] != v.shape or arr.shape[0] < 1:
+                    raise MagctlError(f"block {where!r}: state entry {key!r} has shape {arr.shape}, "
+                                      f"declared (B, {', '.join(map(str, v.shape))})")
+                out[v.name] = arr[:1]
+        return out
+
+    return walk(state, block.state_vars(), ())
 
 
-def _flat(state: dict, real_vars) -> np.ndarray:
-    if not real_vars:
+def _real_entries(block: Block):
+    return [(keys, v) for keys, v in flat_state_vars(block.state_vars()) if v.real]
+
+
+def _flat(state: dict, entries) -> np.ndarray:
+    if not entries:
         return np.zeros(0)
-    return np.concatenate([np.asarray(state[v.name], dtype=float)[0].ravel() for v in real_vars])
+    return np.concatenate([np.asarray(state_get(state, keys), dtype=float)[0].ravel() for keys, _ in entries])
 
 
-def _with(state: dict, real_vars, x: np.ndarray) -> dict:
-    new = dict(state)
+def _with(state: dict, entries, x: np.ndarray) -> dict:
     pos = 0
-    for v in real_vars:
-        new[v.name] = x[pos:pos + v.size].reshape((1, *v.shape)).copy()
+    for keys, v in entries:
+        state = state_with(state, keys, x[pos:pos + v.size].reshape((1, *v.shape)).copy())
         pos += v.size
-    return new
+    return state
 
 
 def finite_difference_jacobians(block: Block, state: dict, u: dict, eps: float = 1e-6):
@@ -164,7 +176,7 @@ def finite_difference_jacobians(block: Block, state: dict, u: dict, eps: float =
     held at their values in ``state``. Inputs and outputs are the real-valued ports in declaration
     order; boolean inputs are held at their values in ``u``.
     """
-    real_vars = [v for v in block.state_vars() if v.real]
+    real_vars = _real_entries(block)
     x0 = _flat(state, real_vars)
     in_ports = [p for p in block.inputs.values() if _real(p)]
     out_ports = [p for p in block.outputs.values() if _real(p)]

@@ -23,6 +23,10 @@ def trial_seed_sequence(seed: int, trial: int) -> np.random.SeedSequence:
     return np.random.SeedSequence(int(seed), spawn_key=(int(trial),))
 
 
+LARGE = 0x4C415247
+"""Spawn-key element of the per-step streams of :meth:`TrialStreams.large`."""
+
+
 def block_key(path: str) -> int:
     """Stable 32-bit key of a block path, used as a spawn key."""
     return zlib.crc32(path.encode())
@@ -48,8 +52,10 @@ class TrialStreams:
         Steps drawn per refill.
     """
 
-    def __init__(self, generators: Sequence[np.random.Generator], chunk: int = 256):
+    def __init__(self, generators: Sequence[np.random.Generator], chunk: int = 256,
+                 sequences: Sequence[np.random.SeedSequence] | None = None):
         self.generators = list(generators)
+        self.sequences = None if sequences is None else list(sequences)
         self.chunk = int(chunk)
         self._buffers: dict[tuple, list] = {}
         self._memo: dict[tuple, list] = {}
@@ -58,16 +64,14 @@ class TrialStreams:
     def for_block(cls, seed: int, trials: Sequence[int], path: str, chunk: int = 256) -> TrialStreams:
         """Streams of block ``path`` for the given global trial indices."""
         key = block_key(path)
-        gens = [
-            np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(k), key)))
-            for k in trials
-        ]
-        return cls(gens, chunk)
+        seqs = [np.random.SeedSequence(int(seed), spawn_key=(int(k), key)) for k in trials]
+        return cls([np.random.default_rng(q) for q in seqs], chunk, seqs)
 
     @classmethod
     def for_trials(cls, seed: int, trials: Sequence[int], chunk: int = 256) -> TrialStreams:
         """Streams seeded directly by each trial's sequence (no block key)."""
-        return cls([np.random.default_rng(trial_seed_sequence(seed, k)) for k in trials], chunk)
+        seqs = [trial_seed_sequence(seed, k) for k in trials]
+        return cls([np.random.default_rng(q) for q in seqs], chunk, seqs)
 
     @property
     def batch(self) -> int:
@@ -134,3 +138,16 @@ class TrialStreams:
         if at is None:
             return self._draw("random", tuple(shape))
         return self._draw_at("random", tuple(shape), int(at))
+
+    def large(self, kind: str, trial: int, shape: tuple[int, ...], at: int) -> np.ndarray:
+        """Draws of ``shape`` for batch row ``trial`` at step ``at``, too large to chunk (a noise image).
+
+        They come from their own stream, ``SeedSequence(…, spawn_key=(…, LARGE, at))`` below
+        the trial's, so they are a function of ``(trial, at)`` and leave the chunked streams alone.
+        """
+        if self.sequences is None:
+            raise MagctlError("these streams were made from generators, not seed sequences: no large draws")
+        seq = self.sequences[trial]
+        gen = np.random.default_rng(np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, LARGE, int(at))))
+        return getattr(gen, kind)(tuple(shape))
+

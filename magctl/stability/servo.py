@@ -26,7 +26,7 @@ import control
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.linear import PI, Delay, Gain, Integrator, Sum
@@ -199,6 +199,11 @@ class KinematicRobot(Block):
                          outputs=[Port("position", (2,), "m"), Port("heading", (), "rad"),
                                   Port("spheres", (len(self.spheres), 2), "m")], dt=dt, feedthrough=False)
 
+    def state_vars(self):
+        return (StateVar("x", (2,), symbol="x", description="position, m"),
+                StateVar("h", (), symbol="ψ", description="heading, rad"),
+                StateVar("s", (len(self.spheres), 2), symbol="P_s", description="sphere positions (constant), m"))
+
     def initial_state(self, batch, rng=None):
         return {"x": np.broadcast_to(self.start, (batch, 2)).copy(), "h": np.zeros(batch),
                 "s": np.broadcast_to(self.spheres, (batch, *self.spheres.shape)).copy()}
@@ -208,9 +213,8 @@ class KinematicRobot(Block):
 
     def update(self, state, u):
         step = self.dt * u["speed"]
-        state["x"] = state["x"] + step[:, None] * np.stack([np.cos(u["heading"]), np.sin(u["heading"])], axis=1)
-        state["h"] = np.where(u["speed"] > 0, u["heading"], state["h"])
-        return state
+        return {"x": state["x"] + step[:, None] * np.stack([np.cos(u["heading"]), np.sin(u["heading"])], axis=1),
+                "h": np.where(u["speed"] > 0, u["heading"], state["h"]), "s": state["s"]}
 
 
 def servo_step_diagram(servo, *, delay_frames: int, start=(1.0e-3, 1.0e-3), tracker_mode: str = "raw",
