@@ -4,8 +4,9 @@ The full 30 Hz loop of :func:`magctl.loops.push_loop` (drive → coils → robot
 positions mode → Kalman tracker → push task → servo) for a front push (K_c = 1, δ(0) from the model) and
 a side push, from the start of a trial. Speed = (batch × simulated seconds) / wall seconds; target
 ≥ 5000× real time for a batch of 100 (issue 7). A second, instrumented run times every leaf block's
-``output`` + ``update`` (or ``step``, which feedthrough blocks get once per frame) per step at B = 100 and B = 1, to show where the time goes, and a front push at
-B = 1000 shows how the lockstep batch scales (informational, no target).
+``output`` + ``update`` (or ``step``, which feedthrough blocks get once per frame) per step at B = 100
+and B = 1, to show where the time goes, and a front push at B = 1000 shows how the lockstep batch
+scales (informational, no target).
 """
 
 from __future__ import annotations

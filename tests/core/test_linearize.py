@@ -140,6 +140,30 @@ def test_linear_diagram_export_matches_python_control_interconnect():
     np.testing.assert_allclose(lin.B, ours.B, atol=1e-8)
 
 
+def test_scalar_loop_matches_python_control_interconnect_by_names():
+    """The same loop built with python-control alone: named subsystems joined by ``interconnect``."""
+    kp, ki, g = 0.9, 0.3, 2.0
+    d = Diagram("loop", [Sum("e", "+-"), PI("pi", kp, ki), Gain("k", g), Integrator("p", out_unit="1"),
+                         Delay("cam", 3)],
+                [("e.y", "pi.e"), ("pi.u", "k.u"), ("k.y", "p.u"), ("p.y", "cam.u"), ("cam.y", "e.u1")],
+                inputs={"r": "e.u0"}, outputs={"p": "p.y", "u": "pi.u"})
+    z = control.tf([1.0, 0.0], [1.0], DT)
+    parts = [
+        control.summing_junction(inputs=["r", "-ym"], output="e", dt=DT, name="sum"),
+        control.ss(kp + ki * DT / (z - 1), inputs="e", outputs="u", name="pi"),
+        control.ss(control.tf([g], [1.0], DT), inputs="u", outputs="v", name="k"),
+        control.ss(DT / (z - 1), inputs="v", outputs="p", name="plant"),
+        control.ss(z**-3, inputs="p", outputs="ym", name="cam"),
+    ]
+    ref = control.interconnect(parts, inplist=["r"], outlist=["p", "u"], dt=DT)
+    ours = d.to_control()
+    np.testing.assert_allclose(np.sort_complex(control.poles(ours)), np.sort_complex(control.poles(ref)), atol=1e-9)
+    w = np.array([0.05, 0.5, 5.0, 50.0])
+    np.testing.assert_allclose(control.frequency_response(ours, w).frdata,
+                               control.frequency_response(ref, w).frdata, rtol=1e-9, atol=1e-12)
+    assert sorted(ours.state_labels) == ["cam.buf[0]", "cam.buf[1]", "cam.buf[2]", "p.x", "pi.I"]
+
+
 def test_exported_state_space_names_its_states():
     inner = Diagram("inner", [Gain("g", 2.0), PI("pi", 1.0, 0.5)], [("g.y", "pi.e")], inputs={"x": "g.u"},
                     outputs={"u": "pi.u"})
