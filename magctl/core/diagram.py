@@ -27,6 +27,8 @@ from magctl.core.random import TrialStreams
 EXTERNAL = -1
 """Leaf index standing for the diagram's own inputs in a schedule's wiring."""
 
+_STEP, _OUTPUT_UPDATE, _OUTPUT = "step", "output+update", "output"
+
 
 def split_ref(ref: str) -> tuple[str, str]:
     """``"block.port"`` → ``("block", "port")``, with a clear error otherwise."""
@@ -297,6 +299,10 @@ class Schedule:
         self._ratios = [lf.ratio for lf in self.leaves]
         self._feed = [lf.block.feedthrough for lf in self.leaves]
         self._wirings = [lf.wiring for lf in self.leaves]
+        # how a leaf is stepped: its own step(); output then update (Block.step's default, inlined);
+        # output only (no state to advance: Block.update's default returns the state)
+        self._mode = [_STEP if type(b).step is not Block.step else
+                      (_OUTPUT if type(b).update is Block.update else _OUTPUT_UPDATE) for b in self._blocks]
 
     def leaf(self, path: str) -> int:
         for i, lf in enumerate(self.leaves):
@@ -346,7 +352,7 @@ class Schedule:
         last entry holds the diagram inputs ``u``).
         """
         n = self._n
-        blocks, ratios, feed, wirings = self._blocks, self._ratios, self._feed, self._wirings
+        blocks, ratios, feed, wirings, mode = self._blocks, self._ratios, self._feed, self._wirings, self._mode
         multirate = self.multirate
         outs: list = [None] * (n + 1)
         outs[EXTERNAL] = u or {}
@@ -360,7 +366,12 @@ class Schedule:
             if feed[i]:
                 if advance:
                     ui = {p: outs[j][q] for p, j, q in wirings[i]}
-                    outs[i], pending[i] = blocks[i].step(leaf_states[i], ui)
+                    m = mode[i]
+                    if m is _STEP:
+                        outs[i], pending[i] = blocks[i].step(leaf_states[i], ui)
+                    else:
+                        outs[i] = blocks[i].output(leaf_states[i], ui)
+                        pending[i] = leaf_states[i] if m is _OUTPUT else blocks[i].update(leaf_states[i], ui)
                 else:
                     try:
                         ui = {p: outs[j][q] for p, j, q in wirings[i]}
@@ -378,7 +389,7 @@ class Schedule:
                     continue
                 if feed[i]:
                     leaf_states[i] = pending[i]
-                else:
+                elif mode[i] is not _OUTPUT:
                     leaf_states[i] = blocks[i].update(leaf_states[i], {p: outs[j][q] for p, j, q in wirings[i]})
         return outs
 

@@ -131,8 +131,8 @@ class Sum(Block):
 class Delay(Block):
     """Pure delay ``y[k] = u[k - d]`` (transfer function z⁻ᵈ), ``initial`` before the first input.
 
-    The state is the shift register ``buf = [u[k−d], …, u[k−1]]`` (oldest first), the
-    state vector of :meth:`to_control` as well.
+    The state is the past inputs ``u{j} = u[k−j]``, ``j = d … 1`` (oldest first, the state vector
+    of :meth:`to_control` as well); a step passes the arrays along without copying them.
     """
 
     def __init__(self, name: str, d: int, *, shape=(), unit: str = DIMENSIONLESS, dt: float = FRAME_PERIOD_S,
@@ -143,25 +143,24 @@ class Delay(Block):
         self.initial = initial
         super().__init__(name, inputs=[Port("u", tuple(shape), unit)], outputs=[Port("y", tuple(shape), unit)],
                          dt=dt, feedthrough=False)
+        self._names = [f"u{j}" for j in range(self.d, 0, -1)]  # oldest first
 
     def state_vars(self):
-        return (StateVar("buf", (self.d, *self.inputs["u"].shape), symbol="u[k−d…k−1]",
-                         description="past inputs, oldest first"),)
+        shape = self.inputs["u"].shape
+        return tuple(StateVar(n, shape, symbol=f"u[k−{n[1:]}]", description=f"input {n[1:]} steps ago")
+                     for n in self._names)
 
     def initial_state(self, batch, rng=None):
-        buf = np.empty((batch, self.d, *self.inputs["u"].shape))
-        buf[...] = self.initial
-        return {"buf": buf}
+        return {n: as_batch(self.initial, self.inputs["u"], batch) for n in self._names}
 
     def output(self, state, u):
-        return {"y": state["buf"][:, 0]}
+        return {"y": state[self._names[0]]}
 
     def update(self, state, u):
-        buf = state["buf"]
-        new = np.empty_like(buf)
-        new[:, :-1] = buf[:, 1:]
-        new[:, -1] = u["u"]
-        return {"buf": new}
+        names = self._names
+        new = {names[j]: state[names[j + 1]] for j in range(self.d - 1)}
+        new[names[-1]] = u["u"]
+        return new
 
     def to_control(self):
         n = _size(self.inputs["u"].shape)
@@ -173,7 +172,8 @@ class Delay(Block):
         B[(d - 1) * n:, :] = np.eye(n)
         C = np.zeros((n, d * n))
         C[:, :n] = np.eye(n)
-        return control.ss(A, B, C, np.zeros((n, n)), dt=self.dt, states=[f"buf[{i}]" for i in range(d * n)])
+        labels = [lbl for name in self._names for lbl in _labels(name, self.inputs["u"].shape)]
+        return control.ss(A, B, C, np.zeros((n, n)), dt=self.dt, states=labels)
 
 
 class Integrator(Block):

@@ -199,11 +199,12 @@ class Camera(Block):
         L, n = self.latency, self.n_spheres
         out = [rng_var("pixel noise N(0, 1) and drop draws U[0, 1), read at position k"),
                StateVar("k", (), "int64", "k", "frames stepped (the stream position)", batched=False)]
-        if L:
-            out += [StateVar("buf_pos", (L, 2), symbol="p[k−L…k−1]", description="sampled robot positions, m"),
-                    StateVar("buf_head", (L,), symbol="ψ[k−L…k−1]", description="sampled headings, rad"),
-                    StateVar("buf_sph", (L, n, 2), symbol="P_s[k−L…k−1]", description="sampled spheres, m"),
-                    StateVar("buf_full", (L,), "bool", description="a frame was sampled into this slot")]
+        for j in range(L, 0, -1):  # the frames in the pipeline, oldest (delivered now) first
+            ago = f"sampled {j} frames ago"
+            out += [StateVar(f"pos{j}", (2,), symbol=f"p[k−{j}]", description=f"robot position {ago}, m"),
+                    StateVar(f"head{j}", (), symbol=f"ψ[k−{j}]", description=f"heading {ago}, rad"),
+                    StateVar(f"sph{j}", (n, 2), symbol=f"P_s[k−{j}]", description=f"spheres {ago}, m"),
+                    StateVar(f"full{j}", (), "bool", description=f"a frame was {ago}")]
         if self.mode == "positions":
             out += [StateVar("meas_pos", (2,), symbol="p̃", description=self._meas_doc + ", robot, m"),
                     StateVar("meas_head", (), symbol="ψ̃", description=self._meas_doc + ", heading, rad"),
@@ -221,12 +222,11 @@ class Camera(Block):
     def initial_state(self, batch, rng=None):
         L, n = self.latency, self.n_spheres
         st = {"rng": rng, "k": 0}
-        if L:
-            st |= {"buf_pos": np.zeros((batch, L, 2)), "buf_head": np.zeros((batch, L)),
-                   "buf_sph": np.zeros((batch, L, n, 2)), "buf_full": np.zeros((batch, L), dtype=bool)}
-            if self.primed is not None:
-                st["buf_pos"][:], st["buf_head"][:], st["buf_sph"][:] = self.primed
-                st["buf_full"][:] = True
+        for j in range(L, 0, -1):
+            pos, head, sph = self.primed if self.primed is not None else (np.zeros(2), 0.0, np.zeros((n, 2)))
+            st |= {f"pos{j}": np.broadcast_to(pos, (batch, 2)).copy(), f"head{j}": np.full(batch, head),
+                   f"sph{j}": np.broadcast_to(sph, (batch, n, 2)).copy(),
+                   f"full{j}": np.full(batch, self.primed is not None)}
         if self.mode == "positions":
             st |= {"meas_pos": np.zeros((batch, 2)), "meas_head": np.zeros(batch), "meas_sph": np.zeros((batch, n, 2))}
             if L:
@@ -238,7 +238,8 @@ class Camera(Block):
         if self.latency == 0:
             b = u["position"].shape[0]
             return u["position"], u["heading"], u["spheres"], np.ones(b, dtype=bool)
-        return state["buf_pos"][:, 0], state["buf_head"][:, 0], state["buf_sph"][:, 0], state["buf_full"][:, 0]
+        L = self.latency
+        return state[f"pos{L}"], state[f"head{L}"], state[f"sph{L}"], state[f"full{L}"]
 
     def _draws(self, state, batch, k):
         """Step ``k``'s draws: standard normals ``(B, 3 + 2N)`` and one uniform ``(B, 1)``; none without a stream."""
@@ -306,19 +307,14 @@ class Camera(Block):
             return self.step(state, u)[1]
         new = {"rng": state["rng"], "k": state["k"] + 1}
         if self.latency:
-            new |= {"buf_pos": _shift(state["buf_pos"], u["position"]),
-                    "buf_head": _shift(state["buf_head"], u["heading"]),
-                    "buf_sph": _shift(state["buf_sph"], u["spheres"]),
-                    "buf_full": _shift(state["buf_full"], True)}
+            # the pipeline moves on by one frame; arrays are passed along, never written
+            for j in range(self.latency, 1, -1):
+                for x in ("pos", "head", "sph", "full"):
+                    new[f"{x}{j}"] = state[f"{x}{j - 1}"]
+            new |= {"pos1": u["position"], "head1": u["heading"], "sph1": u["spheres"],
+                    "full1": np.ones(u["heading"].shape[0], dtype=bool)}
             if self.mode == "positions":
                 new |= {"meas_pos": state["meas_pos"], "meas_head": state["meas_head"], "meas_sph": state["meas_sph"]}
                 new |= self._measure(new, self._sample(new, None), new["k"])
         return new
 
-
-def _shift(buf: np.ndarray, value) -> np.ndarray:
-    """Shift register ``(B, L, …)``, oldest first: drop the oldest, append ``value`` (a new array)."""
-    new = np.empty_like(buf)
-    new[:, :-1] = buf[:, 1:]
-    new[:, -1] = value
-    return new

@@ -161,7 +161,7 @@ def test_scalar_loop_matches_python_control_interconnect_by_names():
     w = np.array([0.05, 0.5, 5.0, 50.0])
     np.testing.assert_allclose(control.frequency_response(ours, w).frdata,
                                control.frequency_response(ref, w).frdata, rtol=1e-9, atol=1e-12)
-    assert sorted(ours.state_labels) == ["cam.buf[0]", "cam.buf[1]", "cam.buf[2]", "p.x", "pi.I"]
+    assert sorted(ours.state_labels) == ["cam.u1", "cam.u2", "cam.u3", "p.x", "pi.I"]
 
 
 def test_exported_state_space_names_its_states():
@@ -172,10 +172,10 @@ def test_exported_state_space_names_its_states():
                 [("inner.u", "cam.u"), ("c.y", "i.u")], inputs={"x": "inner.x"},
                 outputs={"y": "cam.y", "z": "i.y"})
     sys = d.to_control()
-    assert sorted(sys.state_labels) == sorted(["inner/pi.I", "cam.buf[0]", "cam.buf[1]", "i.x[0]", "i.x[1]"])
+    assert sorted(sys.state_labels) == sorted(["inner/pi.I", "cam.u2", "cam.u1", "i.x[0]", "i.x[1]"])
     assert sys.output_labels == ["y", "z[0]", "z[1]"]
-    # the names follow the states: the delay line's oldest entry is the output
-    k = sys.state_labels.index("cam.buf[0]")
+    # the names follow the states: the delay line's oldest entry, u[k−2], is the output
+    k = sys.state_labels.index("cam.u2")
     assert sys.C[0, k] == 1.0
 
 
