@@ -154,7 +154,12 @@ class Diagram(Block):
 
     # --- block behaviour -----------------------------------------------------------------------
     def initial_state(self, batch: int, rng=None, *, seed: int = 0, trials: Sequence[int] | None = None) -> State:
-        """States of every leaf; ``seed``/``trials`` select the per-trial random streams."""
+        """The diagram state at step 0; ``seed``/``trials`` select the per-trial random streams.
+
+        A diagram state is ``{"tick": k, "leaves": [...], "held": [...]}``: the base tick, every
+        leaf's own (declared) state in schedule order (``self.schedule.leaves``), and the outputs
+        multirate leaves hold between their ticks.
+        """
         return self.schedule.initial_state(batch, seed=seed, trials=trials)
 
     def output(self, state: State, u):
