@@ -55,7 +55,9 @@ class StateVar:
     shape : tuple of int
         Shape of one trial's value (without the trial axis).
     dtype : str
-        ``"float64"``, ``"int64"``, ``"bool"``, or :data:`STREAM` for a random stream.
+        ``"float64"``, ``"int64"``, ``"bool"``; :data:`STREAM` for a random stream,
+        :data:`SUBSTATE` for a nested state dict, ``"object"`` for anything else a
+        block keeps (never modified in place either).
     symbol : str
         The symbol the model's equations use (``"I"``, ``"x̂"``, ``"i_L"`` …).
     description : str
