@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.block import Block, State
+from magctl.core.block import Block, State, StateVar
 from magctl.core.errors import AlgebraicLoopError, RateError, WiringError
 from magctl.core.ports import Port
 from magctl.core.random import TrialStreams
@@ -153,6 +153,12 @@ class Diagram(Block):
                 )
 
     # --- block behaviour -----------------------------------------------------------------------
+    def state_vars(self):
+        """The diagram state's three entries; each leaf declares its own state (``schedule.leaves``)."""
+        return (StateVar("tick", (), "int64", "k", "base ticks since step 0", batched=False),
+                StateVar("leaves", (), "object", description="leaf states in schedule order", batched=False),
+                StateVar("held", (), "object", description="outputs multirate leaves hold", batched=False))
+
     def initial_state(self, batch: int, rng=None, *, seed: int = 0, trials: Sequence[int] | None = None) -> State:
         """The diagram state at step 0; ``seed``/``trials`` select the per-trial random streams.
 

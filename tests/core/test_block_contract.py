@@ -273,6 +273,7 @@ def run_contract(block, make_inputs, steps=STEPS, declared=True) -> None:
     is_diagram = isinstance(block, Diagram)
     for k in range(steps):
         if is_diagram:
+            _check_declared(block, state, BATCH)
             for lf, st in zip(block.schedule.leaves, state["leaves"], strict=True):
                 _check_declared(lf.block, st, BATCH, lf.path)
         elif declared:
