@@ -4,8 +4,9 @@ The full 30 Hz loop of :func:`magctl.loops.push_loop` (drive → coils → robot
 positions mode → Kalman tracker → push task → servo) for a front push (K_c = 1, δ(0) from the model) and
 a side push, from the start of a trial. Speed = (batch × simulated seconds) / wall seconds; target
 ≥ 5000× real time for a batch of 100 (issue 7). A second, instrumented run times every leaf block's
-``output`` + ``update`` per step at B = 100 and B = 1, to show where the time goes, and a front push at
-B = 1000 shows how the lockstep batch scales (informational, no target).
+``output`` + ``update`` (or ``step``, which feedthrough blocks get once per frame) per step at B = 100
+and B = 1, to show where the time goes, and a front push at B = 1000 shows how the lockstep batch
+scales (informational, no target).
 """
 
 from __future__ import annotations
@@ -37,15 +38,15 @@ def _speed(exp: Experiment, frames: int, batch: int, repeats: int) -> tuple[floa
 
 
 def _per_block(exp: Experiment, frames: int, batch: int) -> dict[str, float]:
-    """Mean cost [µs] of each leaf block's ``output`` + ``update`` per step (instrumented run)."""
+    """Mean cost [µs] of each leaf block's ``output`` + ``update`` / ``step`` per step (instrumented run)."""
     diagram = push_loop(exp)
     simulate(diagram, 2, batch=batch, seed=0)
     cost: dict[str, float] = {}
-    busy: set[str] = set()      # a block's update may call its own output: time the outer call only
+    busy: set[str] = set()      # step() may call the block's own output/update: time the outer call only
     for leaf in diagram.schedule.leaves:
         block, path = leaf.block, leaf.path
         cost[path] = 0.0
-        for meth in ("output", "update"):
+        for meth in ("output", "update", "step"):
             inner = getattr(block, meth)
 
             def timed(state, u, _inner=inner, _path=path):
@@ -64,7 +65,7 @@ def _per_block(exp: Experiment, frames: int, batch: int) -> dict[str, float]:
     simulate(diagram, frames, batch=batch, seed=0, record=["task.status"])
     total = time.perf_counter() - t0
     for leaf in diagram.schedule.leaves:   # drop the instance overrides again
-        for meth in ("output", "update"):
+        for meth in ("output", "update", "step"):
             vars(leaf.block).pop(meth, None)
     table = {f"{path}_us": 1e6 * c / frames for path, c in sorted(cost.items(), key=lambda kv: -kv[1])}
     table["total_us"] = 1e6 * total / frames

@@ -15,7 +15,7 @@ import numpy as np
 from magctl import FRAME_PERIOD_S
 from magctl.control.status import Status
 from magctl.core.batched import norm
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar
 from magctl.core.ports import Port
 
 
@@ -45,8 +45,12 @@ class Patrol(Block):
                          outputs=[Port("target", (2,), "m"), Port("status", (), "1", "int64"), Port("lap", (), "1")],
                          dt=dt, feedthrough=False)
 
+    def state_vars(self):
+        return (StateVar("i", (), "int64", description="index of the current waypoint"),
+                StateVar("lap", (), symbol="n", description="laps completed"))
+
     def initial_state(self, batch, rng=None):
-        return {"i": np.zeros(batch, dtype=int), "lap": np.zeros(batch)}
+        return {"i": np.zeros(batch, dtype=np.int64), "lap": np.zeros(batch)}
 
     def output(self, state, u):
         running = np.full(state["i"].shape, Status.RUNNING, dtype=np.int64)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import control
 import numpy as np
 
-from magctl.core.block import Block, as_batch
+from magctl.core.block import Block, StateVar, as_batch
 from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
 
@@ -63,6 +63,9 @@ class LearningLaw(Block):
         super().__init__(name, inputs=[Port("e", (), unit)], outputs=[Port("y", (), unit)], dt=dt,
                          feedthrough=False)
 
+    def state_vars(self):
+        return (StateVar("x", (), symbol="x", description="the correction δ or Δ, m"),)
+
     def initial_state(self, batch, rng=None):
         for what, arr in (("initial values", self.initial), ("gains", np.asarray(self.gain))):
             if arr.ndim == 1 and arr.shape[0] != batch:
@@ -73,14 +76,11 @@ class LearningLaw(Block):
         return {"y": state["x"]}
 
     def update(self, state, u):
-        # a new array: the output handed out for this attempt stays as it was
-        state["x"] = state["x"] + self.gain * u["e"]
-        return state
+        return {"x": state["x"] + self.gain * u["e"]}
 
     def update_where(self, state, u, mask) -> dict:
-        """Advance only the trials in ``mask`` (those that just finished an attempt)."""
-        state["x"] = np.where(mask, state["x"] + self.gain * u["e"], state["x"])
-        return state
+        """The next state with only the trials in ``mask`` advanced (those that just finished an attempt)."""
+        return {"x": np.where(mask, state["x"] + self.gain * u["e"], state["x"])}
 
     def to_control(self):
         """``g / (z − 1)`` as a python-control state space with ``dt`` = 1 attempt."""

@@ -20,7 +20,7 @@ import numpy as np
 from scipy import ndimage
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
 from magctl.core.ports import DIMENSIONLESS, Port
 
@@ -230,17 +230,24 @@ class Planner(Block):
                                   Port("feasible", (), DIMENSIONLESS, "bool"), Port("replans", (), DIMENSIONLESS)],
                          dt=dt, feedthrough=True)
 
+    def state_vars(self):
+        n = self.inputs["spheres_est"].shape[0]
+        return (StateVar("path", (self.kmax, 2), symbol="w", description="waypoints of the current plan, m"),
+                StateVar("len", (), "int64", description="number of waypoints in the plan"),
+                StateVar("idx", (), "int64", description="index of the current waypoint"),
+                StateVar("goal", (2,), symbol="P_g", description="goal the plan was made for, m"),
+                StateVar("spheres", (n, 2), symbol="P_s", description="sphere positions the plan was made for, m"),
+                StateVar("feasible", (), "bool", description="the last plan reached the goal"),
+                StateVar("replans", (), symbol="n_r", description="plans made so far"))
+
     def initial_state(self, batch, rng=None):
         n = self.inputs["spheres_est"].shape[0]
-        return {"path": np.zeros((batch, self.kmax, 2)), "len": np.zeros(batch, dtype=int),
-                "idx": np.zeros(batch, dtype=int), "goal": np.full((batch, 2), np.nan),
+        return {"path": np.zeros((batch, self.kmax, 2)), "len": np.zeros(batch, dtype=np.int64),
+                "idx": np.zeros(batch, dtype=np.int64), "goal": np.full((batch, 2), np.nan),
                 "spheres": np.full((batch, n, 2), np.nan), "feasible": np.ones(batch, dtype=bool),
                 "replans": np.zeros(batch)}
 
     def _plan(self, state, u):
-        cached = state.get("planned")
-        if cached is not None:
-            return cached
         path, length, idx = state["path"].copy(), state["len"].copy(), state["idx"].copy()
         feasible, replans = state["feasible"].copy(), state["replans"].copy()
         goal, sph, robot = u["goal"], u["spheres_est"], u["robot_est"]
@@ -264,21 +271,20 @@ class Planner(Block):
         near = np.linalg.norm(path[rows, idx] - robot, axis=1) < self.waypoint_tol
         step = near & (idx < length - 1)
         idx = idx + step
-        planned = (path, length, idx, feasible, replans, need)
-        state["planned"] = planned
-        return planned
+        return path, length, idx, feasible, replans, need
+
+    def step(self, state, u):
+        """Plan (where needed) once per frame: the target now and the plan kept for the next frame."""
+        path, length, idx, feasible, replans, need = self._plan(state, u)
+        rows = np.arange(len(idx))
+        out = {"target": path[rows, idx].copy(), "final": idx >= length - 1, "feasible": feasible.copy(),
+               "replans": replans.copy()}
+        return out, {"path": path, "len": length, "idx": idx, "feasible": feasible, "replans": replans,
+                     "goal": np.where(need[:, None], u["goal"], state["goal"]),
+                     "spheres": np.where(need[:, None, None], u["spheres_est"], state["spheres"])}
 
     def output(self, state, u):
-        path, length, idx, feasible, replans, _ = self._plan(state, u)
-        rows = np.arange(len(idx))
-        return {"target": path[rows, idx].copy(), "final": idx >= length - 1, "feasible": feasible.copy(),
-                "replans": replans.copy()}
+        return self.step(state, u)[0]
 
     def update(self, state, u):
-        path, length, idx, feasible, replans, need = self._plan(state, u)
-        state["path"], state["len"], state["idx"] = path, length, idx
-        state["feasible"], state["replans"] = feasible, replans
-        state["goal"] = np.where(need[:, None], u["goal"], state["goal"])
-        state["spheres"] = np.where(need[:, None, None], u["spheres_est"], state["spheres"])
-        del state["planned"]
-        return state
+        return self.step(state, u)[1]

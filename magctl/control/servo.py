@@ -28,7 +28,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.config import Params, load_model
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar
 from magctl.core.errors import ParameterError
 from magctl.core.ports import DIMENSIONLESS, Port
 
@@ -111,10 +111,15 @@ class Servo(Block):
                 Port("saturated", (), DIMENSIONLESS, "bool")]
         super().__init__(name, inputs=ins, outputs=outs, dt=dt, feedthrough=True)
 
+    def state_vars(self):
+        return (StateVar("I", (2,), symbol="I", description="integral of the error, m·s"),
+                StateVar("heading", (), symbol="ψ_c", description="last commanded heading (kept at zero command), rad"))
+
     def initial_state(self, batch, rng=None):
         return {"I": np.zeros((batch, 2)), "heading": np.zeros(batch)}
 
-    def _law(self, state, u):
+    def step(self, state, u):
+        """The law once per frame: the command and the next integral (conditional integration or clamp)."""
         e = u["target"] - u["robot_est"]
         ok = np.isfinite(e).all(axis=1)
         if "hold" in u:
@@ -135,33 +140,20 @@ class Servo(Block):
         moving = ok & ~arrived
         speed = np.where(moving, speed, 0.0)
         heading = np.where(mag > 0, np.arctan2(raw[:, 1], raw[:, 0]), state["heading"])
-        return e, ok, arrived, speed, heading, sat & moving
+        sat = sat & moving
+        out = {"speed": speed, "heading": heading, "arrived": arrived & ok, "saturated": sat}
 
-    def _law_cached(self, state, u):
-        # output() and update() of one step see the same input arrays: evaluate the law once
-        key = (state["I"], state["heading"], *u.values())
-        cache = state.get("_law")
-        if cache is not None and len(cache[0]) == len(key) and all(a is b for a, b in zip(cache[0], key, strict=True)):
-            return cache[1]
-        law = self._law(state, u)
-        state["_law"] = (key, law)
-        return law
-
-    def output(self, state, u):
-        _, ok, arrived, speed, heading, sat = self._law_cached(state, u)
-        return {"speed": speed, "heading": heading, "arrived": arrived & ok, "saturated": sat}
-
-    def update(self, state, u):
-        e, ok, arrived, _, heading, sat = self._law_cached(state, u)
-        state.pop("_law", None)
         integrate = ok & ~arrived
         if self.anti_windup:
             integrate &= ~sat
         I = state["I"] + self.dt * e * integrate[:, None]
         if not self.anti_windup and self.ki > 0:
-            cap = self.speed_max if "speed_cap" not in u else np.minimum(self.speed_max, np.maximum(u["speed_cap"], 0))
             mag = self.ki * np.sqrt(np.einsum("bi,bi->b", I, I))
             I = I * np.where(mag > cap, cap / np.where(mag > 0, mag, 1.0), 1.0)[:, None]
-        state["I"] = I
-        state["heading"] = heading
-        return state
+        return out, {"I": I, "heading": heading}
+
+    def output(self, state, u):
+        return self.step(state, u)[0]
+
+    def update(self, state, u):
+        return self.step(state, u)[1]

@@ -1,6 +1,6 @@
 """The block model: ports, blocks, diagrams, batched simulation, python-control export."""
 
-from magctl.core.block import Block, as_batch
+from magctl.core.block import Block, StateVar, as_batch
 from magctl.core.diagram import Diagram
 from magctl.core.errors import (
     AlgebraicLoopError,
@@ -20,6 +20,6 @@ from magctl.core.simulate import SimResult, simulate
 __all__ = [
     "PI", "AlgebraicLoopError", "Block", "Constant", "Delay", "Diagram", "Gain", "GaussianNoise", "Integrator",
     "MagctlError", "NonFiniteSignalError", "NormSaturation", "NotLinearError", "ParameterError", "Port",
-    "RateError", "SimResult", "StateSpace", "Sum", "TrialStreams", "WiringError", "as_batch", "clip_norm",
+    "RateError", "SimResult", "StateSpace", "StateVar", "Sum", "TrialStreams", "WiringError", "as_batch", "clip_norm",
     "port", "simulate", "trial_seed_sequence",
 ]

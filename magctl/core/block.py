@@ -1,18 +1,31 @@
-"""The block: declared ports, a sample period, and behaviour without state.
+"""The block: declared ports, declared state, a sample period, and behaviour without state.
 
 A block never stores the state of a run. ``initial_state`` makes it,
-``output(state, u)`` reads it, ``update(state, u)`` returns the next one, so a
-diagram can evaluate every output in feedthrough order before advancing any
-state, and the same block instance can run a 10 000-trial batch and a
-one-trial rig loop at once.
+``output(state, u)`` reads it and never writes it, ``update(state, u)``
+returns the next one and never mutates its argument, so a diagram can
+evaluate every output in feedthrough order before advancing any state, and
+the same block instance can run a 10 000-trial batch and a one-trial rig loop
+at once.
 
-State is a ``dict`` of arrays with a leading trial axis (plus, for blocks that
-draw noise, a ``TrialStreams`` under the key ``"rng"``).
+A value a block needs in both its output and its next state (a control law,
+a filter's posterior) is not stashed in the state: the engine calls
+``step(state, u) -> (outputs, next_state)`` once per tick for feedthrough
+blocks, whose inputs are all known when their outputs are due, and such
+blocks override ``step`` to compute the value once (Drake's per-step cache
+entries play this role there). A block without feedthrough has no inputs when
+its outputs are due; anything its outputs need is state, computed by the
+previous ``update``.
+
+State is a ``dict`` whose entries the block declares with :class:`StateVar`
+(:meth:`Block.state_vars`): arrays with a leading trial axis, a few
+batch-wide counters, and, for blocks that draw noise, a ``TrialStreams``
+read by position (:mod:`magctl.core.random`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -23,6 +36,111 @@ from magctl.core.random import TrialStreams
 
 State = dict
 Signals = Mapping[str, np.ndarray]
+
+STREAM = "stream"
+"""``StateVar.dtype`` of a per-trial random stream (:class:`~magctl.core.random.TrialStreams`)."""
+
+SUBSTATE = "state"
+"""``StateVar.dtype`` of a nested state dict (a member block's state), declared by ``StateVar.sub``."""
+
+
+@dataclass(frozen=True)
+class StateVar:
+    """One declared entry of a block's state.
+
+    Parameters
+    ----------
+    name : str
+        Key in the state dict.
+    shape : tuple of int
+        Shape of one trial's value (without the trial axis).
+    dtype : str
+        ``"float64"``, ``"int64"``, ``"bool"``; :data:`STREAM` for a random stream,
+        :data:`SUBSTATE` for a nested state dict, ``"object"`` for anything else a
+        block keeps (never modified in place either).
+    symbol : str
+        The symbol the model's equations use (``"I"``, ``"x̂"``, ``"i_L"`` …).
+    description : str
+        What the entry holds, with its unit.
+    batched : bool
+        True: an array ``(B, *shape)``. False: one value for the whole batch (a
+        step counter), ``shape`` then being its own shape.
+    sub : tuple of StateVar
+        With ``dtype=SUBSTATE``: the entries of the nested dict (a member block's state).
+    """
+
+    name: str
+    shape: tuple[int, ...] = ()
+    dtype: str = "float64"
+    symbol: str = ""
+    description: str = ""
+    batched: bool = True
+    sub: tuple = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "shape", tuple(int(n) for n in self.shape))
+        object.__setattr__(self, "sub", tuple(self.sub))
+        if self.sub and self.dtype != SUBSTATE:
+            raise ValueError(f"state entry {self.name!r}: 'sub' goes with dtype={SUBSTATE!r}")
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=int))
+
+    @property
+    def real(self) -> bool:
+        """A per-trial real value: part of the state vector of a linearisation.
+
+        Integers, flags, batch-wide counters and random streams are not: a
+        linearisation holds them at their operating values.
+        """
+        return self.batched and self.dtype not in (STREAM, SUBSTATE) and np.dtype(self.dtype).kind == "f"
+
+    def labels(self, path: str, keys: tuple[str, ...] | None = None) -> list[str]:
+        """Names of the scalar elements: ``"path.name"`` or ``"path.name[i]"`` (C order).
+
+        ``keys`` (a nested entry's key path) replaces ``name`` by ``"k0.k1…"``.
+        """
+        name = ".".join(keys) if keys else self.name
+        base = f"{path}.{name}" if path else name
+        if not self.shape:
+            return [base]
+        return [f"{base}[{i}]" for i in range(self.size)]
+
+
+def substate(name: str, sub, description: str = "") -> StateVar:
+    """The declaration of a nested state dict with entries ``sub`` (e.g. a member block's ``state_vars()``)."""
+    return StateVar(name, (), SUBSTATE, "", description, batched=False, sub=tuple(sub))
+
+
+def flat_state_vars(variables, prefix: tuple[str, ...] = ()) -> list[tuple[tuple[str, ...], StateVar]]:
+    """Every declared entry as ``(key path, StateVar)``, nested declarations expanded (depth first)."""
+    out = []
+    for v in variables:
+        if v.dtype == SUBSTATE:
+            out += flat_state_vars(v.sub, (*prefix, v.name))
+        else:
+            out.append(((*prefix, v.name), v))
+    return out
+
+
+def state_get(state: dict, keys: tuple[str, ...]):
+    """``state[k0][k1]…``."""
+    for k in keys:
+        state = state[k]
+    return state
+
+
+def state_with(state: dict, keys: tuple[str, ...], value) -> dict:
+    """A copy of ``state`` with the entry at ``keys`` replaced (dicts along the path copied, nothing mutated)."""
+    new = dict(state)
+    new[keys[0]] = value if len(keys) == 1 else state_with(state[keys[0]], keys[1:], value)
+    return new
+
+
+def rng_var(description: str = "per-trial random streams, read by position") -> StateVar:
+    """The declaration of a block's ``"rng"`` entry."""
+    return StateVar("rng", (), STREAM, "", description, batched=False)
 
 
 class Block:
@@ -41,8 +159,9 @@ class Block:
         True when some output depends on the current input, so the block's
         outputs must be computed after its inputs' producers.
 
-    Subclasses override :meth:`initial_state`, :meth:`output` and
-    :meth:`update`; linear ones also :meth:`to_control`.
+    Subclasses override :meth:`state_vars`, :meth:`initial_state`,
+    :meth:`output` and :meth:`update` (and :meth:`step` when output and
+    update share work); linear ones also :meth:`to_control`.
     """
 
     def __init__(
@@ -65,20 +184,28 @@ class Block:
         self.feedthrough = bool(feedthrough)
 
     # --- behaviour -----------------------------------------------------------------------
+    def state_vars(self) -> tuple[StateVar, ...]:
+        """The entries of this block's state (none for a stateless block)."""
+        return ()
+
     def initial_state(self, batch: int, rng: TrialStreams | None = None) -> State:
         """State of ``batch`` trials at step 0; ``rng`` holds the block's per-trial streams."""
         return {}
 
     def output(self, state: State, u: Signals) -> dict[str, np.ndarray]:
-        """Outputs at the current step from the state and (if feedthrough) the inputs."""
+        """Outputs at the current step from the state and (if feedthrough) the inputs; reads ``state`` only."""
         raise NotImplementedError(f"{type(self).__name__} must define output()")
 
     def update(self, state: State, u: Signals) -> State:
-        """State at the next step. Stateless blocks return ``state`` unchanged."""
+        """State at the next step, a new dict (``state`` is not modified). Stateless blocks return ``state``."""
         return state
 
     def step(self, state: State, u: Signals) -> tuple[dict[str, np.ndarray], State]:
-        """Outputs now and the next state: ``output`` then ``update``."""
+        """Outputs now and the next state, equal to ``(output(state, u), update(state, u))``.
+
+        The engine calls this once per tick for feedthrough blocks; override it
+        to compute what output and update share only once.
+        """
         return self.output(state, u), self.update(state, u)
 
     # --- analysis hooks ------------------------------------------------------------------

@@ -19,13 +19,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.block import Block, State
+from magctl.core.block import Block, State, StateVar
 from magctl.core.errors import AlgebraicLoopError, RateError, WiringError
 from magctl.core.ports import Port
 from magctl.core.random import TrialStreams
 
 EXTERNAL = -1
 """Leaf index standing for the diagram's own inputs in a schedule's wiring."""
+
+_STEP, _OUTPUT_UPDATE, _OUTPUT = "step", "output+update", "output"
 
 
 def split_ref(ref: str) -> tuple[str, str]:
@@ -151,21 +153,38 @@ class Diagram(Block):
                 )
 
     # --- block behaviour -----------------------------------------------------------------------
+    def state_vars(self):
+        """The diagram state's three entries; each leaf declares its own state (``schedule.leaves``)."""
+        return (StateVar("tick", (), "int64", "k", "base ticks since step 0", batched=False),
+                StateVar("leaves", (), "object", description="leaf states in schedule order", batched=False),
+                StateVar("held", (), "object", description="outputs multirate leaves hold", batched=False))
+
     def initial_state(self, batch: int, rng=None, *, seed: int = 0, trials: Sequence[int] | None = None) -> State:
-        """States of every leaf; ``seed``/``trials`` select the per-trial random streams."""
+        """The diagram state at step 0; ``seed``/``trials`` select the per-trial random streams.
+
+        A diagram state is ``{"tick": k, "leaves": [...], "held": [...]}``: the base tick, every
+        leaf's own (declared) state in schedule order (``self.schedule.leaves``), and the outputs
+        multirate leaves hold between their ticks.
+        """
         return self.schedule.initial_state(batch, seed=seed, trials=trials)
 
     def output(self, state: State, u):
-        outs = self.schedule.evaluate_outputs(state, u)
+        """Exported outputs now; inputs that no exported output depends on may be left out of ``u``."""
+        leaves, held = list(state["leaves"]), list(state["held"])
+        outs = self.schedule.run(state["tick"], u, leaves, held, advance=False)
+        for name, (i, _) in self.schedule.outputs.items():
+            if outs[i] is None:
+                missing = sorted(set(self.inputs) - set(u or {}))
+                raise WiringError(f"diagram {self.name!r}: output {name!r} depends on inputs {missing} not given")
         return self.schedule.exported(outs)
 
     def update(self, state: State, u) -> State:
-        outs = self.schedule.evaluate_outputs(state, u)
-        return self.schedule.advance(state, outs, u)
+        return self.step(state, u)[1]
 
     def step(self, state: State, u):
-        outs = self.schedule.evaluate_outputs(state, u)
-        return self.schedule.exported(outs), self.schedule.advance(state, outs, u)
+        leaves, held = list(state["leaves"]), list(state["held"])
+        outs = self.schedule.run(state["tick"], u, leaves, held)
+        return self.schedule.exported(outs), {"tick": state["tick"] + 1, "leaves": leaves, "held": held}
 
     def to_control(self):
         """The whole diagram as one python-control system (every leaf must be linear)."""
@@ -285,6 +304,16 @@ class Schedule:
             self.leaves.append(Leaf(path, blk, int(round(blk.dt / self.base_dt)), wiring))
         self.outputs = {name: (pos[index[lp]], p) for name, (lp, p) in exported_out.items()}
         self.multirate = any(leaf.ratio != 1 for leaf in self.leaves)
+        # flat per-leaf tables for the step loop
+        self._n = len(self.leaves)
+        self._blocks = [lf.block for lf in self.leaves]
+        self._ratios = [lf.ratio for lf in self.leaves]
+        self._feed = [lf.block.feedthrough for lf in self.leaves]
+        self._wirings = [lf.wiring for lf in self.leaves]
+        # how a leaf is stepped: its own step(); output then update (Block.step's default, inlined);
+        # output only (no state to advance: Block.update's default returns the state)
+        self._mode = [_STEP if type(b).step is not Block.step else
+                      (_OUTPUT if type(b).update is Block.update else _OUTPUT_UPDATE) for b in self._blocks]
 
     def leaf(self, path: str) -> int:
         for i, lf in enumerate(self.leaves):
@@ -309,7 +338,7 @@ class Schedule:
                 reached.add(i)
         return any(i in reached for i, _ in self.outputs.values())
 
-    # --- execution (used by Diagram as a block and by the simulator) ------------------------------
+    # --- execution: the one step routine behind simulate, Diagram.output/update/step and the rig ------
     def initial_state(self, batch: int, *, seed: int = 0, trials: Sequence[int] | None = None) -> State:
         trials = list(range(batch)) if trials is None else list(trials)
         if len(trials) != batch:
@@ -320,36 +349,65 @@ class Schedule:
             states.append(lf.block.initial_state(batch, rng))
         return {"tick": 0, "leaves": states, "held": [None] * len(self.leaves)}
 
-    def evaluate_outputs(self, state: State, u) -> list[dict]:
-        """Every leaf's outputs at the current tick (held for leaves between their ticks)."""
-        k = state["tick"]
-        outs: list[dict] = [None] * len(self.leaves)  # type: ignore[list-item]
-        ext = u or {}
-        leaf_states = state["leaves"]
-        for i, lf in enumerate(self.leaves):
-            if lf.ratio != 1 and k % lf.ratio and state["held"][i] is not None:
-                outs[i] = state["held"][i]
+    def run(self, tick: int, u, leaf_states: list, held: list, advance: bool = True) -> list[dict]:
+        """One base tick: every leaf's outputs in feedthrough order, then (``advance``) every next state.
+
+        A feedthrough leaf is stepped once (``block.step``: outputs and next state together, its
+        inputs being known); a leaf without feedthrough gives its outputs from its state first and is
+        updated once every output of the tick exists. Next states are held back until all outputs
+        are evaluated, then written into ``leaf_states``; a leaf of period ``r`` base ticks runs
+        on ticks ``k ≡ 0 (mod r)`` and holds its outputs (kept in ``held``) in between.
+
+        ``leaf_states`` and ``held`` are the caller's own lists and are updated in place; the
+        leaf states in them are never modified. Returns the outputs, indexed by leaf (the
+        last entry holds the diagram inputs ``u``).
+        """
+        n = self._n
+        blocks, ratios, feed, wirings, mode = self._blocks, self._ratios, self._feed, self._wirings, self._mode
+        multirate = self.multirate
+        outs: list = [None] * (n + 1)
+        outs[EXTERNAL] = u or {}
+        pending: list = [None] * n
+        empty: dict = {}
+        for i in range(n):
+            r = ratios[i]
+            if r != 1 and tick % r and held[i] is not None:
+                outs[i] = held[i]
                 continue
-            if lf.block.feedthrough:
-                ui = {p: (ext[q] if j == EXTERNAL else outs[j][q]) for p, j, q in lf.wiring}
+            if feed[i]:
+                if advance:
+                    ui = {p: outs[j][q] for p, j, q in wirings[i]}
+                    m = mode[i]
+                    if m is _STEP:
+                        outs[i], pending[i] = blocks[i].step(leaf_states[i], ui)
+                    else:
+                        outs[i] = blocks[i].output(leaf_states[i], ui)
+                        pending[i] = leaf_states[i] if m is _OUTPUT else blocks[i].update(leaf_states[i], ui)
+                else:
+                    try:
+                        ui = {p: outs[j][q] for p, j, q in wirings[i]}
+                    except (KeyError, TypeError):
+                        continue  # an input not given (outputs only): this leaf's outputs stay None
+                    outs[i] = blocks[i].output(leaf_states[i], ui)
             else:
-                ui = {}
-            outs[i] = lf.block.output(leaf_states[i], ui)
+                outs[i] = blocks[i].output(leaf_states[i], empty)
+            if multirate:
+                held[i] = outs[i]
+        if advance:
+            for i in range(n):
+                r = ratios[i]
+                if r != 1 and tick % r:
+                    continue
+                if feed[i]:
+                    leaf_states[i] = pending[i]
+                elif mode[i] is not _OUTPUT:
+                    leaf_states[i] = blocks[i].update(leaf_states[i], {p: outs[j][q] for p, j, q in wirings[i]})
         return outs
 
     def gather(self, i: int, outs: list[dict], u) -> dict:
+        """The inputs of leaf ``i`` given every leaf's outputs and the diagram inputs ``u``."""
         ext = u or {}
         return {p: (ext[q] if j == EXTERNAL else outs[j][q]) for p, j, q in self.leaves[i].wiring}
-
-    def advance(self, state: State, outs: list[dict], u) -> State:
-        k = state["tick"]
-        new_leaves = list(state["leaves"])
-        for i, lf in enumerate(self.leaves):
-            if lf.ratio != 1 and k % lf.ratio:
-                continue
-            new_leaves[i] = lf.block.update(new_leaves[i], self.gather(i, outs, u))
-        held = list(outs) if self.multirate else state["held"]
-        return {"tick": k + 1, "leaves": new_leaves, "held": held}
 
     def exported(self, outs: list[dict]) -> dict[str, np.ndarray]:
         return {name: outs[i][p] for name, (i, p) in self.outputs.items()}

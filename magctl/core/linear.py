@@ -14,7 +14,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.core.batched import rows_times
-from magctl.core.block import Block, as_batch
+from magctl.core.block import Block, StateVar, as_batch
 from magctl.core.errors import WiringError
 from magctl.core.nonlinear import vector_norm
 from magctl.core.ports import DIMENSIONLESS, Port
@@ -22,6 +22,11 @@ from magctl.core.ports import DIMENSIONLESS, Port
 
 def _size(shape) -> int:
     return int(np.prod(shape, dtype=int))
+
+
+def _labels(name: str, shape) -> list[str]:
+    """State names ``name[i]`` over a port's elements (``name`` for a scalar)."""
+    return [f"{name}[{i}]" for i in range(_size(shape))] if tuple(shape) else [name]
 
 
 class Constant(Block):
@@ -37,6 +42,9 @@ class Constant(Block):
     def __init__(self, name: str, value, *, shape=(), unit: str = DIMENSIONLESS, dt: float = FRAME_PERIOD_S):
         super().__init__(name, outputs=[Port("y", tuple(shape), unit)], dt=dt, feedthrough=False)
         self.value = np.asarray(value, dtype=float)
+
+    def state_vars(self):
+        return (StateVar("y", self.outputs["y"].shape, symbol="c", description="the value, per trial"),)
 
     def initial_state(self, batch, rng=None):
         return {"y": as_batch(self.value, self.outputs["y"], batch)}
@@ -121,9 +129,10 @@ class Sum(Block):
 
 
 class Delay(Block):
-    """Pure delay ``y[k] = u[k - d]`` (transfer function z⁻ᵈ), zero before the first input.
+    """Pure delay ``y[k] = u[k - d]`` (transfer function z⁻ᵈ), ``initial`` before the first input.
 
-    The state is a ring buffer; its head index is part of the state.
+    The state is the past inputs ``u{j} = u[k−j]``, ``j = d … 1`` (oldest first, the state vector
+    of :meth:`to_control` as well); a step passes the arrays along without copying them.
     """
 
     def __init__(self, name: str, d: int, *, shape=(), unit: str = DIMENSIONLESS, dt: float = FRAME_PERIOD_S,
@@ -134,21 +143,24 @@ class Delay(Block):
         self.initial = initial
         super().__init__(name, inputs=[Port("u", tuple(shape), unit)], outputs=[Port("y", tuple(shape), unit)],
                          dt=dt, feedthrough=False)
+        self._names = [f"u{j}" for j in range(self.d, 0, -1)]  # oldest first
+
+    def state_vars(self):
+        shape = self.inputs["u"].shape
+        return tuple(StateVar(n, shape, symbol=f"u[k−{n[1:]}]", description=f"input {n[1:]} steps ago")
+                     for n in self._names)
 
     def initial_state(self, batch, rng=None):
-        shape = self.inputs["u"].shape
-        buf = np.empty((self.d, batch, *shape))
-        buf[...] = self.initial
-        return {"buf": buf, "head": 0}
+        return {n: as_batch(self.initial, self.inputs["u"], batch) for n in self._names}
 
     def output(self, state, u):
-        return {"y": state["buf"][state["head"]].copy()}
+        return {"y": state[self._names[0]]}
 
     def update(self, state, u):
-        h = state["head"]
-        state["buf"][h] = u["u"]
-        state["head"] = (h + 1) % self.d
-        return state
+        names = self._names
+        new = {names[j]: state[names[j + 1]] for j in range(self.d - 1)}
+        new[names[-1]] = u["u"]
+        return new
 
     def to_control(self):
         n = _size(self.inputs["u"].shape)
@@ -160,7 +172,8 @@ class Delay(Block):
         B[(d - 1) * n:, :] = np.eye(n)
         C = np.zeros((n, d * n))
         C[:, :n] = np.eye(n)
-        return control.ss(A, B, C, np.zeros((n, n)), dt=self.dt)
+        labels = [lbl for name in self._names for lbl in _labels(name, self.inputs["u"].shape)]
+        return control.ss(A, B, C, np.zeros((n, n)), dt=self.dt, states=labels)
 
 
 class Integrator(Block):
@@ -178,6 +191,9 @@ class Integrator(Block):
                          outputs=[Port("y", tuple(shape), out_unit or f"({in_unit})*s")], dt=dt,
                          feedthrough=False)
 
+    def state_vars(self):
+        return (StateVar("x", self.outputs["y"].shape, symbol="x", description="the integral"),)
+
     def initial_state(self, batch, rng=None):
         return {"x": as_batch(self.initial, self.outputs["y"], batch)}
 
@@ -185,14 +201,13 @@ class Integrator(Block):
         return {"y": state["x"]}
 
     def update(self, state, u):
-        # a new array, so the output handed out this step is never modified afterwards
-        state["x"] = state["x"] + (self.gain * self.dt) * u["u"]
-        return state
+        return {"x": state["x"] + (self.gain * self.dt) * u["u"]}
 
     def to_control(self):
         n = _size(self.inputs["u"].shape)
         eye = np.eye(n)
-        return control.ss(eye, self.gain * self.dt * eye, eye, np.zeros((n, n)), dt=self.dt)
+        return control.ss(eye, self.gain * self.dt * eye, eye, np.zeros((n, n)), dt=self.dt,
+                          states=_labels("x", self.outputs["y"].shape))
 
 
 class PI(Block):
@@ -202,7 +217,7 @@ class PI(Block):
     unsaturated ``u[k]`` exceeds the limit, when ``I`` is held. With ``norm=True``
     the limit applies to the vector norm ``‖u‖`` (direction kept), otherwise
     element-wise. The linear model (``to_control``) is the unsaturated law,
-    ``C(z) = Kp + Ki·T/(z − 1)``.
+    ``C(z) = Kp + Ki·T/(z − 1)`` (a static gain ``Kp`` when ``Ki = 0``).
 
     Ports: input ``e`` (error), outputs ``u`` (command) and ``saturated`` (bool).
     """
@@ -222,11 +237,11 @@ class PI(Block):
             feedthrough=True,
         )
 
+    def state_vars(self):
+        return (StateVar("I", self.inputs["e"].shape, symbol="I", description="integral of the error"),)
+
     def initial_state(self, batch, rng=None):
         return {"I": self.inputs["e"].empty(batch)}
-
-    def _raw(self, state, e):
-        return self.kp * e + self.ki * state["I"]
 
     def _excess(self, u):
         """Per-trial magnitude used against the limit."""
@@ -236,40 +251,39 @@ class PI(Block):
             return np.sqrt((u * u).reshape(u.shape[0], -1).sum(axis=1))
         return np.abs(u).reshape(u.shape[0], -1).max(axis=1) if u.ndim > 1 else np.abs(u)
 
-    def output(self, state, u):
+    def step(self, state, u):
         e = u["e"]
         raw = self.kp * e + self.ki * state["I"]
         if self.limit is None:
-            return {"u": raw, "saturated": np.zeros(raw.shape[0], dtype=bool)}
-        sat = self._excess(raw) > self.limit
-        # remembered for update(): the same step's error gives the same verdict
-        state["_last"] = (e, sat)
-        if self.saturate and sat.any():
-            if self.norm:
-                mag = self._excess(raw)
-                scale = np.where(sat, self.limit / np.where(sat, mag, 1.0), 1.0)
-                raw = raw * scale.reshape((-1,) + (1,) * (raw.ndim - 1))
-            else:
-                raw = np.clip(raw, -self.limit, self.limit)
-        return {"u": raw, "saturated": sat}
+            return {"u": raw, "saturated": np.zeros(raw.shape[0], dtype=bool)}, {"I": state["I"] + self.dt * e}
+        mag = self._excess(raw)
+        sat = mag > self.limit
+        if sat.any():
+            # conditional integration: the verdict on the unsaturated command of this step
+            nxt = {"I": state["I"] + (self.dt * e) * (~sat).reshape((-1,) + (1,) * (e.ndim - 1))}
+            if self.saturate:
+                if self.norm:
+                    scale = np.where(sat, self.limit / np.where(sat, mag, 1.0), 1.0)
+                    raw = raw * scale.reshape((-1,) + (1,) * (raw.ndim - 1))
+                else:
+                    raw = np.clip(raw, -self.limit, self.limit)
+        else:
+            nxt = {"I": state["I"] + self.dt * e}
+        return {"u": raw, "saturated": sat}, nxt
+
+    def output(self, state, u):
+        return self.step(state, u)[0]
 
     def update(self, state, u):
-        e = u["e"]
-        if self.limit is None:
-            state["I"] = state["I"] + self.dt * e
-            return state
-        last = state.pop("_last", None)
-        sat = last[1] if last is not None and last[0] is e else self._excess(self._raw(state, e)) > self.limit
-        if sat.any():
-            state["I"] = state["I"] + (self.dt * e) * (~sat).reshape((-1,) + (1,) * (e.ndim - 1))
-        else:
-            state["I"] = state["I"] + self.dt * e
-        return state
+        return self.step(state, u)[1]
 
     def to_control(self):
         n = _size(self.inputs["e"].shape)
         eye = np.eye(n)
-        return control.ss(eye, self.dt * eye, self.ki * eye, self.kp * eye, dt=self.dt)
+        if self.ki == 0.0:
+            return control.ss(np.zeros((0, 0)), np.zeros((0, n)), np.zeros((n, 0)), self.kp * eye, dt=self.dt)
+        return control.ss(eye, self.dt * eye, self.ki * eye, self.kp * eye, dt=self.dt,
+                          states=_labels("I", self.inputs["e"].shape))
 
 
 class StateSpace(Block):
@@ -296,6 +310,9 @@ class StateSpace(Block):
             raise WiringError(f"state space {name!r}: the system must be discrete-time with a numeric dt")
         return cls(name, ss.A, ss.B, ss.C, ss.D, dt=float(ss.dt), **kw)
 
+    def state_vars(self):
+        return (StateVar("x", (self.A.shape[0],), symbol="x", description="state vector"),)
+
     def initial_state(self, batch, rng=None):
         return {"x": np.broadcast_to(self.x0, (batch, self.x0.size)).copy()}
 
@@ -306,8 +323,7 @@ class StateSpace(Block):
         return {"y": y}
 
     def update(self, state, u):
-        state["x"] = rows_times(state["x"], self.A.T) + rows_times(u["u"], self.B.T)
-        return state
+        return {"x": rows_times(state["x"], self.A.T) + rows_times(u["u"], self.B.T)}
 
     def to_control(self):
-        return control.ss(self.A, self.B, self.C, self.D, dt=self.dt)
+        return control.ss(self.A, self.B, self.C, self.D, dt=self.dt, states=_labels("x", (self.A.shape[0],)))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.ports import DIMENSIONLESS, Port
 
 
@@ -45,7 +45,11 @@ class NormSaturation(Block):
 
 
 class GaussianNoise(Block):
-    """``y[k] = u[k] + σ·n[k]`` with ``n`` drawn from the trial's own stream, N(0, 1) per element."""
+    """``y[k] = u[k] + σ·n[k]`` with ``n`` drawn from the trial's own stream, N(0, 1) per element.
+
+    ``n[k]`` is the stream's draw at position ``k`` (the state's step count), so the
+    block is a function of its state; with no stream (``rng=None``) it passes ``u``.
+    """
 
     def __init__(self, name: str, sigma: float, *, shape=(), unit: str = DIMENSIONLESS,
                  dt: float = FRAME_PERIOD_S):
@@ -57,16 +61,18 @@ class GaussianNoise(Block):
     def uses_random(self) -> bool:
         return True
 
+    def state_vars(self):
+        return (rng_var(), StateVar("k", (), "int64", "k", "steps drawn so far", batched=False))
+
     def initial_state(self, batch, rng=None):
-        return {"rng": rng}
+        return {"rng": rng, "k": 0}
 
     def output(self, state, u):
-        # step k's draw is cached until update(), so repeated output() calls within a step agree
-        n = state.get("n")
-        if n is None:
-            n = state["n"] = state["rng"].standard_normal(self.inputs["u"].shape)
-        return {"y": u["u"] + self.sigma * n}
+        rng = state["rng"]
+        if rng is None:  # noise off (a linearisation's operating path)
+            return {"y": u["u"]}
+        # step k's draws, by position: output() is a function of the state
+        return {"y": u["u"] + self.sigma * rng.standard_normal(self.inputs["u"].shape, at=state["k"])}
 
     def update(self, state, u):
-        state.pop("n", None)
-        return state
+        return {"rng": state["rng"], "k": state["k"] + 1}

@@ -1,5 +1,9 @@
 """Batched, deterministic simulation of a diagram.
 
+The step itself is the diagram's :meth:`~magctl.core.diagram.Schedule.run`, the
+same routine behind ``Diagram.step`` and the rig; this module adds the batch,
+the input arrays, recording and the finite-value checks.
+
 ``simulate(diagram, steps, batch=B, seed=S)`` steps B trials in lockstep and
 records every leaf output as an array shaped ``(B, T, …)``. Trial ``k``'s
 random streams come from ``SeedSequence(S, spawn_key=(k, …))`` so its
@@ -15,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magctl.core.block import as_batch
-from magctl.core.diagram import EXTERNAL, Diagram
+from magctl.core.diagram import Diagram
 from magctl.core.errors import NonFiniteSignalError, WiringError
 
 
@@ -139,48 +143,17 @@ def simulate(
     buffers = {n: np.empty((batch, steps, *pt.shape), dtype=pt.dtype) for n, pt in ports.items()}
     rec_plan = [(i, p, buffers[n]) for i, p, n in rec_specs]
 
-    leaves = sched.leaves
-    blocks = [lf.block for lf in leaves]
-    ratios = [lf.ratio for lf in leaves]
-    feed = [lf.block.feedthrough for lf in leaves]
-    wirings = [lf.wiring for lf in leaves]
-    nleaf = len(leaves)
     leaf_states = list(st["leaves"])
     held = list(st["held"])
     tick0 = st["tick"]
-    outs: list = [None] * (nleaf + 1)  # slot EXTERNAL (= -1) holds the diagram inputs
-    us: list = [None] * nleaf
-    empty: dict = {}
+    run = sched.run
     ext_items = list(ext.items())
     last_checked = 0
 
     for k in range(steps):
-        tick = tick0 + k
-        outs[EXTERNAL] = {name: v[:, k] for name, v in ext_items}
-        for i in range(nleaf):
-            r = ratios[i]
-            if r != 1 and tick % r and held[i] is not None:
-                outs[i] = held[i]
-                us[i] = None
-                continue
-            if feed[i]:
-                u = {p: outs[j][q] for p, j, q in wirings[i]}
-                us[i] = u
-                outs[i] = blocks[i].output(leaf_states[i], u)
-            else:
-                us[i] = None
-                outs[i] = blocks[i].output(leaf_states[i], empty)
-            held[i] = outs[i]
+        outs = run(tick0 + k, {name: v[:, k] for name, v in ext_items}, leaf_states, held)
         for i, p, buf in rec_plan:
             buf[:, k] = outs[i][p]
-        for i in range(nleaf):
-            r = ratios[i]
-            if r != 1 and tick % r:
-                continue
-            u = us[i]
-            if u is None:
-                u = {p: outs[j][q] for p, j, q in wirings[i]}
-            leaf_states[i] = blocks[i].update(leaf_states[i], u)
         if check_finite and (k + 1 - last_checked >= check_every or k == steps - 1):
             _check_finite(sched, rec_plan, last_checked, k + 1, tick0, diagram, buffers, trials, leaf_states, held)
             last_checked = k + 1

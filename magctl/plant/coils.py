@@ -29,7 +29,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.core.batched import rows_times
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar
 from magctl.core.ports import Port
 from magctl.plant._coilfield import Coil, CoilSet, load_coils
 
@@ -92,6 +92,9 @@ class CoilActuator(Block):
         self._r2 = R[self._zc] ** 2
         self._two_pi_l = 2.0 * np.pi * L[self._zc]
 
+    def state_vars(self):
+        return (StateVar("i", (len(self.coils.coils),), symbol="i", description="coil currents at the frame start, A"),)
+
     def initial_state(self, batch, rng=None):
         return {"i": np.zeros((batch, len(self.coils.coils)))}
 
@@ -136,26 +139,21 @@ class CoilActuator(Block):
             sat |= s_static < 1.0
         return i_s, i_avg, s_osc, freq, sat
 
-    def _solved(self, state, u):
-        # output() and update() of one step see the same input arrays; solve once per step
-        key = (u["b_static"], u["b_osc"], u["freq"])
-        cached = state.get("_solved")
-        if cached is not None and all(a is b for a, b in zip(cached[0], key)):
-            return cached[1]
-        sol = self._solve(state, u)
-        state["_solved"] = (key, sol)
-        return sol
-
-    def output(self, state, u):
-        _, i_avg, s_osc, freq, sat = self._solved(state, u)
-        return {
+    def step(self, state, u):
+        # the allocation and limits are solved once per frame for both the outputs and the next current
+        i_s, i_avg, s_osc, freq, sat = self._solve(state, u)
+        out = {
             "currents": i_avg,
             "b_static_delivered": rows_times(i_avg, self._A_xy),
             "b_osc_delivered": u["b_osc"] * s_osc,
             "freq_delivered": freq,
             "saturated": sat,
         }
+        return out, {"i": i_s + (state["i"] - i_s) * self.decay}
+
+    def output(self, state, u):
+        return self.step(state, u)[0]
 
     def update(self, state, u):
-        i_ss = self._solved(state, u)[0]
-        return {"i": i_ss + (state["i"] - i_ss) * self.decay}
+        i_s = self._solve(state, u)[0]
+        return {"i": i_s + (state["i"] - i_s) * self.decay}

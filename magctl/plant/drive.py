@@ -19,7 +19,7 @@ import numpy as np
 from magctl import FRAME_PERIOD_S
 from magctl.config import load_model, require
 from magctl.core.batched import rows_times
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar, substate
 from magctl.core.diagram import Diagram
 from magctl.core.errors import ParameterError
 from magctl.core.ports import Port
@@ -196,6 +196,11 @@ class ActuatedRobot(Block):
     @property
     def uses_random(self) -> bool:
         return self.robot.uses_random
+
+    def state_vars(self):
+        return (substate("coils", self.coils.state_vars(), "the coils' state"),
+                substate("robot", self.robot.state_vars(), "the robot's state"),
+                StateVar("saturated", (), "bool", description="the coils saturated in the previous frame"))
 
     def initial_state(self, batch, rng=None):
         return {"coils": self.coils.initial_state(batch), "robot": self.robot.initial_state(batch, rng),

@@ -21,7 +21,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.core.batched import rows_times
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import WiringError
 from magctl.core.ports import Port
 from magctl.plant._stickslip import (
@@ -91,9 +91,17 @@ class StickSlipRobot(Block):
         return self.cv > 0
 
     # --- state ---------------------------------------------------------------------------
+    def state_vars(self):
+        return (StateVar("pos", (2,), symbol="p", description="position, m"),
+                StateVar("psi", (), symbol="ψ", description="heading, rad"),
+                StateVar("vel", (2,), symbol="v̄", description="mean velocity over the previous frame, m/s"),
+                StateVar("tilt", (), symbol="θ̄", description="cycle-mean pitch (2/π)·θ_a, rad"),
+                rng_var("per-frame step variation n ~ N(0, 1), read at position k"),
+                StateVar("k", (), "int64", "k", "frames stepped (the stream position)", batched=False))
+
     def initial_state(self, batch, rng=None):
         state = {"pos": np.zeros((batch, 2)), "psi": np.zeros(batch), "vel": np.zeros((batch, 2)),
-                 "tilt": np.zeros(batch), "rng": rng}
+                 "tilt": np.zeros(batch), "rng": rng, "k": 0}
         return self.set_pose(state, self.position, self.heading)
 
     def set_pose(self, state, position=None, heading=None):
@@ -140,8 +148,8 @@ class StickSlipRobot(Block):
             np.hypot(bmag, self._pitch_c * freq), 1e-300)
         v = freq * np.maximum(self._cos0 - np.cos(theta), 0.0)
         v *= self._eta_l
-        if self.cv > 0:
-            v *= np.maximum(1.0 + self.cv * state["rng"].standard_normal(), 0.0)
+        if self.cv > 0 and state["rng"] is not None:  # no stream: the mean step (a linearisation's path)
+            v *= np.maximum(1.0 + self.cv * state["rng"].standard_normal(at=state["k"]), 0.0)
         # Simpson's rule over the frame for ∫ v e^{iψ} dt, weights 1, 4, 1
         vel = np.empty((v.shape[0], 2))
         vel[:, 0] = rows_times(np.cos(psis), self._simpson)
@@ -149,7 +157,7 @@ class StickSlipRobot(Block):
         vel *= v[:, None]
         psi1 = np.remainder(psis[:, 2] + np.pi, 2.0 * np.pi) - np.pi
         return {"pos": state["pos"] + vel * h, "psi": psi1, "vel": vel, "tilt": theta * (2.0 / np.pi),
-                "rng": state["rng"]}
+                "rng": state["rng"], "k": state["k"] + 1}
 
 
 def steady_speed(params: StickSlipParams, b_xy, b_osc, freq) -> np.ndarray:

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar
 from magctl.core.errors import ParameterError, WiringError
 from magctl.core.ports import Port
 from magctl.plant.fluid import params as fluid_params
@@ -232,6 +232,13 @@ class Spheres(Block):
         return p.sticky_probability > 0 or p.release_scatter > 0
 
     # --- state ------------------------------------------------------------------------------
+    def state_vars(self):
+        n = self.n
+        return (StateVar("xy", (n, 2), symbol="P_s", description="sphere centres, m"),
+                StateVar("gap", (n,), symbol="δ", description="lift-off gap above the glass, m"),
+                StateVar("mobility", (n,), symbol="m", description="per-sphere mobility factor (drawn at step 0)"),
+                StateVar("contact", (), "bool", description="the robot touched a sphere in the previous frame"))
+
     def initial_state(self, batch: int, rng=None) -> dict:
         init = self.init(batch, rng) if callable(self.init) else self.init
         xy = np.broadcast_to(np.asarray(init, float), (batch, self.n, 2)).copy()

@@ -42,7 +42,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.config import load_model
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.ports import Port
 from magctl.plant.robot import ROBOT_INPUTS, steady_speed
 
@@ -131,6 +131,11 @@ class KinematicRobot(Block):
         super().__init__(name, inputs=inputs,
                          outputs=[Port("position", (2,), "m"), Port("heading", (), "rad"),
                                   Port("velocity", (2,), "m/s")], dt=dt, feedthrough=False)
+
+    def state_vars(self):
+        return (StateVar("x", (2,), symbol="x", description="position, m"),
+                StateVar("h", (), symbol="ψ", description="heading, rad"),
+                StateVar("v", (2,), symbol="v", description="velocity over the previous frame, m/s"))
 
     def initial_state(self, batch, rng=None):
         return {"x": np.broadcast_to(self.start, (batch, 2)).copy(), "h": np.full(batch, self.heading0),
@@ -291,13 +296,27 @@ class StandinSpheres(Block):
     def uses_random(self) -> bool:
         return True
 
+    def state_vars(self):
+        n = self.start.shape[0]
+        return (StateVar("s", (n, 2), symbol="P_s", description="sphere centres, m"),
+                StateVar("contact", (), "bool", description="a sphere was pushed in the previous frame"),
+                StateVar("r", (2,), symbol="r₀", description="robot position of the previous frame, m"),
+                StateVar("dir", (2,), symbol="d", description="unit direction of the robot's last move"),
+                StateVar("attached", (n,), "bool", description="sphere touching the robot"),
+                StateVar("pending", (n,), symbol="D_p,r", description="release displacement still to follow, m"),
+                StateVar("passed", (n,), "bool", description="already displaced by the current straight pass"),
+                StateVar("releases", (), symbol="n_r", description="releases so far"),
+                StateVar("last_release", (), symbol="D_p,r", description="amount of the last release, m"),
+                rng_var("release displacement draws, read at position k"),
+                StateVar("k", (), "int64", "k", "frames stepped (the stream position)", batched=False))
+
     def initial_state(self, batch, rng=None):
         n = self.start.shape[0]
         return {"s": np.broadcast_to(self.start, (batch, n, 2)).copy(), "contact": np.zeros(batch, dtype=bool),
                 "r": np.broadcast_to(self.start_robot, (batch, 2)).copy(), "dir": np.zeros((batch, 2)),
                 "attached": np.zeros((batch, n), dtype=bool), "pending": np.zeros((batch, n)),
                 "passed": np.zeros((batch, n), dtype=bool), "releases": np.zeros(batch),
-                "last_release": np.zeros(batch), "rng": rng}
+                "last_release": np.zeros(batch), "rng": rng, "k": 0}
 
     def output(self, state, u):
         return {"spheres": state["s"], "contact": state["contact"], "releases": state["releases"],
@@ -305,10 +324,10 @@ class StandinSpheres(Block):
 
     def update(self, state, u):
         r0, r = state["r"], u["position"]
-        draw = state["rng"].standard_normal(()) if state["rng"] is not None else np.zeros(r.shape[0])
+        draw = state["rng"].standard_normal((), at=state["k"]) if state["rng"] is not None else np.zeros(r.shape[0])
         s = state["s"]
         if s.shape[1] == 0:
-            return {**state, "r": r.copy()}
+            return {**state, "r": r.copy(), "k": state["k"] + 1}
         step = r - r0
         size = _norm(step)
         moving = size > 1e-12
@@ -360,7 +379,8 @@ class StandinSpheres(Block):
         return {"s": s, "contact": over.any(axis=1), "r": r.copy(), "dir": np.where(moving[:, None], d, state["dir"]),
                 "attached": attached | touching, "pending": np.where(touching, 0.0, pending), "passed": passed,
                 "releases": state["releases"] + release.sum(axis=1),
-                "last_release": np.where(started, amount, state["last_release"]), "rng": state["rng"]}
+                "last_release": np.where(started, amount, state["last_release"]), "rng": state["rng"],
+                "k": state["k"] + 1}
 
     def _separate(self, s: np.ndarray, driven: np.ndarray) -> np.ndarray:
         n, gap = s.shape[1], 2.0 * self.sphere_radius
@@ -424,6 +444,15 @@ class StandinTracker(Block):
                      Port("spheres_est", (n_spheres, 2), "m"), Port("lost", (), "1", "bool")],
             dt=dt, feedthrough=False,
         )
+
+    def state_vars(self):
+        n = self.spheres0.shape[0]
+        return (StateVar("r", (2,), symbol="p", description="robot position seen last frame, m"),
+                StateVar("h", (), symbol="ψ", description="robot heading seen last frame, rad"),
+                StateVar("v", (2,), symbol="v", description="finite-difference velocity, m/s"),
+                StateVar("s", (n, 2), symbol="P_s", description="sphere centres seen last frame, m"),
+                StateVar("lost", (), "bool", description="tracking lost"),
+                StateVar("k", (), "int64", "k", "frames stepped (for the windows)", batched=False))
 
     def initial_state(self, batch, rng=None):
         return {"r": np.broadcast_to(self.start, (batch, 2)).copy(), "h": np.full(batch, self.heading0),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar
 from magctl.core.ports import DIMENSIONLESS, Port
 
 
@@ -25,6 +25,9 @@ class Blackout(Block):
         self.window = None if window is None else (float(window[0]), float(window[1]))
         super().__init__(name, inputs=[Port("valid", (), DIMENSIONLESS, "bool")],
                          outputs=[Port("valid_out", (), DIMENSIONLESS, "bool")], dt=dt, feedthrough=True)
+
+    def state_vars(self):
+        return (StateVar("k", (), "int64", "k", "frames stepped (the clock of the window)", batched=False),)
 
     def initial_state(self, batch, rng=None):
         return {"k": 0}

@@ -28,7 +28,7 @@ from scipy import ndimage
 
 from magctl import FRAME_PERIOD_S
 from magctl.config import Params, load_model
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import ParameterError
 from magctl.core.ports import DIMENSIONLESS, Port
 
@@ -195,16 +195,42 @@ class Camera(Block):
         """Width and height of the field of view in m (pixel centres span ``[0, (W−1)·s]``)."""
         return (self.width - 1) * self.pixel, (self.height - 1) * self.pixel
 
+    def state_vars(self):
+        L, n = self.latency, self.n_spheres
+        out = [rng_var("pixel noise N(0, 1) and drop draws U[0, 1), read at position k"),
+               StateVar("k", (), "int64", "k", "frames stepped (the stream position)", batched=False)]
+        for j in range(L, 0, -1):  # the frames in the pipeline, oldest (delivered now) first
+            ago = f"sampled {j} frames ago"
+            out += [StateVar(f"pos{j}", (2,), symbol=f"p[k−{j}]", description=f"robot position {ago}, m"),
+                    StateVar(f"head{j}", (), symbol=f"ψ[k−{j}]", description=f"heading {ago}, rad"),
+                    StateVar(f"sph{j}", (n, 2), symbol=f"P_s[k−{j}]", description=f"spheres {ago}, m"),
+                    StateVar(f"full{j}", (), "bool", description=f"a frame was {ago}")]
+        if self.mode == "positions":
+            out += [StateVar("meas_pos", (2,), symbol="p̃", description=self._meas_doc + ", robot, m"),
+                    StateVar("meas_head", (), symbol="ψ̃", description=self._meas_doc + ", heading, rad"),
+                    StateVar("meas_sph", (n, 2), symbol="P̃_s", description=self._meas_doc + ", spheres, m")]
+            if L:
+                out.append(StateVar("valid", (), "bool", description="the measurement delivered now is fresh"))
+        return tuple(out)
+
+    @property
+    def _meas_doc(self) -> str:
+        # with a lag the delivered frame depends on the state only: it is computed by update(), and
+        # the state holds the frame delivered now; without one it holds the last frame delivered
+        return "measurement delivered now" if self.latency else "last measurement delivered"
+
     def initial_state(self, batch, rng=None):
         L, n = self.latency, self.n_spheres
-        st = {"rng": rng, "head": 0,
-              "buf_pos": np.zeros((L, batch, 2)), "buf_head": np.zeros((L, batch)),
-              "buf_sph": np.zeros((L, batch, n, 2)), "buf_full": np.zeros((L, batch), dtype=bool)}
-        if self.primed is not None:
-            st["buf_pos"][:], st["buf_head"][:], st["buf_sph"][:] = self.primed
-            st["buf_full"][:] = True
+        st = {"rng": rng, "k": 0}
+        for j in range(L, 0, -1):
+            pos, head, sph = self.primed if self.primed is not None else (np.zeros(2), 0.0, np.zeros((n, 2)))
+            st |= {f"pos{j}": np.broadcast_to(pos, (batch, 2)).copy(), f"head{j}": np.full(batch, head),
+                   f"sph{j}": np.broadcast_to(sph, (batch, n, 2)).copy(),
+                   f"full{j}": np.full(batch, self.primed is not None)}
         if self.mode == "positions":
-            st["last"] = (np.zeros((batch, 2)), np.zeros(batch), np.zeros((batch, n, 2)))
+            st |= {"meas_pos": np.zeros((batch, 2)), "meas_head": np.zeros(batch), "meas_sph": np.zeros((batch, n, 2))}
+            if L:
+                st |= self._measure(st, self._sample(st, None), 0)
         return st
 
     def _sample(self, state, u):
@@ -212,66 +238,64 @@ class Camera(Block):
         if self.latency == 0:
             b = u["position"].shape[0]
             return u["position"], u["heading"], u["spheres"], np.ones(b, dtype=bool)
-        h = state["head"]
-        return state["buf_pos"][h], state["buf_head"][h], state["buf_sph"][h], state["buf_full"][h]
+        L = self.latency
+        return state[f"pos{L}"], state[f"head{L}"], state[f"sph{L}"], state[f"full{L}"]
 
-    def _draws(self, state, batch):
-        # one step's draws, cached so output() is repeatable within a step; cleared by update()
-        d = state.get("draws")
-        if d is None:
-            rng = state["rng"]
-            n = self.n_spheres
-            if rng is None:
-                d = (np.zeros((batch, 3 + 2 * n)), np.ones((batch, 1)))
-            else:
-                d = (rng.standard_normal((3 + 2 * n,)), rng.random((1,)))
-            state["draws"] = d
-        return d
+    def _draws(self, state, batch, k):
+        """Step ``k``'s draws: standard normals ``(B, 3 + 2N)`` and one uniform ``(B, 1)``; none without a stream."""
+        rng = state["rng"]
+        if rng is None:
+            return np.zeros((batch, 3 + 2 * self.n_spheres)), np.ones((batch, 1))
+        return rng.standard_normal((3 + 2 * self.n_spheres,), at=k), rng.random((1,), at=k)
 
-    def output(self, state, u):
-        if self.latency and self.mode == "positions":
-            # with a lag the frame delivered now depends on the state only: compute it once per step
-            out = state.get("out")
-            if out is None:
-                out = state["out"] = self._output(state, u)
-            return out
-        return self._output(state, u)
-
-    def _output(self, state, u):
-        pos, head, sph, full = self._sample(state, u)
+    def _measure(self, state, sample, k) -> dict:
+        """The positions-mode measurement of step ``k`` from ``sample``, holding ``state``'s last one if invalid."""
+        pos, head, sph, full = sample
         b = pos.shape[0]
-        normal, uniform = self._draws(state, b)
-        delivered = full & (uniform[:, 0] >= self.p_drop)
-        fov_w, fov_h = self.field_of_view
-        in_view = (pos[:, 0] >= 0) & (pos[:, 0] <= fov_w) & (pos[:, 1] >= 0) & (pos[:, 1] <= fov_h)
-        if self.mode == "images":
-            frames = state.get("frame")
-            if frames is None:
-                frames = state["frame"] = self._render(state, pos, head, sph, delivered)
-            return {"image": frames, "valid": delivered & in_view}
-        valid = delivered & in_view
+        normal, uniform = self._draws(state, b, k)
+        valid = full & (uniform[:, 0] >= self.p_drop) & self._in_view(pos)
         s = self.pixel
         n = self.n_spheres
         robot = quantise(pos + s * self.sigma_px * normal[:, :2], s)
         heading = np.angle(np.exp(1j * (head + self.sigma_heading * normal[:, 2])))
         spheres = quantise(sph + s * self.sigma_px * normal[:, 3:].reshape(b, n, 2), s)
-        last_r, last_h, last_s = state["last"]
-        return {
-            "robot_meas": np.where(valid[:, None], robot, last_r),
-            "heading_meas": np.where(valid, heading, last_h),
-            "spheres_meas": np.where(valid[:, None, None], spheres, last_s),
-            "valid": valid,
-        }
+        return {"meas_pos": np.where(valid[:, None], robot, state["meas_pos"]),
+                "meas_head": np.where(valid, heading, state["meas_head"]),
+                "meas_sph": np.where(valid[:, None, None], spheres, state["meas_sph"]), "valid": valid}
+
+    def _in_view(self, pos):
+        fov_w, fov_h = self.field_of_view
+        return (pos[:, 0] >= 0) & (pos[:, 0] <= fov_w) & (pos[:, 1] >= 0) & (pos[:, 1] <= fov_h)
+
+    @staticmethod
+    def _positions_out(m: dict) -> dict:
+        return {"robot_meas": m["meas_pos"], "heading_meas": m["meas_head"], "spheres_meas": m["meas_sph"],
+                "valid": m["valid"]}
+
+    def output(self, state, u):
+        if self.mode == "positions":
+            if self.latency:
+                return self._positions_out(state)
+            return self._positions_out(self._measure(state, self._sample(state, u), state["k"]))
+        pos, head, sph, full = self._sample(state, u)
+        normal, uniform = self._draws(state, pos.shape[0], state["k"])
+        delivered = full & (uniform[:, 0] >= self.p_drop)
+        return {"image": self._render(state, pos, head, sph, delivered), "valid": delivered & self._in_view(pos)}
+
+    def step(self, state, u):
+        if self.mode == "positions" and not self.latency:
+            m = self._measure(state, self._sample(state, u), state["k"])
+            return self._positions_out(m), {"rng": state["rng"], "k": state["k"] + 1, "meas_pos": m["meas_pos"],
+                                            "meas_head": m["meas_head"], "meas_sph": m["meas_sph"]}
+        return self.output(state, u), self.update(state, u)
 
     def _render(self, state, pos, head, sph, delivered):
         rng = state["rng"]
         frames = np.empty((pos.shape[0], self.height, self.width))
         for b in range(pos.shape[0]):  # image mode runs rig-sized batches; rendering is per frame
-            # whole-frame noise is drawn straight from the trial's generator: chunking it would hold
-            # hundreds of frames in memory
             noise = None
             if rng is not None and self.params.render.noise_sigma > 0:
-                noise = rng.generators[b].standard_normal((self.height, self.width))
+                noise = rng.large("standard_normal", b, (self.height, self.width), at=state["k"])
             frames[b] = render_frame(pos[b], head[b], sph[b], self.params.render, pixel=self.pixel,
                                      width=self.width, height=self.height, noise=noise)
             if not delivered[b]:
@@ -279,17 +303,18 @@ class Camera(Block):
         return frames
 
     def update(self, state, u):
-        if self.mode == "positions":
-            out = self.output(state, u)
-            state["last"] = (out["robot_meas"], out["heading_meas"], out["spheres_meas"])
-        state.pop("draws", None)
-        state.pop("frame", None)
-        state.pop("out", None)
+        if self.mode == "positions" and not self.latency:
+            return self.step(state, u)[1]
+        new = {"rng": state["rng"], "k": state["k"] + 1}
         if self.latency:
-            h = state["head"]
-            state["buf_pos"][h] = u["position"]
-            state["buf_head"][h] = u["heading"]
-            state["buf_sph"][h] = u["spheres"]
-            state["buf_full"][h] = True
-            state["head"] = (h + 1) % self.latency
-        return state
+            # the pipeline moves on by one frame; arrays are passed along, never written
+            for j in range(self.latency, 1, -1):
+                for x in ("pos", "head", "sph", "full"):
+                    new[f"{x}{j}"] = state[f"{x}{j - 1}"]
+            new |= {"pos1": u["position"], "head1": u["heading"], "sph1": u["spheres"],
+                    "full1": np.ones(u["heading"].shape[0], dtype=bool)}
+            if self.mode == "positions":
+                new |= {"meas_pos": state["meas_pos"], "meas_head": state["meas_head"], "meas_sph": state["meas_sph"]}
+                new |= self._measure(new, self._sample(new, None), new["k"])
+        return new
+

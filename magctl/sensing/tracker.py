@@ -26,12 +26,14 @@ velocity; consumers gate on ``lost`` (the servo's ``hold`` input).
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from filterpy.common import Q_discrete_white_noise
 
 from magctl import FRAME_PERIOD_S
 from magctl.config import Params
-from magctl.core.block import Block
+from magctl.core.block import Block, StateVar
 from magctl.core.errors import ParameterError
 from magctl.core.ports import DIMENSIONLESS, Port
 from magctl.sensing.camera import camera_params
@@ -116,10 +118,25 @@ class Tracker(Block):
         super().__init__(name, inputs=ins, outputs=outs, dt=dt, feedthrough=True)
 
     # --- state ---------------------------------------------------------------------------------
+    def state_vars(self):
+        M, n = 1 + self.n_spheres, self.n_spheres
+        out = [StateVar("x", (M, 2, 2), symbol="x̂", description="per object and axis [position m, velocity m/s]"),
+               StateVar("P", (M, 2, 2), symbol="P", description="per object and axis covariance of x̂"),
+               StateVar("heading", (), symbol="ψ̂", description="last measured heading, rad"),
+               StateVar("init", (), "bool", description="the filter has had its first detection"),
+               StateVar("missed", (), "int64", description="frames since the last valid detection"),
+               StateVar("held_pos", (2,), symbol="p_h", description="robot estimate held while lost, m"),
+               StateVar("held_sph", (n, 2), symbol="P_h", description="sphere estimates held while lost, m")]
+        if self.mode == "particle":
+            out.append(StateVar("pf", (), "object", description="one ImageTracker per trial (stepped on copies)",
+                                batched=False))
+        return tuple(out)
+
     def initial_state(self, batch, rng=None):
         M = 1 + self.n_spheres
         st = {"x": np.zeros((batch, M, 2, 2)), "P": np.zeros((batch, M, 2, 2)), "heading": np.zeros(batch),
-              "init": np.zeros(batch, dtype=bool), "missed": np.zeros(batch, dtype=int)}
+              "init": np.zeros(batch, dtype=bool), "missed": np.zeros(batch, dtype=np.int64),
+              "held_pos": np.zeros((batch, 2)), "held_sph": np.zeros((batch, self.n_spheres, 2))}
         if self.mode == "particle":
             gens = rng.generators if rng is not None else [np.random.default_rng(k) for k in range(batch)]
             st["pf"] = [self._pf_factory(g) for g in gens]
@@ -166,68 +183,54 @@ class Tracker(Block):
         Pn = np.where(start, P0, np.where(init[:, None, None, None], Pn, P))
         return xn, Pn, init | valid
 
-    def _estimate(self, state, u):
-        cached = state.get("post")
-        if cached is not None:
-            return cached
+    def step(self, state, u):
+        """Estimates now and the filter state after this frame's measurement, computed once."""
         valid = np.asarray(u["valid"], dtype=bool)
-        missed = np.where(valid, 0, state["missed"] + 1)
+        new = dict(state)
         if self.mode == "particle":
-            pos, heading, vel, sph, found = self._particle(state, u)
-            started = np.array([pf.started for pf in state["pf"]], dtype=bool)
+            pfs = [copy.deepcopy(pf) for pf in state["pf"]]  # the filters step in place: step copies
+            pos, heading, vel, sph, found = self._particle(pfs, u)
+            started = np.array([pf.started for pf in pfs], dtype=bool)
             missed = np.where(found, 0, state["missed"] + 1)
             lost = ~started | (missed > self.max_coast)
-            est = (pos, heading, vel, sph, lost, missed, None)
+            new["pf"] = pfs
         else:
+            missed = np.where(valid, 0, state["missed"] + 1)
             x, P, init = self._posterior(state, u)
             heading = np.where(valid, u["heading_meas"], state["heading"])
             lost = ~init | (missed > self.max_coast)
             ahead = self.predict_frames * self.dt if self.mode == "kalman" else 0.0
             p = x[..., 0] + ahead * x[..., 1]
-            vel = x[:, 0, :, 1].copy()
-            est = (p[:, 0].copy(), heading, vel, p[:, 1:].copy(), lost, missed, (x, P, init))
-        state["post"] = est
-        return est
-
-    def output(self, state, u):
-        pos, heading, vel, sph, lost, _, _ = self._estimate(state, u)
+            pos, vel, sph = p[:, 0].copy(), x[:, 0, :, 1].copy(), p[:, 1:].copy()
+            new |= {"x": x, "P": P, "init": init}
+        vel = np.where(lost[:, None], 0.0, vel)
+        if self.on_loss == "hold":
+            pos = np.where(lost[:, None], state["held_pos"], pos)
+            sph = np.where(lost[:, None, None], state["held_sph"], sph)
+            new |= {"held_pos": pos, "held_sph": sph}
+        new |= {"heading": heading, "missed": missed}
         if self.on_loss == "nan":
             nan = lost[:, None]
             pos = np.where(nan, np.nan, pos)
             vel = np.where(nan, np.nan, vel)
             sph = np.where(nan[..., None], np.nan, sph)
             heading = np.where(lost, np.nan, heading)
-        else:
-            vel = np.where(lost[:, None], 0.0, vel)
-            held = state.get("held")
-            if held is not None:
-                pos = np.where(lost[:, None], held[0], pos)
-                sph = np.where(lost[:, None, None], held[1], sph)
-        return {"robot_est": pos, "heading_est": heading, "velocity_est": vel, "spheres_est": sph, "lost": lost}
+        return {"robot_est": pos, "heading_est": heading, "velocity_est": vel, "spheres_est": sph, "lost": lost}, new
+
+    def output(self, state, u):
+        return self.step(state, u)[0]
 
     def update(self, state, u):
-        pos, heading, _, sph, lost, missed, kf = self._estimate(state, u)
-        if self.on_loss == "hold":
-            held = state.get("held")
-            if held is not None:
-                pos = np.where(lost[:, None], held[0], pos)
-                sph = np.where(lost[:, None, None], held[1], sph)
-            state["held"] = (pos, sph)
-        if kf is not None:
-            state["x"], state["P"], state["init"] = kf
-        state["heading"] = heading
-        state["missed"] = missed
-        del state["post"]
-        return state
+        return self.step(state, u)[1]
 
     # --- particle mode -------------------------------------------------------------------------
-    def _particle(self, state, u):
+    def _particle(self, pfs, u):
         b = u["image"].shape[0]
         pos, vel = np.zeros((b, 2)), np.zeros((b, 2))
         heading, found = np.zeros(b), np.zeros(b, dtype=bool)
         sph = np.zeros((b, self.n_spheres, 2))
         valid = np.asarray(u["valid"], dtype=bool)
         for i in range(b):  # image mode serves the rig (B = 1); each frame is a full image
-            r = state["pf"][i].step(u["image"][i], bool(valid[i]))
+            r = pfs[i].step(u["image"][i], bool(valid[i]))
             pos[i], heading[i], vel[i], sph[i], found[i] = r
         return pos, heading, vel, sph, found

@@ -4,6 +4,7 @@ import control
 import numpy as np
 
 from magctl.core import PI, Block, Constant, Delay, Diagram, Integrator, NormSaturation, Port, Sum, simulate
+from magctl.core.block import StateVar
 
 DT = 1 / 30
 
@@ -50,16 +51,18 @@ class Pendulum(Block):
     def __init__(self):
         super().__init__("pend", inputs=[Port("u")], outputs=[Port("theta")], feedthrough=False)
 
+    def state_vars(self):
+        return (StateVar("x", (2,), symbol="(θ, ω)"),)
+
     def initial_state(self, batch, rng=None):
         return {"x": np.zeros((batch, 2))}
 
     def output(self, state, u):
-        return {"theta": state["x"][:, 0].copy()}
+        return {"theta": state["x"][:, 0]}
 
     def update(self, state, u):
         th, om = state["x"][:, 0], state["x"][:, 1]
-        state["x"] = np.stack([th + DT * om, om - DT * 9.81 * np.sin(th) + DT * u["u"]], axis=1)
-        return state
+        return {"x": np.stack([th + DT * om, om - DT * 9.81 * np.sin(th) + DT * u["u"]], axis=1)}
 
 
 def test_linearize_by_finite_differences_matches_analytic():

@@ -219,12 +219,14 @@ FINISHED = 99
 
 
 class PushTask:
-    """Mix-in with the machinery every push task shares (ports, failures, hold, caching).
+    """Mix-in with the machinery every push task shares (ports, failures, hold, declared state).
 
     Subclasses are :class:`~magctl.core.block.Block` s that define ``PHASES`` and
     ``_step(st, new, r, spheres, ok)``, which reads the frame's measurements and
-    writes the next phase, targets and law state into ``new`` (a shallow copy of the
-    state) for the trials in ``ok`` (running, tracked, sphere found).
+    writes the next phase, targets and law state into ``new`` (a copy of the
+    state) for the trials in ``ok`` (running, tracked, sphere found). A frame's
+    outputs and next state come from one :meth:`_frame`, which the engine calls
+    through :meth:`step`.
 
     Status handling: a trial whose tracker reports ``lost`` for more than
     ``max_lost_frames`` consecutive frames ends with ``TRACKING_LOST``; one whose
@@ -280,25 +282,34 @@ class PushTask:
             "law": self.law.initial_state(batch),
         }
 
+    def _common_vars(self) -> tuple:
+        """Declarations of the entries :meth:`_common_state` makes."""
+        from magctl.core.block import StateVar, substate
+
+        return (StateVar("phase", (), "int64", description="phase of the attempt (the task's PHASES)"),
+                StateVar("status", (), "int64", description="status code (RUNNING until the trial ends)"),
+                StateVar("attempt", (), "int64", symbol="i", description="attempts finished"),
+                StateVar("frames", (), "int64", description="frames spent in the current phase"),
+                StateVar("lost_frames", (), "int64", description="consecutive frames with tracking lost"),
+                StateVar("target", (2,), symbol="P_t", description="servo target (NaN: hold the robot), m"),
+                StateVar("speed", (), symbol="v_cap", description="speed cap of the current phase, m/s"),
+                substate("law", self.law.state_vars(), "the learning law's state"))
+
+    def step(self, state, u):
+        """Outputs and next state of one frame, computed together by :meth:`_frame`."""
+        return self._frame(state, u)
+
     def output(self, state, u):
-        out, new = self._frame(state, u)
-        state["_cache"] = (u["robot_est"], u["spheres_est"], new)
-        return out
+        return self._frame(state, u)[0]
 
     def update(self, state, u):
-        cache = state.pop("_cache", None)
-        if cache is not None and cache[0] is u["robot_est"] and cache[1] is u["spheres_est"]:
-            new = cache[2]
-        else:
-            new = self._frame(state, u)[1]
-        state.update(new)
-        return state
+        return self._frame(state, u)[1]
 
     def _frame(self, state, u):
         r = np.asarray(u["robot_est"], dtype=float)
         spheres = np.asarray(u["spheres_est"], dtype=float)
         lost = np.asarray(u["lost"], dtype=bool)
-        new = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in state.items() if k != "_cache"}
+        new = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in state.items()}
         new["law"] = dict(state["law"])
         running = new["status"] == RUNNING
         new["lost_frames"] = np.where(running & lost, new["lost_frames"] + 1, 0)

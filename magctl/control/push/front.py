@@ -102,6 +102,18 @@ class FrontPushTask(PushTask, Block):
         goal = new["goal"]
         return s, goal, unit(goal - s), norm(goal - s) < self.eps
 
+    def state_vars(self):
+        from magctl.core.block import StateVar
+
+        return (*self._common_vars(),
+                StateVar("goal", (2,), symbol="P_g", description="goal, m"),
+                StateVar("u", (2,), symbol="u", description="unit pushing direction of the attempt"),
+                StateVar("p_ri", (2,), symbol="P_ri", description="approach point behind the sphere, m"),
+                StateVar("p_o", (2,), symbol="P_o", description="point the sphere is pushed to, P_g + δu (eq 10), m"),
+                StateVar("g_line", (2,), symbol="P_g", description="goal point of the attempt's line, m"),
+                StateVar("stand", (2,), description="where the robot stands with the sphere at P_o, m"),
+                StateVar("back", (2,), description="end of the retraction, m"))
+
     def initial_state(self, batch, rng=None):
         st = self._common_state(batch)
         st["goal"] = np.broadcast_to(self.goal, (batch, 2)).copy()

@@ -98,6 +98,18 @@ class SidePushTask(PushTask, Block):
         dist = norm(to_goal)
         return s, dist, u, side, dist < self.eps
 
+    def state_vars(self):
+        from magctl.core.block import StateVar
+
+        return (*self._common_vars(),
+                StateVar("goal", (2,), symbol="P_g", description="goal, m"),
+                StateVar("u", (2,), symbol="u", description="unit pushing direction of the attempt"),
+                StateVar("p0", (2,), symbol="P_s", description="sphere position when the attempt began, m"),
+                StateVar("start", (2,), description="start of the motion line, m"),
+                StateVar("end", (2,), description="end of the motion line, m"),
+                StateVar("d_des", (), symbol="D_s,des", description="desired displacement of the attempt (eq 16), m"),
+                StateVar("gap", (), symbol="D_g", description="gap of the attempt (eq 17), m"))
+
     def initial_state(self, batch, rng=None):
         st = self._common_state(batch)
         st["goal"] = np.broadcast_to(self.goal, (batch, 2)).copy()
@@ -107,10 +119,10 @@ class SidePushTask(PushTask, Block):
         st["gap"] = np.full(batch, np.nan)
         return st
 
-    def output(self, state, u):
-        out = super().output(state, u)
-        out["gap"] = state["_cache"][2]["gap"].copy()
-        return out
+    def _frame(self, state, u):
+        out, new = super()._frame(state, u)
+        out["gap"] = new["gap"].copy()
+        return out, new
 
     def _begin(self, new, mask, r, spheres):
         s, dist, u, side, _ = self._geometry(new, r, spheres)
