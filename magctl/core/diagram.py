@@ -315,12 +315,6 @@ class Schedule:
         self._mode = [_STEP if type(b).step is not Block.step else
                       (_OUTPUT if type(b).update is Block.update else _OUTPUT_UPDATE) for b in self._blocks]
 
-    def leaf(self, path: str) -> int:
-        for i, lf in enumerate(self.leaves):
-            if lf.path == path:
-                return i
-        raise WiringError(f"diagram {self.diagram.name!r} has no block {path!r}")
-
     def signal_names(self) -> list[tuple[int, str, str]]:
         """Every leaf output as (leaf index, port, ``"path.port"``)."""
         return [(i, p, f"{lf.path}.{p}") for i, lf in enumerate(self.leaves) for p in lf.block.outputs]
