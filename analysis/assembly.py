@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from magctl.control.push.common import task_defaults
 from magctl.control.status import Status
 from magctl.loops import Experiment, Variability, geometry
 from magctl.studies.push import controller_summary, run_experiments, trial_path
@@ -23,17 +24,17 @@ TITLE = "Figs 3, 9, 15 — two-sphere assembly: front push vs side push"
 ORDER = 53
 DEFAULT_TRIALS = 100
 PLANT = Variability(calibrated=True, release_scatter=0.1)
-EPS_AS_UM = 10.0
+EPS_AS_UM = task_defaults("assembly")["eps_as"] / 1e-6  # ε_as of eq 21 (models/push.toml)
 
 
 def experiments() -> dict[str, Experiment]:
-    common = dict(eps_as=EPS_AS_UM * 1e-6)
+    """Both assemblies with the default controllers (θ_n = 30°, ε_as from ``models/push.toml``)."""
+    theta = np.rad2deg(task_defaults("assembly")["theta_n"])
+    side = f"side-push assembly (θ_n={theta:.0f}°)"
     return {
-        "front-push assembly": Experiment("front-assembly", task=dict(common), max_frames=6000, variability=PLANT,
+        "front-push assembly": Experiment("front-assembly", max_frames=6000, variability=PLANT,
                                           label="front-push assembly"),
-        "side-push assembly (θ_n=30°)": Experiment("assembly", task=dict(common, theta_n=np.deg2rad(30.0)),
-                                                   max_frames=9000, variability=PLANT,
-                                                   label="side-push assembly (θ_n=30°)"),
+        side: Experiment("assembly", max_frames=9000, variability=PLANT, label=side),
     }
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from magctl.control.push.common import task_defaults
 from magctl.control.status import Status
 from magctl.loops import Experiment, Variability, geometry
 from magctl.plant.fluid.scenarios import release_displacement
@@ -24,8 +25,9 @@ NAME = "front-push"
 TITLE = "Figs 10–11 — front pushing: six controllers in closed loop"
 ORDER = 50
 DEFAULT_TRIALS = 100
-EPS_UM = 75.0
-MAX_ATTEMPTS = 10
+_DEFAULTS = task_defaults("front")
+EPS_UM = _DEFAULTS["eps"] / 1e-6  # ε_p of eq 12 (models/push.toml)
+MAX_ATTEMPTS = _DEFAULTS["max_attempts"]
 PLANT = Variability(calibrated=True, release_scatter=0.1)
 
 
@@ -53,7 +55,7 @@ def controllers(delta_model: float) -> dict[str, Experiment]:
     for kc in (0.0, 0.5, 1.0):
         for tag, d0 in (("δ(0)=0", 0.0), (f"δ(0)={delta_model * 1e6:.0f} µm", delta_model)):
             label = f"K_c={kc:g}, {tag}"
-            out[label] = Experiment("front", task=dict(kc=kc, delta0=d0, eps=EPS_UM * 1e-6, max_attempts=MAX_ATTEMPTS),
+            out[label] = Experiment("front", task=dict(kc=kc, delta0=d0),
                                     max_frames=4000, variability=PLANT, label=label)
     return out
 

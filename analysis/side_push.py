@@ -4,7 +4,8 @@ Six controllers push a 210 µm sphere to a goal 300 µm away without contact (§
 fixed gaps D_g = 370 µm and 500 µm (the naïve controllers), the exponential (eq 22)
 and linear (eq 23) models without learning (K_s = 0), and the linear model with
 learning K_s = 0.5 and 0.9; ε_p = 7.5 µm (one pixel), at most 30 attempts,
-repositioning round the sphere, 1 mm clear of it, to a start 1 mm behind it (``CLEARANCE_UM``). The plant is the
+repositioning round the sphere, 1 mm clear of it (``models/push.toml``, docs/closed-loop.md), to a start 1 mm
+behind it; every other setting is the default controller the rig runs too. The plant is the
 fluid model itself (uncalibrated, ε = 25 nm), so the controllers' eq 22/23 — fitted
 to the paper's COMSOL curve — are a mismatched model of it, as in the paper; camera
 noise, stick-slip step variability, a ±10 % per-trial scatter of the sphere's
@@ -13,6 +14,7 @@ mobility and a 10 % chance of a sticky patch (§VI-B) make trials differ.
 
 from __future__ import annotations
 
+from magctl.control.push.common import task_defaults
 from magctl.loops import Experiment, Variability, geometry
 from magctl.studies.push import (
     controller_summary,
@@ -27,15 +29,11 @@ NAME = "side-push"
 TITLE = "Figs 12–13 — side pushing: fixed gaps, models and learning in closed loop"
 ORDER = 51
 DEFAULT_TRIALS = 100
-EPS_UM = 7.5
-MAX_ATTEMPTS = 30
+_DEFAULTS = task_defaults("side")
+EPS_UM = _DEFAULTS["eps"] / 1e-6  # one pixel (models/push.toml)
+MAX_ATTEMPTS = _DEFAULTS["max_attempts"]
 UM = 1e-6
 PLANT = Variability(release_scatter=0.1, sticky_probability=0.1)
-# §VI keeps the robot "at least 650 µm" from the sphere while repositioning because, by the
-# paper's Fig 6 (eq 22: 4.9 µm there), that does not disturb it. Our flow decays more slowly:
-# D_s(650 µm) ≈ 17 µm, so a 650 µm return trip drags the sphere back by most of what the pass
-# moved it (docs/closed-loop.md). 1 mm, where our D_s is ≈ 2 µm, meets the paper's criterion.
-CLEARANCE_UM = 1000.0
 
 CONTROLLERS = {
     "D_g=370 µm fixed": dict(fixed_gap=370 * UM, ks=0.0),
@@ -48,9 +46,7 @@ CONTROLLERS = {
 
 
 def experiments() -> dict[str, Experiment]:
-    return {label: Experiment("side", task=dict(kw, eps=EPS_UM * UM, max_attempts=MAX_ATTEMPTS,
-                                                clearance=CLEARANCE_UM * UM), max_frames=14000,
-                              variability=PLANT, label=label)
+    return {label: Experiment("side", task=dict(kw), max_frames=14000, variability=PLANT, label=label)
             for label, kw in CONTROLLERS.items()}
 
 

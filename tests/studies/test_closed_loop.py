@@ -7,8 +7,9 @@ enough to hold for any seed yet able to fail if the mechanism behind them breaks
 import numpy as np
 import pytest
 
+from magctl.control.push.common import task_defaults
 from magctl.control.status import Status
-from magctl.loops import Experiment, Variability
+from magctl.loops import Experiment, Variability, experiment_controller
 from magctl.studies.trials import run_push_trials
 
 CONVERGED, ATTEMPT_LIMIT = Status.CONVERGED, Status.ATTEMPT_LIMIT
@@ -78,12 +79,15 @@ def test_learning_beats_the_fixed_small_gap(side_runs):
 
 def test_side_push_study_repositions_where_the_sphere_is_not_disturbed():
     """§VI repositions at ≥ 650 µm because eq 22 predicts only ≈ 4.9 µm of drift there. Our flow
-    drifts the sphere more at 650 µm; the study's clearance must meet the paper's criterion."""
+    drifts the sphere more at 650 µm; the side-push clearance of the controller every study and the rig
+    run (models/push.toml) must meet the paper's criterion."""
     from analysis import side_push
     from magctl.plant.fluid.scenarios import sidepush_curve
 
     paper_drift_650 = 1755.0 * np.exp(-0.009042 * 650.0)  # eq 22, µm
-    ours = sidepush_curve([650 * UM, side_push.CLEARANCE_UM * UM]).displacement / UM
+    clearance = task_defaults("side")["clearance"]
+    ours = sidepush_curve([650 * UM, clearance]).displacement / UM
     assert ours[0] > 2 * paper_drift_650  # why 650 µm is not enough in our flow
     assert ours[1] <= paper_drift_650
-    assert all(e.task["clearance"] == side_push.CLEARANCE_UM * UM for e in side_push.experiments().values())
+    assert all(experiment_controller(e).blocks["task"].clearance == clearance
+               for e in side_push.experiments().values())
