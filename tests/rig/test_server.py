@@ -33,6 +33,7 @@ class Raw:
         self.sock.setsockopt(zmq.RCVTIMEO, 3000)
         self.sock.connect(address)
         self.id = 0
+        self.session = None
 
     def send_raw(self, raw: bytes) -> dict:
         self.sock.send(raw)
@@ -40,7 +41,14 @@ class Raw:
 
     def op(self, op, **kw) -> dict:
         self.id += 1
-        return self.send_raw(json.dumps(P.request(op, self.id, **kw)).encode())
+        if self.session is not None:
+            kw.setdefault("session", self.session)
+        reply = self.send_raw(json.dumps(P.request(op, self.id, **kw)).encode())
+        if op == "configure" and reply.get("ok"):
+            self.session = reply["session"]
+        if op == "deactivate" and reply.get("ok"):
+            self.session = None
+        return reply
 
     def close(self):
         self.sock.close(0)
@@ -92,14 +100,22 @@ def test_watchdog_zeroes_the_coils_within_100_ms_plus_one_frame(raw):
     (b'{"protocol": "magctl-rig", "version": 99, "id": 7, "op": "write"}', P.BAD_VERSION),
     (b'{"protocol": "magctl-rig", "version": 1, "id": 7, "op": "write", '
      b'"cmd": {"b_static_T": [NaN, 0], "b_osc_T": 0, "freq_Hz": 0}}', P.BAD_JSON),
-    (json.dumps(P.request("write", 7, cmd={"b_static_T": [0.005, 0.0], "b_osc_T": 0.0, "freq_Hz": 1e4})).encode(),
-     P.BAD_COMMAND),
-    (json.dumps(P.request("write", 7, cmd={"b_static_T": [0.0, 0.0], "b_osc_T": 0.05, "freq_Hz": 10})).encode(),
-     P.BAD_COMMAND),
+    (json.dumps(P.request("write", 7, session="SESSION",
+                          cmd={"b_static_T": [0.005, 0.0], "b_osc_T": 0.0, "freq_Hz": 1e4})).encode(), P.BAD_COMMAND),
+    (json.dumps(P.request("write", 7, session="SESSION",
+                          cmd={"b_static_T": [0.0, 0.0], "b_osc_T": 0.05, "freq_Hz": 10})).encode(), P.BAD_COMMAND),
+    # a valid command from a client that never configured: refused, named
+    (json.dumps(P.request("write", 7, cmd={"b_static_T": [2e-3, 0.0], "b_osc_T": 1e-3, "freq_Hz": 10})).encode(),
+     P.NOT_OWNER),
+    (b'{"protocol": "magctl-rig", "version": 1, "id": 1e400, "op": "read"}', P.BAD_JSON),
+    (b'{"protocol": "magctl-rig", "version": true, "id": 7, "op": "read"}', P.BAD_VERSION),
+    (b'{"protocol": "magctl-rig", "version": 1.0, "id": 7, "op": "read"}', P.BAD_VERSION),
+    (b'{"protocol": "magctl-rig", "version": 1, "id": ' + b"9" * 5000 + b', "op": "read"}', P.BAD_JSON),
+    (b'{"protocol": "magctl-rig", "version": 1, "id": 99999999999999999999, "op": "read"}', P.BAD_REQUEST),
 ])
 def test_hostile_messages_get_errors_and_are_never_applied(raw, payload, code):
     assert raw.op("activate")["ok"]
-    reply = raw.send_raw(payload)
+    reply = raw.send_raw(payload.replace(b'"SESSION"', json.dumps(raw.session).encode()))
     assert reply["ok"] is False and reply["error"]["code"] == code and reply["error"]["message"]
     # nothing was applied, and the server keeps serving
     st = raw.op("status")
