@@ -466,7 +466,7 @@ class RigServer:
         if self.allow:
             auth.allow(*self.allow)
         if self.curve_clients is not None:
-            auth.configure_curve(domain="*", location=str(self.curve_clients))
+            auth.configure_curve(domain=ZAP_DOMAIN, location=str(self.curve_clients))
         return auth
 
     def serve(self, ready=None) -> int:
