@@ -462,3 +462,52 @@ def fuzz(address: str, n_messages: int, *, seed: int = 0, lockstep: bool = True,
     """Fuzz the server at ``address`` (loopback) with about ``n_messages`` messages; see the module doc."""
     return Fuzzer(address, seed=seed, lockstep=lockstep, alive=alive, watchdog=watchdog, period=period,
                   limits=limits).run(n_messages, time_budget)
+
+
+def crowd(address: str, n_clients: int, stop, *, seed: int = 0, max_messages: int = 1_000_000) -> dict:
+    """``n_clients`` threads of strangers (no session) sending mutated requests, noise and stranger
+    commands until ``stop`` (a ``threading.Event``) is set or ``max_messages`` were sent in all; returns
+    counts. Runs beside :func:`fuzz`, whose checks stay valid: a stranger never owns the rig."""
+    import threading
+
+    _tcp_target(address)
+    counts = {"messages": 0, "replies": 0, "unanswered": 0, "malformed": 0, "accepted_writes": 0}
+    lock = threading.Lock()
+
+    def worker(k):
+        f = Fuzzer.__new__(Fuzzer)
+        f.rng, f.limits, f.session, f.id = random.Random(seed * 1000 + k), RigLimits.from_params(), None, 0
+        ctx = zmq.Context()
+        req = _Req(ctx, address, 2000)
+        local = dict.fromkeys(counts, 0)
+        try:
+            while not stop.is_set() and counts["messages"] + local["messages"] < max_messages:
+                choice = f.rng.random()
+                if choice < 0.6:
+                    raw = f._mutated()
+                elif choice < 0.8:
+                    raw = json.dumps(f._request("write", cmd=valid_command(f.rng, f.limits))).encode()
+                else:
+                    raw = f.rng.randbytes(f.rng.choice([0, 5, 100, 3000]))
+                local["messages"] += 1
+                reply = req.ask(raw)
+                if reply is None:
+                    local["unanswered"] += 1
+                    continue
+                local["replies"] += 1
+                doc = _try_json(reply)
+                if not isinstance(doc, dict) or not isinstance(doc.get("ok"), bool):
+                    local["malformed"] += 1
+                elif doc["ok"] and isinstance(_try_json(raw), dict) and _try_json(raw).get("op") == "write":
+                    local["accepted_writes"] += 1
+        finally:
+            req.close()
+            ctx.term()
+            with lock:
+                for key, v in local.items():
+                    counts[key] += v
+
+    threads = [threading.Thread(target=worker, args=(k,), daemon=True) for k in range(n_clients)]
+    for t in threads:
+        t.start()
+    return {"threads": threads, "counts": counts}

@@ -105,6 +105,23 @@ def test_a_frozen_or_hostile_peer_cannot_keep_the_coils_on(realtime_server, how)
         owner.close()
 
 
+def test_strangers_tcp_connections_do_not_lose_a_connected_clients_replies(realtime_server):
+    """With REP, a stranger's TCP connection lost the next reply of a connected client in about half of
+    the tries; ROUTER with explicit envelopes (and the ZAP hook) routes every reply to its peer."""
+    owner = Raw(realtime_server.address)
+    try:
+        for k in range(40):
+            s = tcp(realtime_server.address)
+            s.sendall([ZMTP10_BYTES, ZMTP3_GREETING[:10], b"GET / HTTP/1.0\r\n\r\n", b""][k % 4])
+            if k % 2:
+                s.close()
+            reply = owner.op("hello")  # Raw waits 3 s and raises if the reply is lost
+            assert reply["ok"] and reply["id"] == owner.id
+            s.close()
+    finally:
+        owner.close()
+
+
 def test_the_watchdog_counts_simulated_time_in_lock_step(start_server):
     """Lock-step: one frame per read. The coils are zero at the first frame more than 100 ms after the last
     valid command (within 100 ms + one frame), exactly; invalid writes in between do not feed it."""
