@@ -345,8 +345,8 @@ class RigServer:
         return {"state": self.state.value, "obs": P.observation_to_wire(self.plant.latest)}
 
     def _op_write(self, doc, peer):
-        cmd = P.command_from_wire(doc.get("cmd"))
         self._need_owner(doc, peer, "write")
+        cmd = P.command_from_wire(doc.get("cmd"))
         self._need(Lifecycle.ACTIVE, op="write")
         try:
             currents = self.plant.apply(cmd, self.now())
@@ -446,7 +446,6 @@ class RigServer:
         sock = ctx.socket(zmq.ROUTER)
         sock.setsockopt(zmq.LINGER, 0)
         sock.setsockopt(zmq.MAXMSGSIZE, HARD_MAX_BYTES)
-        sock.setsockopt(zmq.ROUTER_HANDOVER, 1)
         sock.setsockopt(zmq.HANDSHAKE_IVL, 2000)
         sock.setsockopt(zmq.SNDHWM, 100)
         sock.setsockopt(zmq.RCVHWM, 1000)
