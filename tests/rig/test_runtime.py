@@ -156,7 +156,7 @@ def test_unknown_task_is_a_clear_error():
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signals_stop_the_run_safely_and_the_server_sees_the_coils_zeroed(start_server, tmp_path, sig):
     # lock-step: the server's watchdog counts frames, so a loaded machine cannot trip it on this healthy client
-    srv = start_server("--lockstep")
+    srv = start_server("--lockstep", "--plant", "standin")
     log = tmp_path / "term.jsonl"
     proc = subprocess.Popen(magctl_cmd("rig", "run", "--rig", srv.address, "--reset", "--task", "goto",
                                        "--target-um", *map(str, um(START + (3e-3, 0.0))), "--log", str(log),

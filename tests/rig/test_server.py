@@ -136,7 +136,7 @@ def test_server_enforces_current_limits_whatever_the_client_sends(start_server, 
     assert text.count("current_limit_A = { value = 3.0,") == 4
     (tmp_path / "coils.toml").write_text(text.replace("current_limit_A = { value = 3.0,",
                                                       "current_limit_A = { value = 1.0,"))
-    srv = start_server(env={"MAGCTL_MODELS": str(tmp_path)})
+    srv = start_server("--plant", "standin", env={"MAGCTL_MODELS": str(tmp_path)})
     raw = Raw(srv.address)
     assert raw.op("configure")["ok"] and raw.op("activate")["ok"]
     hello = raw.op("hello")["limits"]
@@ -153,7 +153,7 @@ def test_server_enforces_current_limits_whatever_the_client_sends(start_server, 
 
 
 def test_killing_the_server_stops_the_client_with_a_clear_error(start_server):
-    srv = start_server()
+    srv = start_server("--lockstep", "--plant", "standin")
     rig = RigClient(srv.address, timeout=0.3)
     rig.configure()
     rig.activate()
