@@ -156,8 +156,6 @@ class Fuzzer:
         self.session = None
         self.id = 0
         self.report = FuzzReport()
-        self.frame = 0
-        self.last_write_frame: int | None = None
 
     # --- plumbing -----------------------------------------------------------------------------
     def close(self):
@@ -198,8 +196,6 @@ class Fuzzer:
             r.malformed_replies += 1
             r.fail(f"{channel}: malformed reply {raw[:120]!r}")
             return None
-        if doc["ok"] and isinstance(doc.get("obs"), dict):
-            self.frame = max(self.frame, int(doc["obs"]["frame"]))
         return doc
 
     def _ask(self, req: _Req, doc_or_raw, channel: str) -> dict | None:
@@ -212,13 +208,10 @@ class Fuzzer:
             self._accepted_write(sent, channel)
         if reply is not None and reply.get("ok") and isinstance(sent, dict) and sent.get("op") == "deactivate":
             self.session = None
-            self.last_write_frame = None
         return reply
 
     def _accepted_write(self, sent: dict, channel: str) -> None:
         self.report.accepted_writes += 1
-        self.last_write_frame = self.frame
-        self.last_write_wall = time.monotonic()
         cmd = sent.get("cmd", {})
         try:
             self.limits.check(Command.from_values(cmd["b_static_T"], cmd["b_osc_T"], cmd["freq_Hz"]))
@@ -392,10 +385,14 @@ class Fuzzer:
             self.owner_call("read")
         # silent phase: no valid command from now on; hostile traffic goes on
         st = self.owner_call("status")
-        if st is None or self.last_write_frame is None or st["state"] != "active" or st["coils_zero"]:
+        if st is None or st["command_age_s"] is None or st["state"] != "active" or st["coils_zero"]:
             self._end_round()
             return  # a hostile deactivate or takeover zeroed the coils already
+        # the server's own age of the last valid command (on its clock: simulated time in lock-step, where
+        # other clients' reads advance frames too) decides whether the coils were on for too long
+        bound = self.watchdog + self.period + 1e-9
         deadline = time.monotonic() + 5.0
+        too_long = None
         while time.monotonic() < deadline:
             self.hostile(rng.randint(0, 3))
             if self.lockstep:
@@ -403,22 +400,25 @@ class Fuzzer:
             else:
                 time.sleep(0.01)
             st = self.owner_call("status")
-            if st is None:
+            if st is None or st["coils_zero"] or st["state"] != "active":
                 break
-            if st["coils_zero"]:
+            if st["command_age_s"] is not None and st["command_age_s"] > bound:
+                too_long = st
                 break
-            if self.lockstep and self.frame - self.last_write_frame > self.watchdog / self.period + 2:
-                break
-        if st is not None and st["watchdog_trips"] == trips0 + 1 and st["coils_zero"]:
+        if too_long is not None:
+            r.watchdog_late += 1
+            r.fail(f"coils still on {too_long['command_age_s'] * 1e3:.1f} ms after the last valid command "
+                   f"(bound {bound * 1e3:.1f} ms)")
+        elif st is not None and st["watchdog_trips"] == trips0 + 1 and st["coils_zero"]:
             r.watchdog_checked += 1
             after = st["watchdog_tripped_after_s"]
             r.watchdog_after_s.append(after)
-            if not (self.watchdog < after <= self.watchdog + self.period + 1e-9):
+            if not (self.watchdog < after <= bound):
                 r.watchdog_late += 1
                 r.fail(f"watchdog tripped after {after * 1e3:.1f} ms (bound {1e3 * (self.watchdog + self.period):.1f})")
-        elif st is not None and st["state"] == "active":
+        elif st is not None and st["state"] == "active" and not st["coils_zero"]:
             r.watchdog_late += 1
-            r.fail(f"coils still on {self.frame - self.last_write_frame} frames after the last valid command: {st}")
+            r.fail(f"coils still on after the round's time budget: {st}")
         self._end_round()
 
     def _end_round(self):
