@@ -273,3 +273,13 @@ def test_bad_key_options_are_one_line_errors(keys, tmp_path, capsys):
         code = main(args)
         lines = capsys.readouterr().err.strip().splitlines()
         assert code == 2 and len(lines) == 1 and words in lines[0], (args, lines)
+
+
+def test_allow_admits_only_the_listed_peer_addresses(start_server):
+    srv = start_server("--lockstep", "--plant", "standin", "--allow", "127.0.0.2")
+    client = RigClient(srv.address, timeout=0.5)  # connects from 127.0.0.1: the ZAP hook says no
+    with pytest.raises(RigConnectionError, match="did not answer"):
+        client.call("hello")
+    client.close()
+    ok = start_server("--lockstep", "--plant", "standin", "--allow", "127.0.0.1")
+    assert RigClient(ok.address).call("hello")["ok"]
