@@ -148,6 +148,7 @@ def _parse_table(where: str, table: dict[str, Any]) -> Params:
 # --- type and range rules -----------------------------------------------------------------------------
 # file name → dotted key (fnmatch pattern) → (kind, low, high, required); bounds in the file's units, low
 # exclusive when written as a 1-tuple: (0,) means "> 0". kind: number, integer, bool, str, numbers.
+# (coils.toml is checked by its own loader, magctl.plant.coils.load_coils: positive finite ratings.)
 _POS = (0,)
 RULES: dict[str, dict[str, tuple]] = {
     "rig.toml": {
@@ -173,13 +174,8 @@ RULES: dict[str, dict[str, tuple]] = {
         "tasks.servo_setting": ("str", None, None, False),
         "tasks.*_um": ("number", _POS, 1e6, False),
     },
-    "coils.toml": {
-        "coil.*.current_limit_A": ("number", _POS, 1000.0, False),
-        "coil.*.voltage_limit_V": ("number", _POS, 10000.0, False),
-        "coil.*.resistance_ohm": ("number", _POS, 1e6, False),
-        "coil.*.turns_count": ("integer", _POS, 1e7, False),
-    },
 }
+
 
 
 def _flat(table: dict[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
