@@ -17,7 +17,7 @@ def register(sub) -> None:
     rs = p.add_subparsers(dest="rig_command", metavar="RIG_COMMAND")
     rs.required = True
 
-    s = rs.add_parser("serve-sim", help="serve a simulated rig (protocol v1, docs/rig-protocol.md)")
+    s = rs.add_parser("serve-sim", help="serve a simulated rig (protocol v2, docs/rig-protocol.md)")
     s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ endpoint (default tcp://127.0.0.1:5555)")
     s.add_argument("--spheres", type=int, default=1, help="number of spheres in the scene (default 1)")
     s.add_argument("--plant", choices=("physics", "standin"), default="physics",

@@ -1,4 +1,4 @@
-"""Network rig: the client side of protocol v1 over ZeroMQ REQ.
+"""Network rig: the client side of protocol v2 over ZeroMQ REQ.
 
 Every call is one request and one reply with a timeout. A server that does not
 answer in time is treated as gone: the REQ socket is closed (it cannot be

@@ -277,7 +277,8 @@ class Fuzzer:
                 elif isinstance(c.get(k), (int, float)):
                     c[k] = c[k] * rng.choice([-1, 3, 100, 1e9]) + rng.choice([0, 1e-3, 1.0])
             else:
-                doc["version"] = rng.choice([1.0, True, "1", 2, 0, -1, None])
+                doc["version"] = rng.choice([float(P.VERSION), True, str(P.VERSION), P.VERSION - 1, P.VERSION + 1,
+                                             0, -1, None])
         try:
             raw = json.dumps(doc, allow_nan=True).encode()
         except (ValueError, TypeError):

@@ -1,4 +1,4 @@
-"""Wire format of the rig protocol, version 1 (docs/rig-protocol.md).
+"""Wire format of the rig protocol, version 2 (docs/rig-protocol.md).
 
 Every message is one UTF-8 JSON object of at most :data:`MAX_MESSAGE_BYTES`
 bytes. Requests carry ``protocol``, ``version``, ``id`` and ``op``; replies echo
@@ -20,7 +20,7 @@ import numpy as np
 from magctl.rig.interface import Command, CommandRejected, Observation
 
 PROTOCOL = "magctl-rig"
-VERSION = 1
+VERSION = 2  # 2: sessions (a required 'session' token on activate/deactivate/write)
 MAX_MESSAGE_BYTES = 65536
 OPS = ("hello", "configure", "activate", "deactivate", "read", "write", "status")
 # operations that change the rig: only the session that configured it (its owner) may send them

@@ -1,4 +1,4 @@
-"""``magctl rig serve-sim``: the simulated rig as a server speaking protocol v1 over ZeroMQ.
+"""``magctl rig serve-sim``: the simulated rig as a server speaking protocol v2 over ZeroMQ.
 
 Three independent parts, so that no byte a peer sends can keep the coils on:
 

@@ -97,10 +97,10 @@ def test_watchdog_zeroes_the_coils_within_100_ms_plus_one_frame(raw):
 
 @pytest.mark.parametrize("payload, code", [
     (b"\x00\xffgarbage\x13", P.BAD_JSON),
-    (b'{"protocol": "magctl-rig", "version": 1, "id": 7, "op": "wri', P.BAD_JSON),
+    (b'{"protocol": "magctl-rig", "version": 2, "id": 7, "op": "wri', P.BAD_JSON),
     (b"x" * (P.MAX_MESSAGE_BYTES + 1000), P.TOO_LARGE),
     (b'{"protocol": "magctl-rig", "version": 99, "id": 7, "op": "write"}', P.BAD_VERSION),
-    (b'{"protocol": "magctl-rig", "version": 1, "id": 7, "op": "write", '
+    (b'{"protocol": "magctl-rig", "version": 2, "id": 7, "op": "write", '
      b'"cmd": {"b_static_T": [NaN, 0], "b_osc_T": 0, "freq_Hz": 0}}', P.BAD_JSON),
     (json.dumps(P.request("write", 7, session="SESSION",
                           cmd={"b_static_T": [0.005, 0.0], "b_osc_T": 0.0, "freq_Hz": 1e4})).encode(), P.BAD_COMMAND),
@@ -109,11 +109,11 @@ def test_watchdog_zeroes_the_coils_within_100_ms_plus_one_frame(raw):
     # a valid command from a client that never configured: refused, named
     (json.dumps(P.request("write", 7, cmd={"b_static_T": [2e-3, 0.0], "b_osc_T": 1e-3, "freq_Hz": 10})).encode(),
      P.NOT_OWNER),
-    (b'{"protocol": "magctl-rig", "version": 1, "id": 1e400, "op": "read"}', P.BAD_JSON),
+    (b'{"protocol": "magctl-rig", "version": 2, "id": 1e400, "op": "read"}', P.BAD_JSON),
     (b'{"protocol": "magctl-rig", "version": true, "id": 7, "op": "read"}', P.BAD_VERSION),
-    (b'{"protocol": "magctl-rig", "version": 1.0, "id": 7, "op": "read"}', P.BAD_VERSION),
-    (b'{"protocol": "magctl-rig", "version": 1, "id": ' + b"9" * 5000 + b', "op": "read"}', P.BAD_JSON),
-    (b'{"protocol": "magctl-rig", "version": 1, "id": 99999999999999999999, "op": "read"}', P.BAD_REQUEST),
+    (b'{"protocol": "magctl-rig", "version": 2.0, "id": 7, "op": "read"}', P.BAD_VERSION),
+    (b'{"protocol": "magctl-rig", "version": 2, "id": ' + b"9" * 5000 + b', "op": "read"}', P.BAD_JSON),
+    (b'{"protocol": "magctl-rig", "version": 2, "id": 99999999999999999999, "op": "read"}', P.BAD_REQUEST),
 ])
 def test_hostile_messages_get_errors_and_are_never_applied(raw, payload, code):
     assert raw.op("activate")["ok"]
@@ -172,7 +172,7 @@ def test_killing_the_server_stops_the_client_with_a_clear_error(start_server):
 
 
 def test_client_refuses_a_server_of_another_protocol_version():
-    """A stand-alone REP socket answering as a version-2 server."""
+    """A stand-alone REP socket answering as a version-3 server."""
     import threading
 
     ctx = zmq.Context.instance()
@@ -181,12 +181,12 @@ def test_client_refuses_a_server_of_another_protocol_version():
 
     def serve_once():
         req = json.loads(rep.recv())
-        rep.send(json.dumps({"protocol": "magctl-rig", "version": 2, "id": req["id"], "ok": True}).encode())
+        rep.send(json.dumps({"protocol": "magctl-rig", "version": 3, "id": req["id"], "ok": True}).encode())
 
     t = threading.Thread(target=serve_once)
     t.start()
     rig = RigClient(f"tcp://127.0.0.1:{port}", timeout=2.0)
-    with pytest.raises(RigError, match="version 2"):
+    with pytest.raises(RigError, match="version 3"):
         rig.configure()
     t.join()
     rig.close()
