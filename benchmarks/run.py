@@ -1,7 +1,9 @@
 """``make bench``: run every ``benchmarks/bench_*.py`` and write one JSON file.
 
 Each benchmark module defines ``run(quick: bool = False) -> dict``; its numbers
-(with targets and whether they were met) go into the JSON under its name.
+(with targets and whether they were met) go into the JSON under its name. Every
+``bench_*.py`` here is picked up; the rig's (``rig_soak``, ``rig_fuzz``, ``rig_watchdog``)
+start ``serve-sim`` processes on loopback and take minutes each (``--only`` to pick).
 """
 
 from __future__ import annotations

@@ -12,10 +12,16 @@ with the unit suffix stripped (``sphere.radius`` is 1.05e-4 m). Keys without a
 unit suffix that the table below does not know, values that are not numbers
 (or lists of numbers, strings, booleans), and missing ``source`` entries are
 errors naming the file and the key.
+
+Files named in :data:`RULES` are also checked for type and range (positive rates, a watchdog
+within sane bounds, finite positive ratings…), in the units written in the file; a value
+outside its range is an error naming the file, the key and the allowed range.
 """
 
 from __future__ import annotations
 
+import fnmatch
+import math
 import os
 import tomllib
 from collections.abc import Iterator
@@ -139,6 +145,90 @@ def _parse_table(where: str, table: dict[str, Any]) -> Params:
     return Params(where, values, sources, units, raw)
 
 
+# --- type and range rules -----------------------------------------------------------------------------
+# file name → dotted key (fnmatch pattern) → (kind, low, high, required); bounds in the file's units, low
+# exclusive when written as a 1-tuple: (0,) means "> 0". kind: number, integer, bool, str, numbers.
+# (coils.toml is checked by its own loader, magctl.plant.coils.load_coils: positive finite ratings.)
+_POS = (0,)
+RULES: dict[str, dict[str, tuple]] = {
+    "rig.toml": {
+        "limits.b_static_max_mT": ("number", _POS, 100.0, True),
+        "limits.b_osc_max_mT": ("number", _POS, 100.0, True),
+        "limits.freq_max_Hz": ("number", _POS, 10000.0, True),
+        "watchdog.timeout_ms": ("number", 10.0, 1000.0, True),
+        "watchdog.lockstep_wall_timeout_ms": ("number", 10.0, 60000.0, False),
+        "session.timeout_s": ("number", _POS, 3600.0, False),
+        "runtime.rate_Hz": ("number", _POS, 1000.0, True),
+        "runtime.lost_timeout_s": ("number", _POS, 3600.0, True),
+        "runtime.warn_interval_s": ("number", _POS, 3600.0, True),
+        "runtime.spin_ms": ("number", 0.0, 100.0, True),
+        "runtime.request_timeout_ms": ("number", 1.0, 60000.0, True),
+        "scene.robot_start_um": ("numbers", -1e6, 1e6, False),
+        "scene.sphere_spacing_um": ("number", _POS, 1e6, False),
+        "physics.calibrated_release": ("bool", None, None, False),
+        "physics.robot_steps": ("bool", None, None, False),
+        "physics.camera_noise": ("bool", None, None, False),
+        "physics.release_scatter_ratio": ("number", 0.0, 1.0, False),
+        "standin.*_um": ("number", _POS, 1e6, False),
+        "standin.*_mm": ("number", _POS, 1e4, False),
+        "tasks.servo_setting": ("str", None, None, False),
+        "tasks.*_um": ("number", _POS, 1e6, False),
+    },
+}
+
+
+
+def _flat(table: dict[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
+    for key, entry in table.items():
+        name = f"{prefix}{key}"
+        if isinstance(entry, dict) and "value" not in entry:
+            yield from _flat(entry, name + ".")
+        elif isinstance(entry, dict):
+            yield name, entry["value"]
+
+
+def _range_text(lo, hi) -> str:
+    left = f"> {lo[0]:g}" if isinstance(lo, tuple) else f">= {lo:g}"
+    return f"{left} and <= {hi:g}"
+
+
+def check_rules(path: Path, data: dict[str, Any]) -> None:
+    """Type and range checks of :data:`RULES` for this file name; raises :class:`ParameterError`."""
+    rules = RULES.get(path.name)
+    if not rules:
+        return
+    values = dict(_flat(data))
+    for pattern, (kind, lo, hi, required) in rules.items():
+        keys = [k for k in values if fnmatch.fnmatchcase(k, pattern)]
+        if required and not keys:
+            raise ParameterError(f"{path}: missing parameter {pattern}")
+        for key in keys:
+            problem = _rule_problem(values[key], kind, lo, hi)
+            if problem:
+                raise ParameterError(f"{path}: {key} = {values[key]!r} {problem}")
+
+
+def _rule_problem(v, kind, lo, hi) -> str | None:
+    if kind == "bool":
+        return None if isinstance(v, bool) else "must be true or false"
+    if kind == "str":
+        return None if isinstance(v, str) else "must be a string"
+    items = v if kind == "numbers" else [v]
+    if kind == "numbers" and not isinstance(v, list):
+        return "must be a list of numbers"
+    for x in items:
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            return "must be a number" if kind != "integer" else "must be an integer"
+        if kind == "integer" and not float(x).is_integer():
+            return "must be an integer"
+        if not math.isfinite(x):
+            return "must be finite"
+        low = lo[0] if isinstance(lo, tuple) else lo
+        if (isinstance(lo, tuple) and not x > low) or (not isinstance(lo, tuple) and not x >= low) or not x <= hi:
+            return f"is out of range (allowed: {_range_text(lo, hi)})"
+    return None
+
+
 def models_dir() -> Path:
     """The folder of parameter files: ``$MAGCTL_MODELS`` or ``models/`` beside the package."""
     env = os.environ.get("MAGCTL_MODELS")
@@ -157,7 +247,15 @@ def load_file(path: str | os.PathLike) -> Params:
         raise ParameterError(f"{path}: parameter file not found") from None
     except tomllib.TOMLDecodeError as err:
         raise ParameterError(f"{path}: not valid TOML: {err}") from None
-    return _parse_table(str(path), data)
+    except UnicodeDecodeError as err:
+        raise ParameterError(f"{path}: not UTF-8 text (byte {err.start})") from None
+    except IsADirectoryError:
+        raise ParameterError(f"{path}: is a directory, not a parameter file") from None
+    except OSError as err:
+        raise ParameterError(f"{path}: cannot read: {err.strerror or err}") from None
+    params = _parse_table(str(path), data)
+    check_rules(path, data)
+    return params
 
 
 def load_model(name: str) -> Params:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from magctl.cli.common import add_json, emit
@@ -29,20 +30,30 @@ def register(sub) -> None:
     r.set_defaults(func=cmd_replay)
 
 
+def _warn_crashed(note) -> None:
+    if note:
+        print(f"magctl: warning: {note}", file=sys.stderr)
+
+
 def cmd_show(args) -> int:
     from magctl.rig.log import read_log
 
-    doc = read_log(args.file).summary()
-    emit(args, doc, lambda d: "\n".join(f"{k}: {v}" for k, v in d.items()))
+    log = read_log(args.file)
+    doc = log.summary()
+    emit(args, doc, lambda d: "\n".join(f"{k}: {v}" for k, v in d.items() if k != "note"))
+    _warn_crashed(log.crash_note())
     return 0
 
 
 def cmd_export(args) -> int:
     from magctl.rig.log import export, read_log
 
+    log = read_log(args.file)
     out = export(args.file, args.out)
-    doc = {"log": str(args.file), "out": str(out), "events": len(read_log(args.file).events)}
+    doc = {"log": str(args.file), "out": str(out), "events": len(log.events), "crashed": log.crashed,
+           "complete_to": log.complete_to}
     emit(args, doc, lambda d: f"wrote {d['out']} ({d['events']} events)")
+    _warn_crashed(log.crash_note())
     return 0
 
 
@@ -51,7 +62,11 @@ def cmd_replay(args) -> int:
 
     res = replay(args.file)
     doc = {"log": str(args.file), "events": res.events, "commands_compared": res.compared,
-           "mismatches": res.mismatches, "identical": res.identical, "first_mismatch": res.first_mismatch}
+           "mismatches": res.mismatches, "identical": res.identical, "first_mismatch": res.first_mismatch,
+           "crashed": res.crashed, "complete_to": res.complete_to}
     emit(args, doc, lambda d: (f"replayed {d['events']} events: {d['commands_compared']} commands compared, "
-                               f"{d['mismatches']} mismatches — " + ("identical" if d["identical"] else "DIFFERENT")))
+                               f"{d['mismatches']} mismatches — " + ("identical" if d["identical"] else "DIFFERENT")
+                               + (f" (up to event seq {d['complete_to']['seq']}; the log has no stop document)"
+                                  if d["crashed"] else "")))
+    _warn_crashed(res.note)
     return 0 if res.identical else 1

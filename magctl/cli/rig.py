@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 
@@ -16,7 +17,7 @@ def register(sub) -> None:
     rs = p.add_subparsers(dest="rig_command", metavar="RIG_COMMAND")
     rs.required = True
 
-    s = rs.add_parser("serve-sim", help="serve a simulated rig (protocol v1, docs/rig-protocol.md)")
+    s = rs.add_parser("serve-sim", help="serve a simulated rig (protocol v2, docs/rig-protocol.md)")
     s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ endpoint (default tcp://127.0.0.1:5555)")
     s.add_argument("--spheres", type=int, default=1, help="number of spheres in the scene (default 1)")
     s.add_argument("--plant", choices=("physics", "standin"), default="physics",
@@ -31,7 +32,22 @@ def register(sub) -> None:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--rt-priority", type=int, default=None, metavar="P",
                    help="run under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
+    s.add_argument("--lockstep", action="store_true",
+                   help="step one plant frame per 'read' (simulated time, deterministic) instead of at 30 Hz")
+    s.add_argument("--curve-secret", type=Path, default=None, metavar="FILE",
+                   help="server secret key (server.key_secret from 'magctl rig keys'): CURVE encryption and "
+                        "client authentication; needs --curve-clients")
+    s.add_argument("--curve-clients", type=Path, default=None, metavar="DIR",
+                   help="folder of the public keys (*.key) of the clients allowed to connect")
+    s.add_argument("--allow", action="append", default=[], metavar="IP",
+                   help="only peers at this IP address may connect (repeatable; default: any)")
     s.set_defaults(func=cmd_serve_sim)
+
+    k = rs.add_parser("keys", help="generate CURVE key pairs for a server and a client")
+    k.add_argument("--out", type=Path, required=True, help="folder for server.key(_secret), client.key(_secret), "
+                                                            "clients/")
+    add_json(k)
+    k.set_defaults(func=cmd_keys)
 
     r = rs.add_parser("run", help="run a task on a rig at 30 Hz")
     r.add_argument("--rig", required=True, help="rig server address (tcp://HOST:PORT) or 'sim' for an in-process "
@@ -52,6 +68,12 @@ def register(sub) -> None:
     r.add_argument("--rt-priority", type=int, default=None, metavar="P",
                    help="run the loop under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
     r.add_argument("--reset", action="store_true", help="ask a simulated rig server to restart its scene")
+    r.add_argument("--takeover", action="store_true",
+                   help="take the rig over from another client's live session (the server logs it)")
+    r.add_argument("--curve-server-key", type=Path, default=None, metavar="FILE",
+                   help="the server's public key (server.key): connect with CURVE; needs --curve-secret")
+    r.add_argument("--curve-secret", type=Path, default=None, metavar="FILE",
+                   help="this client's secret key (client.key_secret from 'magctl rig keys')")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--quiet", action="store_true")
     add_json(r)
@@ -92,18 +114,49 @@ def cmd_serve_sim(args) -> int:
         build_sim_plant(n, scene, params, plant=args.plant)  # a bad scene is an error before serving
     except MagctlError as err:
         raise MagctlError(f"serve-sim: {err}") from None
+    if (args.curve_secret is None) != (args.curve_clients is None):
+        raise MagctlError("serve-sim: --curve-secret and --curve-clients go together")
+    if args.curve_secret is not None:
+        from magctl.rig.server import load_keypair
+
+        try:
+            _, secret = load_keypair(args.curve_secret)
+        except (OSError, ValueError) as err:
+            raise MagctlError(f"serve-sim: --curve-secret: {err}") from None
+        if secret is None:
+            raise MagctlError(f"serve-sim: --curve-secret {args.curve_secret}: no secret key in it "
+                              f"(use server.key_secret)")
+        if not args.curve_clients.is_dir() or not any(args.curve_clients.glob("*.key")):
+            raise MagctlError(f"serve-sim: --curve-clients {args.curve_clients}: no client public keys (*.key)")
     server = RigServer(lambda: build_sim_plant(n, scene, params, plant=args.plant), args.bind,
                        RigLimits.from_params(params), params.watchdog.timeout, 1.0 / params.runtime.rate,
                        seed=args.seed, describe={"kind": f"serve-sim ({kind})", "plant": args.plant,
-                                                 "scheduling": sched, **scene.to_dict()})
+                                                 "scheduling": sched, "lockstep": args.lockstep,
+                                                 **scene.to_dict()},
+                       lockstep=args.lockstep, session_timeout=params.session.timeout,
+                       lockstep_wall_timeout=params.watchdog.lockstep_wall_timeout,
+                       curve_secret=args.curve_secret, curve_clients=args.curve_clients, allow=args.allow)
+    import zmq
+
     try:
         return server.serve(ready=announce)
-    except Exception as err:
-        import zmq
+    except zmq.ZMQError as err:  # only binding raises: the serve loop catches everything else
+        raise MagctlError(f"cannot serve on {args.bind}: {err}") from None
 
-        if isinstance(err, zmq.ZMQError):
-            raise MagctlError(f"cannot serve on {args.bind}: {err}") from None
-        raise
+
+def cmd_keys(args) -> int:
+    from magctl.rig.server import generate_keys
+
+    try:
+        doc = generate_keys(args.out)
+    except (OSError, FileExistsError) as err:
+        raise MagctlError(f"rig keys: {err}") from None
+    emit(args, doc, lambda d: "\n".join([
+        f"server: {d['server_secret']} (secret, for serve-sim --curve-secret), {d['server_public']} (public, for "
+        f"rig run --curve-server-key)",
+        f"client: {d['client_secret']} (secret, for rig run --curve-secret); its public key is in "
+        f"{d['clients_folder']} (for serve-sim --curve-clients)"]))
+    return 0
 
 
 def cmd_run(args) -> int:
@@ -133,9 +186,15 @@ def cmd_run(args) -> int:
                 "scheduling": sched}
     else:
         from magctl.rig.client import RigClient
+        from magctl.rig.interface import RigError
 
-        rig = RigClient(args.rig, reset=args.reset)
-        desc = {"kind": "RigClient", "address": args.rig, "scheduling": sched}
+        try:
+            rig = RigClient(args.rig, reset=args.reset, takeover=args.takeover,
+                            curve_server_key=args.curve_server_key, curve_secret=args.curve_secret)
+        except RigError as err:
+            raise MagctlError(f"rig run: {err}") from None
+        desc = {"kind": "RigClient", "address": args.rig, "scheduling": sched,
+                "security": "curve" if args.curve_server_key else "null"}
     runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not (args.rig == "sim" and args.fast),
                       max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,
                       rig_description=desc)

@@ -2,7 +2,7 @@
 
 * :mod:`magctl.rig.interface` — lifecycle, :class:`Command`, :class:`Observation`, limits;
 * :mod:`magctl.rig.sim` — :class:`SimRig`, the plant blocks behind the interface, in process;
-* :mod:`magctl.rig.server` / :mod:`magctl.rig.client` — the same over ZeroMQ (protocol v1, :mod:`magctl.rig.protocol`);
+* :mod:`magctl.rig.server` / :mod:`magctl.rig.client` — the same over ZeroMQ (protocol v2, :mod:`magctl.rig.protocol`);
 * :mod:`magctl.rig.runtime` — the fixed-rate loop; :mod:`magctl.rig.tasks` — task registry;
 * :mod:`magctl.rig.log` — run logs, export and replay.
 """

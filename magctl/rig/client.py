@@ -1,9 +1,15 @@
-"""Network rig: the client side of protocol v1 over ZeroMQ REQ.
+"""Network rig: the client side of protocol v2 over ZeroMQ REQ.
 
 Every call is one request and one reply with a timeout. A server that does not
 answer in time is treated as gone: the REQ socket is closed (it cannot be
 reused after a lost reply), the call raises :class:`RigConnectionError` and the
 rig goes to ``error`` — the server's own watchdog then zeroes the coils.
+
+``configure`` opens a session: the server's token goes with every later request, and only
+this session may activate, write and deactivate until it deactivates (which ends the session;
+a later ``activate`` opens a new one) or stays silent past the server's session timeout.
+With ``curve_server_key`` and ``curve_secret`` the connection is CURVE-encrypted and the
+server admits only client keys it knows.
 """
 
 from __future__ import annotations
@@ -25,6 +31,10 @@ from magctl.rig.interface import (
 )
 
 
+class RigNotOwner(RigError):
+    """The server refused an operation: another session owns the rig."""
+
+
 class RigClient(Rig):
     """A rig reached over the network.
 
@@ -38,11 +48,33 @@ class RigClient(Rig):
         Client-side limits (the server enforces its own as well).
     reset : bool
         Ask a simulated rig to restart its scene on ``configure`` (real rigs ignore it).
+    takeover : bool
+        Take the rig over from another live session on ``configure`` (the server logs it).
+    curve_server_key : path, optional
+        The server's public key file (``magctl rig keys``): connect with CURVE.
+    curve_secret : path, optional
+        This client's secret key file (needed with ``curve_server_key``).
     """
 
     def __init__(self, address: str, *, timeout: float | None = None, limits: RigLimits | None = None,
-                 params=None, reset: bool = False):
-        self.reset = reset
+                 params=None, reset: bool = False, takeover: bool = False, curve_server_key=None,
+                 curve_secret=None):
+        self.reset, self.takeover = reset, takeover
+        self.session: str | None = None
+        self._curve = None
+        if (curve_server_key is None) != (curve_secret is None):
+            raise RigError("CURVE needs both the server's public key and this client's secret key")
+        if curve_server_key is not None:
+            from magctl.rig.server import load_keypair
+
+            try:
+                server_public, _ = load_keypair(curve_server_key)
+                public, secret = load_keypair(curve_secret)
+            except (OSError, ValueError) as err:
+                raise RigError(f"CURVE keys: {err}") from None
+            if secret is None:
+                raise RigError(f"{curve_secret}: has no secret key (use the .key_secret file)")
+            self._curve = (server_public, public, secret)
         params = params or load_model("rig")
         super().__init__(limits or RigLimits.from_params(params))
         self.address = address
@@ -59,6 +91,8 @@ class RigClient(Rig):
         ms = int(self.timeout * 1e3)
         sock.setsockopt(zmq.RCVTIMEO, ms)
         sock.setsockopt(zmq.SNDTIMEO, ms)
+        if self._curve is not None:
+            sock.curve_serverkey, sock.curve_publickey, sock.curve_secretkey = self._curve
         sock.connect(self.address)
         self._sock = sock
 
@@ -72,6 +106,8 @@ class RigClient(Rig):
         if self._sock is None:
             self._connect()
         self._id += 1
+        if self.session is not None:
+            fields.setdefault("session", self.session)
         msg = P.encode(P.request(op, self._id, **fields))
         try:
             self._sock.send(msg)
@@ -100,20 +136,37 @@ class RigClient(Rig):
                 raise CommandRejected(f"server rejected the command: {text}")
             if code == P.BAD_STATE:
                 raise RigStateError(f"server: {text}")
+            if code == P.NOT_OWNER:
+                raise RigNotOwner(f"server refused: {text}")
             raise RigError(f"server error {code}: {text}")
         return reply
 
     # --- lifecycle hooks ------------------------------------------------------------------------
     def _configure(self) -> None:
         self.server_info = self.call("hello")
-        reply = self.call("configure", reset=self.reset)
+        self._claim(reset=self.reset)
+
+    def _claim(self, reset: bool = False) -> None:
+        fields = {"reset": reset}
+        if self.takeover:
+            fields["takeover"] = True
+        reply = self.call("configure", **fields)
+        self.session = reply.get("session")
         self.n_spheres = int(reply["n_spheres"])
 
     def _activate(self) -> None:
+        if self.session is None:  # the last deactivate ended the session: open a new one
+            self._claim()
         self.call("activate")
 
     def _deactivate(self) -> None:
+        self._release()
+
+    def _release(self) -> None:
+        if self.session is None:
+            return
         self.call("deactivate")
+        self.session = None
 
     def _read(self) -> Observation:
         reply = self.call("read")
@@ -129,10 +182,18 @@ class RigClient(Rig):
 
     def _zero(self) -> None:
         # 'deactivate' zeroes the coils and is accepted whether or not the server is still active
-        self.call("deactivate")
+        self._release()
 
     def _close(self) -> None:
-        self._disconnect()
+        # end the session whatever state the rig is in (after a watchdog trip it is still ours)
+        try:
+            if self.session is not None and self._sock is not None:
+                self._release()
+        except RigError:
+            pass
+        finally:
+            self.session = None
+            self._disconnect()
 
     def status(self) -> dict:
         """The server's status document (state, currents, watchdog, counters)."""

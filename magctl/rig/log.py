@@ -11,6 +11,10 @@ Every document is flushed when written, so a process killed with SIGKILL loses
 at most the line being written; :func:`read_log` drops a torn last line and
 reads everything before it.
 
+Every document is checked against :data:`SCHEMA` (JSON Schema, one sub-schema per document
+kind) when it is written and when it is read: a reader gets either documents of the documented
+shape or a one-line :class:`LogError` naming the file, the line and the field.
+
 Floats are written with Python's shortest round-trip ``repr``, so logged values
 read back bit for bit; :func:`replay` relies on it to feed the logged
 observations through a freshly built controller and compare the commands
@@ -46,6 +50,88 @@ def _dumps(doc: dict) -> str:
     return json.dumps(doc, allow_nan=False, separators=(",", ":"))
 
 
+# --- schema ------------------------------------------------------------------------------------------
+_NUM = {"type": "number"}
+_INT = {"type": "integer"}
+_XY = {"type": "array", "items": _NUM, "minItems": 2, "maxItems": 2}
+_CMD = {"type": ["object", "null"], "required": ["b_static_T", "b_osc_T", "freq_Hz"],
+        "properties": {"b_static_T": _XY, "b_osc_T": _NUM, "freq_Hz": _NUM}}
+SCHEMA: dict = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "$id": "https://magctl/runlog/1",
+    "title": f"{FORMAT} document",
+    "type": "object",
+    "required": ["doc"],
+    "properties": {"doc": {"enum": ["start", "descriptor", "event", "stop"]}},
+    "allOf": [
+        {"if": {"properties": {"doc": {"const": "start"}}}, "then": {
+            "required": ["format", "uid", "time_unix", "magctl_version", "task", "options", "seed", "rig",
+                         "limits"],
+            "properties": {
+                "format": {"const": FORMAT}, "uid": {"type": "string", "minLength": 1}, "time_unix": _NUM,
+                "magctl_version": {"type": "string"}, "task": {"type": "string", "minLength": 1},
+                "options": {"type": "object"}, "seed": _INT, "rig": {"type": "object"},
+                "limits": {"type": "object", "required": ["b_static_max_T", "b_osc_max_T", "freq_max_Hz"],
+                           "properties": {"b_static_max_T": _NUM, "b_osc_max_T": _NUM, "freq_max_Hz": _NUM}},
+                "models_toml": {"type": "object", "additionalProperties": {"type": "string"}},
+                "period_s": {"type": "number", "exclusiveMinimum": 0}, "realtime": {"type": "boolean"},
+                "argv": {"type": "array", "items": {"type": "string"}}}}},
+        {"if": {"properties": {"doc": {"const": "descriptor"}}}, "then": {
+            "required": ["run", "fields"],
+            "properties": {"run": {"type": "string"}, "fields": {"type": "object", "additionalProperties": {
+                "type": "object", "required": ["shape", "unit"],
+                "properties": {"shape": {"type": "array", "items": {"type": "integer", "minimum": 0}},
+                               "unit": {"type": "string"}}}}}}},
+        {"if": {"properties": {"doc": {"const": "event"}}}, "then": {
+            "required": ["seq", "activation", "obs", "cmd_raw", "cmd", "outputs", "timing"],
+            "properties": {
+                "seq": {"type": "integer", "minimum": 0}, "activation": {"type": "integer", "minimum": 0},
+                "obs": {"type": "object",
+                        "required": ["t_s", "frame", "robot_est_m", "heading_est_rad", "spheres_est_m", "lost",
+                                     "currents_A"],
+                        "properties": {"t_s": _NUM, "frame": _INT, "robot_est_m": _XY, "heading_est_rad": _NUM,
+                                       "spheres_est_m": {"type": "array", "items": _XY}, "lost": {"type": "boolean"},
+                                       "currents_A": {"type": "array", "items": _NUM}}},
+                "cmd_raw": _CMD, "cmd": _CMD,
+                "outputs": {"type": "object", "additionalProperties": {"type": ["number", "boolean", "array"]}},
+                "timing": {"type": "object", "additionalProperties": _NUM},
+                "error": {"type": "string"}}}},
+        {"if": {"properties": {"doc": {"const": "stop"}}}, "then": {
+            "required": ["run", "time_unix", "exit_status", "reason", "n_events"],
+            "properties": {"run": {"type": "string"}, "time_unix": _NUM, "exit_status": {"type": "string"},
+                           "reason": {"type": "string"}, "n_events": {"type": "integer", "minimum": 0}}}},
+    ],
+}
+_validators: dict = {}
+
+
+def _schema_validator(kind):
+    """The validator of one document kind (the matching ``then`` branch of :data:`SCHEMA`; faster than
+    the whole schema on every frame)."""
+    if not _validators:
+        import jsonschema
+
+        jsonschema.Draft202012Validator.check_schema(SCHEMA)
+        _validators[None] = jsonschema.Draft202012Validator(SCHEMA)
+        for branch in SCHEMA["allOf"]:
+            k = branch["if"]["properties"]["doc"]["const"]
+            _validators[k] = jsonschema.Draft202012Validator({**branch["then"], "type": "object"})
+    return _validators.get(kind, _validators[None])
+
+
+def schema_error(doc) -> str | None:
+    """None when ``doc`` is a valid run-log document, else one line naming the field and the problem."""
+    if not isinstance(doc, dict):
+        return f"a document must be a JSON object, got {type(doc).__name__}"
+    v = _schema_validator(doc.get("doc") if isinstance(doc.get("doc"), str) else None)
+    if v.is_valid(doc):
+        return None
+    err = min(v.iter_errors(doc), key=lambda e: len(list(e.absolute_path)))
+    where = ".".join(str(x) for x in err.absolute_path) or "document"
+    msg = err.message if len(err.message) <= 160 else err.message[:157] + "..."
+    return f"{doc.get('doc', '?')} document, {where}: {msg}"
+
+
 class RunLogWriter:
     """Append-only writer of one run log.
 
@@ -71,6 +157,9 @@ class RunLogWriter:
         self.closed = False
 
     def _write(self, doc: dict) -> None:
+        bad = schema_error(doc)
+        if bad is not None:
+            raise LogError(f"{self.path}: refusing to write an invalid {bad}")
         self._fh.write(_dumps(doc) + "\n")
         self._fh.flush()
         if self.fsync:
@@ -152,6 +241,23 @@ class RunLog:
     def crashed(self) -> bool:
         return self.stop is None
 
+    @property
+    def complete_to(self) -> dict | None:
+        """The last complete event: its ``seq`` and observed ``frame`` (None without events)."""
+        if not self.events:
+            return None
+        e = self.events[-1]
+        return {"seq": e["seq"], "frame": e["obs"]["frame"], "events": len(self.events)}
+
+    def crash_note(self) -> str | None:
+        """One line saying the run has no stop document and up to where the log is complete."""
+        if not self.crashed:
+            return None
+        c = self.complete_to
+        upto = "no events" if c is None else f"complete up to event seq {c['seq']} (frame {c['frame']})"
+        torn = "; a torn last line was dropped" if self.torn_tail else ""
+        return f"{self.path}: no stop document: the run crashed or is still running; {upto}{torn}"
+
     def summary(self) -> dict[str, Any]:
         ev = self.events
         timing = np.array([[e["timing"].get("jitter_s", 0.0), e["timing"].get("compute_s", 0.0)] for e in ev]) \
@@ -162,7 +268,8 @@ class RunLog:
             "options": (self.start or {}).get("options"), "events": len(ev),
             "exit_status": None if self.stop is None else self.stop.get("exit_status"),
             "reason": None if self.stop is None else self.stop.get("reason"),
-            "crashed": self.crashed, "torn_tail": self.torn_tail,
+            "crashed": self.crashed, "torn_tail": self.torn_tail, "complete_to": self.complete_to,
+            "note": self.crash_note(),
             "duration_s": (ev[-1]["timing"]["scheduled_s"] - ev[0]["timing"]["scheduled_s"]) if len(ev) > 1 else 0.0,
             "jitter_p99_ms": float(np.percentile(timing[:, 0], 99) * 1e3) if len(ev) else None,
             "compute_p99_ms": float(np.percentile(timing[:, 1], 99) * 1e3) if len(ev) else None,
@@ -172,13 +279,26 @@ class RunLog:
         }
 
 
+def _no_constants(name):
+    raise ValueError(f"{name} is not a JSON number")
+
+
 def read_log(path) -> RunLog:
     """Read a run log; a torn last line is dropped, any other bad line is a :class:`LogError`."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        data = path.read_bytes()
     except FileNotFoundError:
         raise LogError(f"{path}: no such run log") from None
+    except IsADirectoryError:
+        raise LogError(f"{path}: is a directory, not a run log") from None
+    except OSError as err:
+        raise LogError(f"{path}: cannot read: {err.strerror or err}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        line = data[: err.start].count(b"\n") + 1
+        raise LogError(f"{path}:{line}: not UTF-8 text (byte {err.start}); not a magctl run log") from None
     lines = text.split("\n")
     torn = False
     if lines and lines[-1] == "":
@@ -190,12 +310,23 @@ def read_log(path) -> RunLog:
     log = RunLog(path, None, None)
     for i, line in enumerate(lines, 1):
         try:
-            doc = json.loads(line)
+            doc = json.loads(line, parse_constant=_no_constants)
         except json.JSONDecodeError as err:
-            raise LogError(f"{path}:{i}: not a JSON document: {err}") from None
+            raise LogError(f"{path}:{i}: not a JSON document: {err.msg} (column {err.colno})") from None
+        except (ValueError, RecursionError) as err:
+            raise LogError(f"{path}:{i}: not a valid JSON document: {P.show(str(err), 100)}") from None
         kind = doc.get("doc") if isinstance(doc, dict) else None
         if i == 1 and (kind != "start" or doc.get("format") != FORMAT):
             raise LogError(f"{path}:1: not a magctl run log (expected a start document of format {FORMAT})")
+        if i > 1 and kind == "start":
+            raise LogError(f"{path}:{i}: a second start document")
+        bad = schema_error(doc)
+        if bad is not None:
+            raise LogError(f"{path}:{i}: {bad}")
+        if log.stop is not None:
+            raise LogError(f"{path}:{i}: a {kind} document after the stop document")
+        if kind == "event" and doc["seq"] != len(log.events):
+            raise LogError(f"{path}:{i}: event seq {doc['seq']} where {len(log.events)} was expected")
         if kind == "start":
             log.start = doc
         elif kind == "descriptor":
@@ -213,7 +344,10 @@ def read_log(path) -> RunLog:
 
 
 def event_observation(ev: dict) -> Observation:
-    return P.observation_from_wire(ev["obs"])
+    try:
+        return P.observation_from_wire(ev["obs"])
+    except P.ProtocolError as err:
+        raise LogError(f"event seq {ev.get('seq')}: {err}") from None
 
 
 def limits_from_doc(doc: dict) -> RigLimits:
@@ -327,7 +461,11 @@ def export(log_path, out_path) -> Path:
     """Export a run log to Parquet (``.parquet``) or HDF5 (``.h5``/``.hdf5``); documents go into metadata."""
     log = read_log(log_path)
     out = Path(out_path)
-    cols = columns(log)
+    try:
+        cols = columns(log)
+    except (IndexError, KeyError, TypeError, ValueError) as err:
+        raise LogError(f"{log.path}: events do not share one layout ({type(err).__name__}: {err}); "
+                       f"cannot export columns") from None
     meta = {"start": log.start, "descriptor": log.descriptor, "stop": log.stop, "torn_tail": log.torn_tail}
     suffix = out.suffix.lower()
     if suffix == ".parquet":
@@ -360,6 +498,9 @@ class ReplayResult:
     compared: int
     mismatches: int
     first_mismatch: dict | None
+    crashed: bool = False
+    complete_to: dict | None = None
+    note: str | None = None
 
     @property
     def identical(self) -> bool:
@@ -379,8 +520,12 @@ def replay(log_path) -> ReplayResult:
     log = read_log(log_path)
     st = log.start
     if not log.events:
-        raise LogError(f"{log.path}: no events to replay")
-    limits = limits_from_doc(st)
+        raise LogError(f"{log.path}: no events to replay" + (" (no stop document either: the run crashed "
+                                                             "before its first frame)" if log.crashed else ""))
+    try:
+        limits = limits_from_doc(st)
+    except (KeyError, TypeError, ValueError, MagctlError) as err:
+        raise LogError(f"{log.path}:1: start document: limits unusable ({type(err).__name__}: {err})") from None
     first = event_observation(log.events[0])
     with models_from_doc(st) as params:
         task = build_task(st["task"], first, st["options"], params)
@@ -405,4 +550,5 @@ def replay(log_path) -> ReplayResult:
                 mismatches += 1
                 if first_bad is None:
                     first_bad = {"seq": e["seq"], "field": key, "logged": e[key], "replayed": mine}
-    return ReplayResult(len(log.events), compared, mismatches, first_bad)
+    return ReplayResult(len(log.events), compared, mismatches, first_bad, log.crashed, log.complete_to,
+                        log.crash_note())

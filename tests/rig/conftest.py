@@ -8,7 +8,8 @@ from rig_helpers import ServerProcess
 
 @pytest.fixture(scope="module")
 def server():
-    srv = ServerProcess()
+    """A lock-step server: one plant frame per read, the watchdog in simulated time (deterministic)."""
+    srv = ServerProcess("--lockstep")
     yield srv
     srv.kill()
 

@@ -1,8 +1,10 @@
-"""One contract, two rigs: the in-process SimRig and the network client of a serve-sim subprocess."""
+"""One contract, two rigs: the in-process SimRig and the network client of a serve-sim subprocess.
+
+The server runs in lock-step (one frame per read), as ``SimRig(realtime=False)``: the same
+calls give the same frames on both rigs, whatever the machine's load.
+"""
 
 from __future__ import annotations
-
-import time
 
 import numpy as np
 import pytest
@@ -29,13 +31,11 @@ def rig(request):
 
 
 def frames(rig, n, cmd=None):
-    """Advance ``n`` frames, re-sending ``cmd`` each frame (a network rig runs on its own clock)."""
+    """Advance ``n`` frames (one per read on both rigs), re-sending ``cmd`` each frame."""
     obs = None
     for _ in range(n):
         if cmd is not None:
             rig.write(cmd)
-        if isinstance(rig, RigClient):
-            time.sleep(PERIOD)
         obs = rig.read()
     return obs
 

@@ -6,6 +6,7 @@ import json
 import signal
 import subprocess
 import time
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -87,7 +88,7 @@ def test_logs_are_never_overwritten_and_bad_logs_are_named(push_log, tmp_path):
     with pytest.raises(LogError, match="never overwritten"):
         RunLogWriter(push_log)
     junk = tmp_path / "junk.jsonl"
-    junk.write_text('{"doc": "start", "format": "magctl-runlog/1"}\nnot json\n')
+    junk.write_text(push_log.read_text().splitlines()[0] + "\nnot json\n")
     with pytest.raises(LogError, match="junk.jsonl:2"):
         read_log(junk)
     other = tmp_path / "other.jsonl"
@@ -159,3 +160,74 @@ def test_replay_uses_the_parameter_files_the_run_used(tmp_path, monkeypatch):
     swapped = tmp_path / "swapped.jsonl"
     swapped.write_text("\n".join(lines) + "\n")
     assert replay(swapped).mismatches > 0
+
+
+def _edit(push_log, tmp_path, name, fn) -> Path:
+    lines = push_log.read_text().splitlines()
+    out = tmp_path / name
+    data = fn(lines)
+    if isinstance(data, bytes):
+        out.write_bytes(data)
+    else:
+        out.write_text("\n".join(data) + "\n")
+    return out
+
+
+def _with(lines, i, change):
+    doc = json.loads(lines[i])
+    change(doc)
+    return lines[:i] + [json.dumps(doc)] + lines[i + 1:]
+
+
+@pytest.mark.parametrize("name, fn, words", [
+    ("binary.jsonl", lambda ls: "\n".join(ls[:5]).encode() + b"\n\xff\xfe\x00garbage\n", "not UTF-8 text"),
+    ("nan.jsonl", lambda ls: ls[:3] + [ls[3].replace('"b_osc_T":0.0', '"b_osc_T":NaN', 1)
+                                       .replace('"b_osc_T": 0.0', '"b_osc_T": NaN', 1)
+                                       .replace('"t_s":', '"t_s":NaN,"x":', 1)] + ls[4:], "NaN is not a JSON number"),
+    ("lost.jsonl", lambda ls: _with(ls, 7, lambda d: d["obs"].__setitem__("lost", "no")),
+     ":8: event document, obs.lost: 'no' is not of type 'boolean'"),
+    ("cmd.jsonl", lambda ls: _with(ls, 9, lambda d: d["cmd"].__setitem__("b_static_T", [1.0])),
+     ":10: event document, cmd.b_static_T"),
+    ("seq.jsonl", lambda ls: ls[:5] + ls[6:], "event seq 4 where 3 was expected"),
+    ("nostart.jsonl", lambda ls: _with(ls, 0, lambda d: d.pop("task")), ":1: start document, document: 'task' is a "
+                                                                         "required property"),
+    ("after.jsonl", lambda ls: ls + [ls[5]], "after the stop document"),
+    ("kind.jsonl", lambda ls: _with(ls, 4, lambda d: d.__setitem__("doc", "frame")), ":5: frame document, doc"),
+    ("list.jsonl", lambda ls: ls[:3] + ["[1, 2]"] + ls[4:], ":4: a document must be a JSON object"),
+])
+def test_malformed_logs_are_one_line_errors_on_every_command(push_log, tmp_path, capsys, name, fn, words):
+    bad = _edit(push_log, tmp_path, name, fn)
+    for args in (["show", str(bad)], ["replay", str(bad)], ["export", str(bad), "--out", str(tmp_path / "x.h5")]):
+        code = main(["log", *args])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and words in err[0] and name in err[0], (args, err)
+
+
+def test_a_directory_is_not_a_log(tmp_path, capsys):
+    assert main(["log", "show", str(tmp_path)]) == 2
+    assert "is a directory" in capsys.readouterr().err
+
+
+def test_a_crashed_log_says_so_and_up_to_where_it_is_complete(push_log, tmp_path, capsys):
+    lines = push_log.read_text().splitlines()
+    crashed = tmp_path / "crashed.jsonl"
+    crashed.write_text("\n".join(lines[:42]) + "\n" + lines[42][:30])  # 40 events, then a torn line, no stop
+    code = main(["log", "replay", str(crashed)])
+    cap = capsys.readouterr()
+    assert code == 0 and "identical" in cap.out and "no stop document" in cap.out and "seq 39" in cap.out
+    assert "no stop document" in cap.err and "complete up to event seq 39" in cap.err and "torn" in cap.err
+    code = main(["log", "show", str(crashed), "--json"])
+    cap = capsys.readouterr()
+    doc = json.loads(cap.out)
+    assert code == 0 and doc["crashed"] and doc["complete_to"]["seq"] == 39 and "no stop document" in cap.err
+    # a complete log carries no such note
+    main(["log", "replay", str(push_log)])
+    cap = capsys.readouterr()
+    assert "stop document" not in cap.out + cap.err
+
+
+def test_the_writer_refuses_an_invalid_document(tmp_path):
+    w = RunLogWriter(tmp_path / "w.jsonl")
+    with pytest.raises(LogError, match="refusing to write an invalid start document"):
+        w.start(task="goto", options={}, seed="zero", rig={}, limits={})
+    w.close()

@@ -22,14 +22,14 @@ def req(**kw) -> bytes:
 
 @pytest.mark.parametrize("raw, code", [
     (b"\xff\xfe\x00garbage", P.BAD_JSON),
-    (b'{"protocol": "magctl-rig", "version": 1, "id": 1, "op": "re', P.BAD_JSON),  # truncated
+    (b'{"protocol": "magctl-rig", "version": 2, "id": 1, "op": "re', P.BAD_JSON),  # truncated
     (b"[1, 2, 3]", P.BAD_JSON),
-    (b'{"protocol": "magctl-rig", "version": 1, "id": 1, "op": "write", "cmd": {"b_osc_T": NaN}}', P.BAD_JSON),
-    (b'{"protocol": "magctl-rig", "version": 1, "id": 1, "op": "write", "cmd": {"b_osc_T": Infinity}}', P.BAD_JSON),
-    (b'{"protocol": "magctl-rig", "version": 2, "id": 1, "op": "read"}', P.BAD_VERSION),
-    (b'{"protocol": "other", "version": 1, "id": 1, "op": "read"}', P.BAD_REQUEST),
-    (b'{"protocol": "magctl-rig", "version": 1, "id": "x", "op": "read"}', P.BAD_REQUEST),
-    (b'{"protocol": "magctl-rig", "version": 1, "id": 3, "op": "launch"}', P.BAD_REQUEST),
+    (b'{"protocol": "magctl-rig", "version": 2, "id": 1, "op": "write", "cmd": {"b_osc_T": NaN}}', P.BAD_JSON),
+    (b'{"protocol": "magctl-rig", "version": 2, "id": 1, "op": "write", "cmd": {"b_osc_T": Infinity}}', P.BAD_JSON),
+    (b'{"protocol": "magctl-rig", "version": 1, "id": 1, "op": "read"}', P.BAD_VERSION),
+    (b'{"protocol": "other", "version": 2, "id": 1, "op": "read"}', P.BAD_REQUEST),
+    (b'{"protocol": "magctl-rig", "version": 2, "id": "x", "op": "read"}', P.BAD_REQUEST),
+    (b'{"protocol": "magctl-rig", "version": 2, "id": 3, "op": "launch"}', P.BAD_REQUEST),
     (b" " * (P.MAX_MESSAGE_BYTES + 1), P.TOO_LARGE),
 ])
 def test_bad_requests_are_refused_with_their_code(raw, code):

@@ -46,44 +46,74 @@ def test_goto_reaches_its_target_on_the_sim_rig():
     assert rig.state.value == "inactive"
 
 
-def test_front_push_completes_through_the_server(start_server, tmp_path):
-    srv = start_server()
-    log = tmp_path / "push.jsonl"
+def test_front_push_completes_through_the_server_exactly_as_in_process(start_server, tmp_path):
+    """The lock-step server steps one frame per read, as ``SimRig(realtime=False)``: the run over the
+    wire converges and is the in-process run bit for bit (observations and commands), and replays."""
+    srv = start_server("--lockstep")
+    wire_log, local_log = tmp_path / "wire.jsonl", tmp_path / "local.jsonl"
+    # the paper's model-based feed-forward δ(0) ≈ D_p,r (§V-A) keeps the run short (1-3 attempts, Fig 14: ≤ 4)
+    options = {"delta0_um": 300.0}
     rig = RigClient(srv.address, reset=True)
-    # the paper's model-based feed-forward δ(0) ≈ D_p,r (§V-A) keeps the run short: 1-3 attempts of ≈ 8 s on
-    # the physical plant (seeds 0-7 in process: 1, 1, 1, 1, 2, 2, 3, 3; the paper: all within 4, Fig 14), whose
-    # release scatters (D_p,r = 300 ± 64 µm) and whose frames the client meets at wall-clock times that
-    # differ from run to run
-    report = Runtime(rig, "front-push", {"delta0_um": 300.0}, log_path=log, realtime=True, duration=60.0,
+    report = Runtime(rig, "front-push", options, log_path=wire_log, realtime=False, max_ticks=3000,
                      quiet=True).run()
     rig.close()
     assert report.exit_status == "done", (report.reason, report.ticks, report.final)
     # the paper's setting: goal 750 µm beyond the sphere that starts 1 mm ahead of the robot, ε_p = 75 µm
     sphere = np.array(report.final["spheres_um"][0]) * 1e-6
     assert np.hypot(*(sphere - FRONT_GOAL)) < EPS_P
-    assert report.overruns == 0
-    assert replay(log).identical
+    assert replay(wire_log).identical
+    local = Runtime(SimRig(n_spheres=1), "front-push", options, log_path=local_log, realtime=False,
+                    max_ticks=3000, quiet=True).run()
+    assert local.exit_status == "done" and local.ticks == report.ticks
+    wire, here = read_log(wire_log).events, read_log(local_log).events
+    assert [(e["obs"], e["cmd_raw"], e["cmd"], e["outputs"]) for e in wire] == \
+        [(e["obs"], e["cmd_raw"], e["cmd"], e["outputs"]) for e in here]
+
+
+class FakeClock:
+    """Monotonic time that advances only when slept on (and by 1 µs per reading, so spins end)."""
+
+    def __init__(self):
+        self.t = 1000.0
+
+    def monotonic(self):
+        self.t += 1e-6
+        return self.t
+
+    perf_counter = monotonic
+
+    def sleep(self, dt):
+        self.t += max(0.0, dt)
+
+    def time(self):
+        return self.t
 
 
 class SlowRig(SimRig):
-    """A real-time SimRig whose read stalls once, long enough to miss ticks."""
+    """A real-time SimRig whose read stalls once (in fake time), long enough to miss ticks."""
 
-    def __init__(self, stall_ticks, stall: float):
+    def __init__(self, clock, stall_ticks, stall: float):
         super().__init__(n_spheres=0, realtime=True)
-        self.reads, self.stall_ticks, self.stall = 0, set(stall_ticks), stall
+        self.clock, self.reads, self.stall_ticks, self.stall = clock, 0, set(stall_ticks), stall
 
     def _read(self):
         self.reads += 1
         if self.reads - 2 in self.stall_ticks:  # -1 for the runtime's first read, -1 for 1-based counting
-            time.sleep(self.stall)
+            self.clock.sleep(self.stall)
         return super()._read()
 
 
-def test_overruns_skip_ticks_count_them_and_never_replay(tmp_path, capsys):
+def test_overruns_skip_ticks_count_them_and_never_replay(tmp_path, capsys, monkeypatch):
+    """Deterministic: the runtime and the rig run on a fake clock, the stall is 1.6 frames of it."""
+    import magctl.rig.runtime as runtime_mod
+    import magctl.rig.sim as sim_mod
+
+    clock = FakeClock()
+    monkeypatch.setattr(runtime_mod, "time", clock)
+    monkeypatch.setattr(sim_mod, "time", clock)
     log = tmp_path / "slow.jsonl"
     # 1.6 frames: long enough to miss tick 6, short enough for the 100 ms watchdog
-    stall = 1.6 * PERIOD
-    rig = SlowRig(stall_ticks=[5, 10], stall=stall)
+    rig = SlowRig(clock, stall_ticks=[5, 10], stall=1.6 * PERIOD)
     report = Runtime(rig, "goto", {"target_um": um(START + (1e-3, 0.0))}, log_path=log, realtime=True,
                      max_ticks=20).run()
     events = read_log(log).events
@@ -125,7 +155,8 @@ def test_unknown_task_is_a_clear_error():
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signals_stop_the_run_safely_and_the_server_sees_the_coils_zeroed(start_server, tmp_path, sig):
-    srv = start_server()
+    # lock-step: the server's watchdog counts frames, so a loaded machine cannot trip it on this healthy client
+    srv = start_server("--lockstep", "--plant", "standin")
     log = tmp_path / "term.jsonl"
     proc = subprocess.Popen(magctl_cmd("rig", "run", "--rig", srv.address, "--reset", "--task", "goto",
                                        "--target-um", *map(str, um(START + (3e-3, 0.0))), "--log", str(log),
