@@ -21,6 +21,7 @@ from magpylib.func import circle_field
 from scipy.spatial.transform import Rotation
 
 from magctl.config import Params, load_model
+from magctl.core.batched import rows_times
 from magctl.core.errors import ParameterError
 
 COIL_KEYS = ("position", "axis", "turns", "radius", "length", "depth", "resistance", "inductance",
@@ -185,6 +186,10 @@ class CoilSet:
             out[c] = b.reshape(nf, npt, 3).sum(axis=0)
         return out
 
+    def allocation(self) -> CoilAllocation:
+        """The minimum-norm allocation of :meth:`actuation_matrix` at the centre, with this set's clamp."""
+        return CoilAllocation(np.linalg.pinv(self.actuation_matrix()), self.clamp_gradient)
+
     def actuation_matrix(self, point=None, h: float = 1e-4) -> np.ndarray:
         """``A`` (4, 6): rows ``B_x, B_y, B_z`` (T/A) and ``∂B_z/∂z`` (T/(m·A)) at ``point``.
 
@@ -196,6 +201,42 @@ class CoilSet:
         u = self.unit_fields(pts)  # (6, 3, 3)
         grad = (u[:, 1, 2] - u[:, 2, 2]) / (2.0 * h)
         return np.vstack([u[:, 0, :].T, grad[None, :]])
+
+
+class CoilAllocation:
+    """Field command → coil currents: the minimum-norm allocation ``i = A⁺ b`` (docs/plant-actuator.md).
+
+    The static command is ``b = [b_x, b_y, 0, G_clamp]`` and the oscillation ``[0, 0, b_osc, 0]``; ``A``
+    (4 × 6) is :meth:`CoilSet.actuation_matrix`. The one place where magctl turns a field into currents:
+    the coil actuator block steps with it and the rig checks commands against coil ratings with it.
+
+    Parameters
+    ----------
+    pinv : (n, 4) array
+        ``A⁺``, A per (T, T, T, T/m).
+    clamp_gradient : float
+        ``G_clamp`` of the static command, T/m.
+    """
+
+    def __init__(self, pinv, clamp_gradient: float = 0.0):
+        self.pinv = np.asarray(pinv, dtype=float)
+        if self.pinv.ndim != 2 or self.pinv.shape[1] != 4:
+            raise ParameterError(f"coil allocation needs an (n, 4) pseudo-inverse, got shape {self.pinv.shape}")
+        self.clamp_gradient = float(clamp_gradient)
+        self.clamp_currents = self.clamp_gradient * self.pinv[:, 3]
+        """Static currents of the clamp term ``G_clamp·A⁺[:, 3]`` (n,), A."""
+        self.per_tesla_xy = np.ascontiguousarray(self.pinv[:, :2].T)
+        """(2, n): A per T of ``b_x``, ``b_y``."""
+        self.per_tesla_osc = np.abs(self.pinv[:, 2])
+        """(n,): current amplitude per T of oscillation."""
+
+    def static_currents(self, b_static: np.ndarray) -> np.ndarray:
+        """Signed static currents ``(B, n)`` A for ``b_static`` ``(B, 2)`` T (row by row, batch-safe)."""
+        return rows_times(b_static, self.per_tesla_xy) + self.clamp_currents
+
+    def osc_currents(self, b_osc: np.ndarray) -> np.ndarray:
+        """Current amplitudes ``(B, n)`` A of the oscillation ``b_osc`` ``(B,)`` T."""
+        return np.abs(b_osc)[:, None] * self.per_tesla_osc
 
 
 def load_coils(name: str = "coils") -> CoilSet:

@@ -31,7 +31,7 @@ from magctl import FRAME_PERIOD_S
 from magctl.core.batched import rows_times
 from magctl.core.block import Block, StateVar
 from magctl.core.ports import Port
-from magctl.plant._coilfield import Coil, CoilSet, load_coils
+from magctl.plant._coilfield import Coil, CoilAllocation, CoilSet, load_coils
 
 __all__ = ["Coil", "CoilActuator", "CoilSet", "load_coils"]
 
@@ -65,19 +65,17 @@ class CoilActuator(Block):
             dt=dt, feedthrough=True,
         )
         self.A = self.coils.actuation_matrix()
-        self.pinv = np.linalg.pinv(self.A)
+        self.allocation = CoilAllocation(np.linalg.pinv(self.A), self.coils.clamp_gradient)
+        self.pinv = self.allocation.pinv
         R, L = self.coils.resistance, self.coils.inductance
         tau = L / R
         self.decay = np.exp(-dt / tau)
         # weight of the frame-start current in the frame-average current
         self.avg_weight = tau / dt * (1.0 - self.decay)
-        self._i_clamp = self.coils.clamp_gradient * self.pinv[:, 3]
-        self._p_xy = np.ascontiguousarray(self.pinv[:, :2].T)
         self._p_z = self.pinv[:, 2].copy()
         self._A_xy = np.ascontiguousarray(self.A[:2].T)  # (6, 2): currents → (B_x, B_y)
         self._vmax_over_r = self.coils.voltage_limit / R
         self._vclip = bool(np.any(self.coils.current_limit > self._vmax_over_r))
-        self._clamped = self.coils.clamp_gradient != 0.0
         self._inv_imax = 1.0 / self.coils.current_limit
         pz = np.abs(self._p_z)
         zc = np.nonzero(pz > 1e-9 * pz.max())[0]
@@ -111,9 +109,7 @@ class CoilActuator(Block):
 
     def _solve(self, state, u):
         # hot path: one vectorised op per line; see the module docstring for the steps
-        i_s = rows_times(u["b_static"], self._p_xy)
-        if self._clamped:
-            i_s += self._i_clamp
+        i_s = self.allocation.static_currents(u["b_static"])
         ai = np.abs(i_s)
         s_static = None
         if ai.max() > self._imax_min and (ai > self.coils.current_limit).any():

@@ -30,6 +30,7 @@ import numpy as np
 
 from magctl.config import Params, load_model
 from magctl.core.errors import MagctlError
+from magctl.plant._coilfield import CoilAllocation, load_coils
 
 
 class RigError(MagctlError):
@@ -163,16 +164,17 @@ class CoilMap:
     """
 
     def __init__(self, pinv, current_limit, clamp_gradient: float = 0.0, names=None):
-        self.pinv = np.asarray(pinv, dtype=float)
         self.current_limit = np.asarray(current_limit, dtype=float).reshape(-1)
-        if self.pinv.shape != (self.current_limit.size, 4) or np.any(self.current_limit <= 0):
+        pinv = np.asarray(pinv, dtype=float)
+        if pinv.shape != (self.current_limit.size, 4) or np.any(self.current_limit <= 0):
             raise RigError(f"coil map needs a (n, 4) allocation and n positive current limits, got "
-                           f"{self.pinv.shape} and {self.current_limit.tolist()}")
-        self.clamp_gradient = float(clamp_gradient)
+                           f"{pinv.shape} and {self.current_limit.tolist()}")
+        self.allocation = CoilAllocation(pinv, clamp_gradient)
+        self.pinv, self.clamp_gradient = self.allocation.pinv, self.allocation.clamp_gradient
         self.names = list(names) if names is not None else [f"coil{i}" for i in range(self.current_limit.size)]
-        self._i_clamp = self.clamp_gradient * self.pinv[:, 3]
+        self._i_clamp = self.allocation.clamp_currents
         self._per_tesla_xy = self.pinv[:, :2]
-        self._per_tesla_osc = np.abs(self.pinv[:, 2])
+        self._per_tesla_osc = self.allocation.per_tesla_osc
         # the headroom checks run every 30 Hz tick on the rig: their constant parts are computed once
         self._static_room = self.current_limit - np.abs(self._i_clamp)
         self._osc_carry = self._per_tesla_osc > 1e-9 * self._per_tesla_osc.max()
@@ -180,11 +182,9 @@ class CoilMap:
     @classmethod
     def from_coils(cls, coils=None) -> CoilMap:
         """The map of a :class:`~magctl.plant.coils.CoilSet` (``load_coils()`` when omitted)."""
-        from magctl.plant.coils import load_coils
-
         coils = load_coils() if coils is None else coils
-        return cls(np.linalg.pinv(coils.actuation_matrix()), coils.current_limit, coils.clamp_gradient,
-                   [c.name for c in coils.coils])
+        alloc = coils.allocation()
+        return cls(alloc.pinv, coils.current_limit, alloc.clamp_gradient, [c.name for c in coils.coils])
 
     @property
     def current_max(self) -> float:
@@ -192,12 +192,12 @@ class CoilMap:
         return float(self.current_limit.min())
 
     def static_currents(self, b_static: np.ndarray) -> np.ndarray:
-        """Signed static currents ``(B, n)`` A for ``b_static`` ``(B, 2)`` T."""
-        return b_static @ self._per_tesla_xy.T + self._i_clamp
+        """Signed static currents ``(B, n)`` A for ``b_static`` ``(B, 2)`` T (the actuator's own allocation)."""
+        return self.allocation.static_currents(b_static)
 
     def osc_currents(self, b_osc: np.ndarray) -> np.ndarray:
         """Current amplitudes ``(B, n)`` A of the oscillation ``b_osc`` ``(B,)`` T."""
-        return np.abs(b_osc)[:, None] * self._per_tesla_osc
+        return self.allocation.osc_currents(b_osc)
 
     def currents(self, b_static: np.ndarray, b_osc: np.ndarray) -> np.ndarray:
         """Peak current magnitudes ``|i_s| + |i_o|`` ``(B, n)`` A each amplifier must deliver."""

@@ -202,3 +202,19 @@ def test_coil_file_missing_source_fails(tmp_path, monkeypatch):
         "turns_count = { value = 400 }", 1))
     with pytest.raises(ParameterError, match=r"coils\.toml.*turns_count.*source"):
         load_coils()
+
+
+def test_the_rig_checks_commands_with_the_actuators_own_allocation():
+    """CoilMap (the rig's limit check) and CoilActuator share one CoilAllocation: same currents, same numbers."""
+    from magctl.rig.interface import CoilMap
+
+    act, cmap = CoilActuator("coils"), CoilMap.from_coils()
+    rng = np.random.default_rng(3)
+    b = 1e-3 * rng.standard_normal((50, 2))
+    bo = 1e-3 * rng.random(50)
+    np.testing.assert_array_equal(cmap.static_currents(b), act.allocation.static_currents(b))
+    np.testing.assert_array_equal(cmap.osc_currents(bo), act.allocation.osc_currents(bo))
+    # and it is i = A⁺ [b_x, b_y, 0, G]: solve the allocation's defining least-norm problem independently
+    full = np.column_stack([b, np.zeros(50), np.full(50, act.coils.clamp_gradient)])
+    ref = np.linalg.lstsq(act.A, full.T, rcond=None)[0].T
+    np.testing.assert_allclose(cmap.static_currents(b), ref, rtol=1e-9, atol=1e-12)
