@@ -171,8 +171,6 @@ RULES: dict[str, dict[str, tuple]] = {
         "physics.release_scatter_ratio": ("number", 0.0, 1.0, False),
         "standin.*_um": ("number", _POS, 1e6, False),
         "standin.*_mm": ("number", _POS, 1e4, False),
-        "tasks.servo_setting": ("str", None, None, False),
-        "tasks.*_um": ("number", _POS, 1e6, False),
     },
 }
 

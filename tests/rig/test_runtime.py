@@ -22,7 +22,7 @@ from magctl.rig.sim import SimRig
 from magctl.rig.tasks import TaskError
 
 PARAMS = load_model("rig")
-SERVO = servo_params(PARAMS.tasks.servo_setting)
+SERVO = servo_params()  # the one servo default every controller uses
 PERIOD = 1.0 / PARAMS.runtime.rate
 EPS_P = 75e-6  # paper §VI-A
 SCENE = Scene.default(1)  # robot 1 mm behind the sphere, inside the camera field
