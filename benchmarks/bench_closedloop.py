@@ -32,7 +32,7 @@ def _speed(exp: Experiment, frames: int, batch: int, repeats: int) -> tuple[floa
     best = float("inf")
     for _ in range(repeats):
         t0 = time.perf_counter()
-        simulate(diagram, frames, batch=batch, seed=0, record=["task.status"])
+        simulate(diagram, frames, batch=batch, seed=0, record=["controller/task.status"])
         best = min(best, time.perf_counter() - t0)
     return best, batch * frames * FRAME_PERIOD_S / best
 
@@ -62,7 +62,7 @@ def _per_block(exp: Experiment, frames: int, batch: int) -> dict[str, float]:
 
             setattr(block, meth, timed)
     t0 = time.perf_counter()
-    simulate(diagram, frames, batch=batch, seed=0, record=["task.status"])
+    simulate(diagram, frames, batch=batch, seed=0, record=["controller/task.status"])
     total = time.perf_counter() - t0
     for leaf in diagram.schedule.leaves:   # drop the instance overrides again
         for meth in ("output", "update", "step"):
