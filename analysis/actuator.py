@@ -119,7 +119,7 @@ def heading_closed_form(t, tau):
 
 def draw(computed: Computed, ctx: StudyContext) -> list:
     """Speed versus frequency, and the heading step against its closed form."""
-    from magctl.studies.figures import pyplot
+    from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
     d = computed.data
@@ -148,10 +148,7 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
     ax.set_ylabel("heading (deg)")
     ax.set_title("Heading after a 90° turn of the field")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig_path = ctx.figure_path("actuator")
-    fig.savefig(fig_path, dpi=110)
-    plt.close(fig)
+    fig_path = save_figure(fig, ctx.figure_path("actuator"), dpi=110)
     return [fig_path]
 
 

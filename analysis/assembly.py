@@ -54,7 +54,7 @@ def compute(ctx: StudyContext) -> Computed:
 
 def draw(computed: Computed, ctx: StudyContext) -> list:
     """Histogram of the final gaps (cf. Figs 3, 15) and a GIF of each method."""
-    from magctl.studies.figures import animate_trial, pyplot
+    from magctl.studies.figures import animate_trial, pyplot, save_figure
 
     plt = pyplot()
     d = computed.data
@@ -67,10 +67,7 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
     ax.set_title(f"Two-sphere assembly, {computed.results['trials']} trials each (cf. Figs 3, 15)", fontsize=10)
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    hist = ctx.figure_path("assembly_gaps")
-    fig.savefig(hist, dpi=120)
-    plt.close(fig)
+    hist = save_figure(fig, ctx.figure_path("assembly_gaps"), dpi=120)
     goal = geometry("assembly")["goal"]
     return [hist, animate_trial(d["front_trial"], ctx.figure_path("assembly_front", ".gif"), goal),
             animate_trial(d["side_trial"], ctx.figure_path("assembly_side", ".gif"), goal)]

@@ -55,7 +55,7 @@ def compute(ctx: StudyContext) -> Computed:
 
 def draw(computed: Computed, ctx: StudyContext) -> list:
     """Fig 14: mean and median error versus attempt, front and side side by side."""
-    from magctl.studies.figures import pyplot
+    from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
     r, d = computed.results, computed.data
@@ -74,10 +74,7 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(f"Positioning error over {r['trials']} trials (cf. Fig 14)", fontsize=10)
-    fig.tight_layout()
-    path = ctx.figure_path("convergence")
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    path = save_figure(fig, ctx.figure_path("convergence"), dpi=120)
     return [path]
 
 

@@ -52,7 +52,7 @@ def compute(ctx: StudyContext) -> Computed:
 
 def draw(computed: Computed, ctx: StudyContext) -> list:
     """Sphere displacement along the retreat for each case, and the Monte Carlo histogram."""
-    from magctl.studies.figures import pyplot
+    from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
     d = computed.data
@@ -71,10 +71,7 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
     bx.set_xlabel("D_p,r (µm)")
     bx.set_ylabel("trials")
     bx.set_title(f"{n} seeded trials: mobility scatter 20 %, 10 % sticky", fontsize=9)
-    fig.tight_layout()
-    path = ctx.figure_path("release")
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    path = save_figure(fig, ctx.figure_path("release"), dpi=120)
     return [path]
 
 

@@ -117,7 +117,7 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
 
 
 def _step_figure(ctx, curves):
-    from magctl.studies.figures import pyplot
+    from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -139,14 +139,12 @@ def _step_figure(ctx, curves):
     ax.legend(fontsize=7, loc="lower right")
     ax.set_title("1 mm servo step: paper-like vs tuned (the default)")
     path = ctx.figure_path("servo_step")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
     return path
 
 
 def _pole_figure(ctx, reports):
-    from magctl.studies.figures import pyplot
+    from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
@@ -161,7 +159,5 @@ def _pole_figure(ctx, reports):
     ax.legend(fontsize=8, loc="lower left")
     ax.set_title("closed-loop poles (30 Hz)")
     path = ctx.figure_path("servo_poles")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
     return path

@@ -77,7 +77,7 @@ def flow_map(speed: float) -> dict:
 
 def draw(computed: Computed, ctx: StudyContext) -> list:
     """Fig 6 (D_s vs D_g with eq 22/23 and the calibrated curves) and the flow map."""
-    from magctl.studies.figures import pyplot
+    from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
     d = computed.data
@@ -101,16 +101,13 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
     ax.set_title("Fig 6: side-push (vertical lines: contact threshold, magctl solid, paper dashed)", fontsize=9)
     ax.legend(fontsize=7)
     ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    path = ctx.figure_path("sidepush_curve")
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    path = save_figure(fig, ctx.figure_path("sidepush_curve"), dpi=120)
     return [path, _flow_figure(d["flow"], ctx)]
 
 
 def _flow_figure(flow: dict, ctx: StudyContext):
     """Top view of the robot's flow at the sphere-centre height (cf. the paper's Fig 5a)."""
-    from magctl.studies.figures import pyplot
+    from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
     xx, yy, u, speed = flow["x"], flow["y"], flow["u"], flow["speed"]
@@ -126,10 +123,7 @@ def _flow_figure(flow: dict, ctx: StudyContext):
     ax.set_ylabel("y (µm)")
     ax.set_title(f"Flow at the sphere-centre height z = {flow['height'] * UM:.0f} µm\n"
                  "(red: footprint; white: solid at this height)", fontsize=9)
-    fig.tight_layout()
-    path = ctx.figure_path("flow_map")
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    path = save_figure(fig, ctx.figure_path("flow_map"), dpi=120)
     return path
 
 

@@ -20,6 +20,14 @@ def pyplot():
     return plt
 
 
+def save_figure(fig, path: Path, dpi: int = 120) -> Path:
+    """Lay ``fig`` out, write it to ``path`` and release it; returns ``path``."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
+    return path
+
+
 def plot_convergence(summaries: dict[str, dict], path: Path, title: str, max_attempts: int) -> Path:
     """Fig 10/12 style: fraction of converged trials versus pushing attempts."""
     plt = pyplot()
@@ -36,10 +44,7 @@ def plot_convergence(summaries: dict[str, dict], path: Path, title: str, max_att
     ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_errors(results: dict[str, dict], path: Path, title: str, eps_um: float, log: bool = False) -> Path:
@@ -62,10 +67,7 @@ def plot_errors(results: dict[str, dict], path: Path, title: str, eps_um: float,
     ax.set_title(title + "\n(line: median; band: 25–75 %; dotted: trial 0)", fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def animate_trial(trial: dict, path: Path, goal) -> Path:

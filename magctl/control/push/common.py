@@ -346,6 +346,13 @@ class PushTask:
         far = norm(spheres[:, idx[0]] - new["goal"]) > self.workspace if "goal" in new else False
         return finite & ~far
 
+    def _start(self, new, ok, done, r, spheres):
+        """Trials still at ``START``: converged if eq 12 (eq 21) already holds, else the first attempt begins."""
+        start = ok & (new["phase"] == START)
+        if start.any():
+            new["status"] = np.where(start & done, Status.CONVERGED, new["status"])
+            self._begin(new, start & ~done, r, spheres)
+
     def _enter(self, new, mask, phase):
         new["phase"] = np.where(mask, phase, new["phase"])
         new["frames"] = np.where(mask, 0, new["frames"])

@@ -20,7 +20,6 @@ import numpy as np
 from magctl import FRAME_PERIOD_S
 from magctl.control.learning import LearningLaw, front_push_law
 from magctl.control.push.common import FINISHED, PushTask, around, arrived, sphere_radii, with_defaults
-from magctl.control.status import Status
 from magctl.core.batched import norm, unit
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
@@ -136,11 +135,7 @@ class FrontPushTask(PushTask, Block):
     def _step(self, state, new, r, spheres, ok):
         ph = new["phase"]
         s, _, _, done = self._geometry(new, r, spheres)
-        # start: already there?
-        start = ok & (ph == 0)
-        if start.any():
-            new["status"] = np.where(start & done, Status.CONVERGED, new["status"])
-            self._begin(new, start & ~done, r, spheres)
+        self._start(new, ok, done, r, spheres)
         # approach → push
         app = ok & (ph == APPROACH) & arrived(r, new["p_ri"], self.arrive_tol)
         self._enter(new, app, PUSH)

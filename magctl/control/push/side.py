@@ -22,7 +22,6 @@ import numpy as np
 from magctl import FRAME_PERIOD_S
 from magctl.control.learning import LearningLaw, side_push_law
 from magctl.control.push.common import FINISHED, PushTask, around, arrived, side_model, with_defaults
-from magctl.control.status import Status
 from magctl.core.batched import cross, norm, perp, unit
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
@@ -145,10 +144,7 @@ class SidePushTask(PushTask, Block):
     def _step(self, state, new, r, spheres, ok):
         ph = new["phase"]
         s, *_, done = self._geometry(new, r, spheres)
-        start = ok & (ph == 0)
-        if start.any():
-            new["status"] = np.where(start & done, Status.CONVERGED, new["status"])
-            self._begin(new, start & ~done, r, spheres)
+        self._start(new, ok, done, r, spheres)
         rep = ok & (ph == REPOSITION) & arrived(r, new["start"], self.arrive_tol)
         self._enter(new, rep, PASS)
         passed = ok & (ph == PASS) & arrived(r, new["end"], self.arrive_tol)
