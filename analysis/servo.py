@@ -3,8 +3,9 @@
 The paper's servo overshot the goal by about 100 µm (constant robot speed and
 image-processing lag). The study shows the step response of both settings in
 the linear model (python-control), around the kinematic stand-in robot, and
-around the drive → coils → robot chain with Monte Carlo camera noise, with the
-loop's poles and margins.
+around the physical plant (the rig's ``goto`` controller from :func:`magctl.loops.controller`
+around :func:`magctl.loops.plant`: drive → coils → robot → camera → tracker) with Monte Carlo
+camera noise, with the loop's poles and margins.
 """
 
 from __future__ import annotations
@@ -12,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 
 from magctl.control.servo import Servo, servo_params
-from magctl.core import Constant, Diagram, simulate
-from magctl.sensing.camera import Camera, camera_params
-from magctl.sensing.tracker import Tracker
+from magctl.core import Diagram, simulate
+from magctl.loops import Scene, Variability, closed_loop, controller, plant
+from magctl.sensing.camera import camera_params
 from magctl.stability.servo import analyse, simulated_overshoot, step_report
 from magctl.studies.runner import Computed, PaperRow, StudyContext
 
@@ -27,23 +28,14 @@ STEP = 1.0e-3  # a 1 mm repositioning move
 STEPS = 240
 START = np.array([1.0e-3, 1.8e-3])
 PAPER_OVERSHOOT_UM = 100.0  # paper §VI-A
+ROBOT = "plant/robot.position"
 
 
-def drive_chain_loop(servo: Servo, latency: int, noise_px: float) -> Diagram:
-    """Servo + raw tracker + camera (positions) around the drive → coils → robot chain, no spheres."""
-    from magctl.plant.drive import actuated_robot
-
-    plant = actuated_robot("plant", position=START, heading=0.0, variability=True)
-    cam = Camera("camera", n_spheres=0, latency_frames=latency, position_noise_px=noise_px,
-                 primed=(START, 0.0, np.zeros((0, 2))))
-    blocks = [plant, cam, Tracker("tracker", n_spheres=0, mode="raw"), servo,
-              Constant("spheres", np.zeros((0, 2)), shape=(0, 2), unit="m")]
-    conns = [("plant.position", "camera.position"), ("plant.heading", "camera.heading"),
-             ("spheres.y", "camera.spheres"), ("camera.robot_meas", "tracker.robot_meas"),
-             ("camera.heading_meas", "tracker.heading_meas"), ("camera.spheres_meas", "tracker.spheres_meas"),
-             ("camera.valid", "tracker.valid"), ("tracker.robot_est", "servo.robot_est"),
-             ("servo.speed", "plant.speed"), ("servo.heading", "plant.heading")]
-    return Diagram("loop", blocks, conns, inputs={"target": "servo.target"}, outputs={"position": "plant.position"})
+def drive_chain_loop(setting: str, target) -> Diagram:
+    """The rig's ``goto`` controller (servo ``setting`` → drive) around the physical plant without spheres
+    (coils → robot → camera → tracker): the closed loop of :mod:`magctl.loops`, as a rig would run it."""
+    return closed_loop(controller("goto", n_spheres=0, target=target, servo=setting),
+                       plant(Scene(robot=START), Variability(release_scatter=0.0)))
 
 
 def compute(ctx: StudyContext) -> Computed:
@@ -57,12 +49,11 @@ def compute(ctx: StudyContext) -> Computed:
         servo = Servo("servo", params=servo_params(setting))
         rep = analyse(servo.kp, servo.ki, latency)
         kin = step_report(servo, delay_frames=latency, step=STEP, steps=STEPS, start=START)
-        mc = simulate(drive_chain_loop(servo, latency, noise_px), STEPS, batch=trials, seed=ctx.seed,
-                      inputs={"target": target})
-        over = simulated_overshoot(mc["position"], START, target) * 1e6
-        final = np.linalg.norm(mc["position"][:, -1] - target, axis=1) * 1e6
+        mc = simulate(drive_chain_loop(setting, target), STEPS, batch=trials, seed=ctx.seed, record=[ROBOT])
+        over = simulated_overshoot(mc[ROBOT], START, target) * 1e6
+        final = np.linalg.norm(mc[ROBOT][:, -1] - target, axis=1) * 1e6
         reports[setting] = rep
-        curves[setting] = (kin, (mc["position"][:, :, 0] - START[0]) * 1e6)
+        curves[setting] = (kin, (mc[ROBOT][:, :, 0] - START[0]) * 1e6)
         settings[setting] = {
             **rep.to_dict(STEP * 1e6),
             "anti_windup": servo.anti_windup,
@@ -88,8 +79,8 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
     d, t = results["paper"], results["tuned"]
     summary = [
         f"Step of {r['step_um'] / 1e3:g} mm, camera lag {r['delay_frames']} frames, speed cap 400 µm/s, "
-        f"{r['trials']} Monte Carlo trials on the drive → coils → robot chain with {computed.data['noise_px']:g} px "
-        "camera noise.",
+        f"{r['trials']} Monte Carlo trials of the rig's goto controller around the physical plant with "
+        f"{computed.data['noise_px']:g} px camera noise.",
         "",
         "| setting | kp 1/s | ki 1/s² | anti-windup | max pole magnitude | GM | PM ° | linear OS % | kinematic OS µm "
         "| drive-chain OS µm |",
@@ -108,7 +99,8 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
                 "different, step-dependent number. Tuned: P-only with conditional-integration anti-windup."]
     paper = [
         PaperRow("servo overshoot (paper setting)", f"~{PAPER_OVERSHOOT_UM:.0f} µm (§VI-A)",
-                 f"{d['drive_chain_overshoot_mean_um']:.0f} µm", "drive → coils → robot chain, 1 mm step"),
+                 f"{d['drive_chain_overshoot_mean_um']:.0f} µm",
+                 "goto controller around the physical plant, 1 mm step"),
         PaperRow("servo overshoot (tuned)", "—", f"{t['drive_chain_overshoot_mean_um']:.1f} µm",
                  "P-only, anti-windup"),
         PaperRow("robot speed", "0.4 mm/s (§IV-C)", "400 µm/s cap", "servo speed limit"),
