@@ -164,6 +164,8 @@ def _summarise(report, server_status, read_p99, write_p99, duration, scheduling)
             server_status["watchdog_trips"], "laps": stats["outputs"].get("lap") if stats.get("outputs") else None,
     }
     met = {
+        # the soak counts only if it ran its whole duration with the coils never cut by the watchdog
+        "completed": measured["exit_status"] == "stopped" and measured["server_watchdog_trips"] == 0,
         "overruns": measured["overruns"] <= TARGETS["overruns"],
         "jitter_p99_ms": measured["jitter_p99_ms"] <= TARGETS["jitter_p99_ms"],
         "compute_p99_ms": measured["compute_p99_ms"] <= TARGETS["compute_p99_ms"],
