@@ -74,8 +74,7 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(f"Positioning error over {r['trials']} trials (cf. Fig 14)", fontsize=10)
-    path = save_figure(fig, ctx.figure_path("convergence"), dpi=120)
-    return [path]
+    return [save_figure(fig, ctx.figure_path("convergence"), dpi=120)]
 
 
 def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:

@@ -71,8 +71,7 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
     bx.set_xlabel("D_p,r (µm)")
     bx.set_ylabel("trials")
     bx.set_title(f"{n} seeded trials: mobility scatter 20 %, 10 % sticky", fontsize=9)
-    path = save_figure(fig, ctx.figure_path("release"), dpi=120)
-    return [path]
+    return [save_figure(fig, ctx.figure_path("release"), dpi=120)]
 
 
 def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:

@@ -123,8 +123,7 @@ def _flow_figure(flow: dict, ctx: StudyContext):
     ax.set_ylabel("y (µm)")
     ax.set_title(f"Flow at the sphere-centre height z = {flow['height'] * UM:.0f} µm\n"
                  "(red: footprint; white: solid at this height)", fontsize=9)
-    path = save_figure(fig, ctx.figure_path("flow_map"), dpi=120)
-    return path
+    return save_figure(fig, ctx.figure_path("flow_map"), dpi=120)
 
 
 def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:

@@ -140,8 +140,7 @@ def _draw_pole_paths(pp: dict, ctx: StudyContext):
     axes[1].set_title("side push with feed-forward path: K_s = 0..3")
     axes[1].set_xlim(-2.2, 1.3)
     axes[1].set_ylim(-1.4, 1.4)
-    path = save_figure(fig, ctx.figure_path("stability_pole_paths"), dpi=110)
-    return path
+    return save_figure(fig, ctx.figure_path("stability_pole_paths"), dpi=110)
 
 
 def _draw_regions(reg: dict, r_lo: float, r_hi: float, ctx: StudyContext):
@@ -160,8 +159,7 @@ def _draw_regions(reg: dict, r_lo: float, r_hi: float, ctx: StudyContext):
         ax.set_title(title, fontsize=10)
     axes[0].set_ylabel("gain K_s")
     axes[1].legend(fontsize=8)
-    path = save_figure(fig, ctx.figure_path("stability_regions"), dpi=110)
-    return path
+    return save_figure(fig, ctx.figure_path("stability_regions"), dpi=110)
 
 
 def _draw_front_convergence(curves: dict, ctx: StudyContext):
@@ -177,8 +175,7 @@ def _draw_front_convergence(curves: dict, ctx: StudyContext):
     ax.set_ylabel("fraction converged (eps_p = 75 um)")
     ax.set_title("front push, D_p,r ~ N(300, 75^2) um: Markov (lines), Monte Carlo (dots)", fontsize=9)
     ax.legend(fontsize=7)
-    path = save_figure(fig, ctx.figure_path("stability_front_convergence"), dpi=110)
-    return path
+    return save_figure(fig, ctx.figure_path("stability_front_convergence"), dpi=110)
 
 
 def _draw_side_maps(curves: dict, ctx: StudyContext):
@@ -193,8 +190,7 @@ def _draw_side_maps(curves: dict, ctx: StudyContext):
     ax.set_ylabel("|positioning error| (um)")
     ax.set_title("side push from 300 um, plant eq 22 (attempt map)", fontsize=9)
     ax.legend(fontsize=7)
-    path = save_figure(fig, ctx.figure_path("stability_side_maps"), dpi=110)
-    return path
+    return save_figure(fig, ctx.figure_path("stability_side_maps"), dpi=110)
 
 
 def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:

@@ -301,8 +301,7 @@ def _physics_plant(scene: Scene, var: Variability) -> Diagram:
         Tracker(n_spheres=n, init_robot=scene.robot, init_heading=scene.heading, init_spheres=scene.spheres),
     ]
     wires = [
-        ("coils.b_static_delivered", "robot.b_static_delivered"), ("coils.b_osc_delivered", "robot.b_osc_delivered"),
-        ("coils.freq_delivered", "robot.freq_delivered"),
+        *_delivered_field_to("robot"),
         ("robot.position", "camera.position"), ("robot.heading", "camera.heading"),
         ("camera.robot_meas", "tracker.robot_meas"), ("camera.heading_meas", "tracker.heading_meas"),
         ("camera.spheres_meas", "tracker.spheres_meas"), ("camera.valid", "blackout.valid"),
@@ -335,13 +334,17 @@ def _standin_plant(scene: Scene, var: Variability) -> Diagram:
                        scene.spheres),
     ]
     wires = [
-        ("coils.b_static_delivered", "gait.b_static_delivered"), ("coils.b_osc_delivered", "gait.b_osc_delivered"),
-        ("coils.freq_delivered", "gait.freq_delivered"),
+        *_delivered_field_to("gait"),
         ("gait.speed", "robot.speed"), ("gait.heading", "robot.heading"), ("gait.steer", "robot.steer"),
         ("robot.position", "spheres.position"), ("robot.position", "tracker.position"),
         ("robot.heading", "tracker.heading"), ("spheres.spheres", "tracker.spheres"),
     ]
     return _plant_diagram(blocks, wires)
+
+
+def _delivered_field_to(block: str) -> list[tuple[str, str]]:
+    """The coils' delivered field into ``block``'s inputs of the same names."""
+    return [(f"coils.{p}", f"{block}.{p}") for p in ("b_static_delivered", "b_osc_delivered", "freq_delivered")]
 
 
 def _plant_diagram(blocks, wires) -> Diagram:

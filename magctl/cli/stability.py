@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from magctl.cli.common import add_json, emit
 from magctl.cli.stability_servo import register_servo
-from magctl.stability.iteration import MIN_GAP, SIDE_GOAL, UM, front_report, side_report
+from magctl.core.units import UM
+from magctl.stability.iteration import MIN_GAP, SIDE_GOAL, front_report, side_report
 
 
 def register(sub) -> None:

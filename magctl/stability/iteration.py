@@ -26,33 +26,37 @@ import control
 import numpy as np
 from scipy.special import ndtr
 
+from magctl.config import load_model
 from magctl.control.learning import ATTEMPT, LearningLaw, front_push_law, side_push_law
 from magctl.control.push.common import (
-    UM,
     ExpSideModel,
     LinSideModel,
     TabulatedSideModel,
-    check_positive,
+    goal_distance,
     side_model,
+    task_defaults,
 )
-from magctl.core.checks import check_finite
+from magctl.core.checks import check_finite, check_positive
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.linear import Gain, Integrator, Sum
+from magctl.core.units import UM
 
 POLE_TOL = 1e-9
 
-# front-push facts (§VI-A, §IV-D)
-FRONT_EPS = 75 * UM
-FRONT_MAX_ATTEMPTS = 10
-RELEASE_MEAN = 300 * UM  # D_p,r measured, 300 ± 75 µm over five trials (§IV-D)
-RELEASE_STD = 75 * UM
-RELEASE_MODEL = 127 * UM  # simulated D_p,r (§IV-D), the model-based δ(0)
-# side-push facts (§IV-D, §VI-B)
-SIDE_EPS = 7.5 * UM
-SIDE_MAX_ATTEMPTS = 30
-SIDE_GOAL = 300 * UM
-MIN_GAP = 370 * UM  # contact threshold of Fig 6 (§IV-D)
+# The push tasks' own parameters (models/push.toml, sources there): the analysis studies the loop the
+# tasks run.
+_PUSH = load_model("push")
+_FRONT, _SIDE = task_defaults("front"), task_defaults("side")
+FRONT_EPS = _FRONT["eps"]  # ε_p of eq 12 (§VI-A)
+FRONT_MAX_ATTEMPTS = _FRONT["max_attempts"]
+RELEASE_MEAN = _PUSH.release.mean  # D_p,r measured, 300 ± 75 µm over five trials (§IV-D)
+RELEASE_STD = _PUSH.release.std
+RELEASE_MODEL = _PUSH.release.model  # simulated D_p,r (§IV-D), the model-based δ(0)
+SIDE_EPS = _SIDE["eps"]  # one pixel (§VI-B)
+SIDE_MAX_ATTEMPTS = _SIDE["max_attempts"]
+SIDE_GOAL = goal_distance("side")
+MIN_GAP = _SIDE["min_gap"]  # contact threshold of Fig 6 (§IV-D)
 
 
 # --- classification ------------------------------------------------------------------------------
