@@ -193,6 +193,9 @@ class Variability:
     calibrated : bool
         Use the sphere–glass gap ε fitted to the measured D_p,r = 300 µm
         (``models/sphere.toml`` [calibration]) instead of the measured 25 nm roughness.
+    sphere_gap : float, optional
+        An explicit sphere–glass gap ε [m] (overrides ``calibrated``); the in-task
+        calibration (:mod:`magctl.studies.release_calibration`) scans it.
     """
 
     camera_noise: bool = True
@@ -200,6 +203,7 @@ class Variability:
     release_scatter: float = 0.1
     sticky_probability: float = 0.0
     calibrated: bool = False
+    sphere_gap: float | None = None
 
     @classmethod
     def of_rig(cls, params: Params | None = None) -> Variability:
@@ -212,7 +216,9 @@ class Variability:
         on = [name for name, v in (("camera noise", self.camera_noise), ("robot step variability", self.robot_steps),
                                    (f"release scatter ±{self.release_scatter:.0%}", self.release_scatter > 0),
                                    (f"sticky patches p={self.sticky_probability:g}", self.sticky_probability > 0),
-                                   ("D_p,r-calibrated sphere-glass gap", self.calibrated))
+                                   ("D_p,r-calibrated sphere-glass gap", self.calibrated and self.sphere_gap is None),
+                                   (f"sphere-glass gap {(self.sphere_gap or 0) * 1e6:.3g} µm",
+                                    self.sphere_gap is not None))
               if v]
         return ", ".join(on) if on else "none (deterministic)"
 
@@ -310,7 +316,9 @@ def _physics_plant(scene: Scene, var: Variability) -> Diagram:
     if n:
         sp = dataclasses.replace(sphere_params(), release_scatter=var.release_scatter,
                                  sticky_probability=var.sticky_probability)
-        roughness = float(load_model("sphere").calibration.release_roughness) if var.calibrated else None
+        roughness = var.sphere_gap
+        if roughness is None and var.calibrated:
+            roughness = float(load_model("sphere").calibration.release_roughness)
         blocks.append(Spheres(scene.spheres, params=sp, roughness=roughness))
         wires += [("robot.position", "spheres.position"), ("robot.heading", "spheres.heading"),
                   ("robot.velocity", "spheres.velocity"), ("spheres.spheres", "camera.spheres")]

@@ -138,12 +138,18 @@ def test_actuator_speeds(computed):
 
 # --- release (§IV-D) -------------------------------------------------------------------------
 def test_release_calibration_reaches_the_measured_displacement(computed):
+    """Calibrated in the task, the task's mean release is the paper's measured 300 µm (§IV-D), the stored
+    ε in models/sphere.toml is the one the calibration returns, and a larger ε means a larger release."""
     r = computed["release"].results
-    assert r["calibrated"]["release"]["release_displacement_um"] == pytest.approx(300.0, rel=0.03)  # measured
-    assert r["release_displacement_um"] < r["calibrated"]["release"]["release_displacement_um"]
+    it = r["in_task"]
+    assert it["calibrated_mean_um"] == pytest.approx(300.0, rel=0.01)
+    assert it["stored_roughness_um"] == pytest.approx(it["roughness_um"], rel=0.01)
+    assert it["uncalibrated_mean_um"] < it["calibrated_mean_um"]
+    assert np.all(np.diff(it["grid_release_um"]) > 0)
+    assert r["paper_setup"]["uncalibrated_um"] < r["paper_setup"]["calibrated_um"]
     mc = r["monte_carlo"]
     assert mc["trials"] == 16 and mc["std_um"] > 0
-    assert 100 < mc["mean_um"] < 500
+    assert 150 < mc["mean_um"] < 450
 
 
 # --- side-push curve (Fig 6) ---------------------------------------------------------------------
