@@ -33,12 +33,14 @@ def _common(p) -> None:
     p.add_argument("--workers", type=int, default=None, help="local worker processes")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--no-figures", action="store_true", help="compute and summarise only; draw no figures")
+    p.add_argument("--fem", action="store_true",
+                   help="also run the finite-element models (fig6-domain's COMSOL box; minutes; needs magctl[fem])")
 
 
 def _context(args, name: str, cache: studies.TrialCache | None = None) -> studies.StudyContext:
     return studies.StudyContext(
         out=args.out / name, trials=args.trials, seed=args.seed, scheduler=args.scheduler,
-        workers=args.workers, quiet=args.quiet, trial_cache=cache if cache is not None else studies.TrialCache(),
+        workers=args.workers, quiet=args.quiet, fem=args.fem, trial_cache=cache if cache is not None else studies.TrialCache(),
     )
 
 

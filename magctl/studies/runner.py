@@ -148,6 +148,8 @@ class StudyContext:
         Local worker processes (default: CPU count).
     quiet : bool
         No progress output.
+    fem : bool
+        Also run the finite-element models (minutes; ``magctl study … --fem``, needs the ``fem`` extra).
     trial_cache : TrialCache
         Trials shared between the studies of one run; ``magctl reproduce`` hands every
         study the same one.
@@ -163,6 +165,7 @@ class StudyContext:
     scheduler: str | None = None
     workers: int | None = None
     quiet: bool = False
+    fem: bool = False
     trial_cache: TrialCache = field(default_factory=TrialCache)
     study: str = ""
     reuses: tuple[str, ...] = ()

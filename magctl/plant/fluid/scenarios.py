@@ -55,6 +55,8 @@ class SidePushResult:
         D_s [m], the sphere's net displacement.
     along : ndarray (G,)
         Component of D_s along the robot's motion [m].
+    across : ndarray (G,)
+        Component of D_s away from the robot's line [m] (negative: pulled towards it).
     contact : ndarray (G,) bool
         Whether the robot touched the sphere.
     """
@@ -62,6 +64,7 @@ class SidePushResult:
     gaps: np.ndarray
     displacement: np.ndarray
     along: np.ndarray
+    across: np.ndarray
     contact: np.ndarray
 
 
@@ -88,7 +91,7 @@ def sidepush_curve(gaps, speed: float = ROBOT_SPEED, travel: float = APPROACH, *
     vel[:, :, 0] = speed
     path, contact = _run(block, b, pos, 0.0, vel)
     d = path[-1, :, 0] - path[0, :, 0]
-    return SidePushResult(gaps, np.linalg.norm(d, axis=-1), d[:, 0], contact)
+    return SidePushResult(gaps, np.linalg.norm(d, axis=-1), d[:, 0], d[:, 1], contact)
 
 
 def sidepush_fit(gaps, displacement):
