@@ -103,3 +103,29 @@ def test_kernel_uses_the_adhesion_and_substeps_of_the_parameters():
             assert (compiled["gap"] > 0).sum() < 0.5 * (default["gap"] > 0).sum()
         else:
             assert np.abs(compiled["xy"] - default["xy"]).max() > 1e-9
+
+
+def test_accurate_mode_vertical_law_same_in_kernel_and_arrays():
+    """The accurate mode's gap balance divides eq 9's rate by Brenner's λ((δ + ε)/R): the kernel (spheres
+    on the glass) and the array form give the same numbers, and the gap rate on the glass is eq 9's
+    divided by λ(ε/R) = 1/δ* − ln(δ*)/5 + 0.971 (Cox & Brenner 1967) — about 4200 at ε = 25 nm."""
+    paper = Spheres(np.zeros((2, 2)))
+    accurate = Spheres(np.zeros((2, 2)), drag_mode="accurate")
+    state, u = _random_frame(accurate, 300, seed=13)
+    state["gap"][:] = 0.0
+    reference = accurate._update_arrays({k: v.copy() for k, v in state.items()}, u)
+    compiled, covered = accurate.compiled_frame({k: v.copy() for k, v in state.items()}, u)
+    assert covered.mean() > 0.5 and (~covered).any()      # some trials lift a sphere and go back
+    np.testing.assert_allclose(compiled["xy"][covered], reference["xy"][covered], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(compiled["gap"][covered], reference["gap"][covered], rtol=0, atol=1e-18)
+    full = accurate.update({k: v.copy() for k, v in state.items()}, u)
+    np.testing.assert_allclose(full["gap"], reference["gap"], rtol=0, atol=1e-18)
+    # the rate itself: eq 9 over λ on the glass, eq 9 as printed in the paper mode
+    uz = np.array([[1e-3, -1e-3]])
+    gap = np.zeros((1, 2))
+    d = accurate.roughness / accurate.radius
+    lam = 1 / d - 0.2 * np.log(d) + 0.971264
+    np.testing.assert_allclose(accurate._gap_rate(uz, gap), paper._gap_rate(uz, gap) / lam, rtol=1e-6)
+    # at h/a = cosh 1 the sphere feels Brenner's (1961) Table 1 value λ = 3.0360641
+    gap = np.full((1, 2), 0.5430806348152437 * accurate.radius - accurate.roughness)
+    np.testing.assert_allclose(accurate._gap_rate(uz, gap), paper._gap_rate(uz, gap) / 3.0360641, rtol=1e-6)
