@@ -279,7 +279,9 @@ def tabulate_resistance(gap_ratios, n_points: int = 900, source_radius: float = 
     """Resistance functions of a sphere near a wall from the Blake-Stokeslet solver.
 
     Returns an array ``(len(gap_ratios), 7)``: surface residual, f_t, f_r, t_t, t_r, f_s, t_s.
-    This produced ``models/wall_resistance.toml``.
+    A check of the Blake-Stokeslet solver (:mod:`magctl.plant.fluid.stokes`) against the published
+    sphere tables (``tests/plant/fluid/test_fluid_stokes.py``); the drag table itself comes from the
+    exact solutions (:func:`tabulate_exact`).
     """
     from magctl.plant.fluid.stokes import fibonacci_sphere, solve_rigid_body
 
