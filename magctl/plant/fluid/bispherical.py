@@ -235,6 +235,63 @@ def normal_translation(gap_ratio, rtol: float = 1e-10):
     return _each(_brenner, gap_ratio, rtol)[0]
 
 
+def _stagnation_force(alpha: float, n_terms: int) -> float:
+    """Stimson–Jeffery force sum of the disturbance of the flow ``ψ∞ = A ρ² z²/2`` (A = a = 1)."""
+    n = np.arange(1, n_terms + 1, dtype=float)
+    c = np.sinh(alpha)
+    p, q = n - 0.5, n + 1.5
+    e1, e2 = np.exp(-p * alpha), np.exp(-q * alpha)
+    # g_n = e^{−pξ}/(2n−1) − e^{−qξ}/(2n+3) and its ξ-derivatives at ξ = α
+    g1 = -0.5 * e1 + 0.5 * e2
+    g2 = 0.5 * p * e1 - 0.5 * q * e2
+    g3 = -0.5 * p**2 * e1 + 0.5 * q**2 * e2
+    cth, csch2 = 1.0 / np.tanh(alpha), 1.0 / np.sinh(alpha) ** 2
+    pref = 2 * SQRT2 / 3 * c**4 * n * (n + 1)
+    phi = -pref * (g2 - cth * g1)                       # the disturbance equals −ψ∞ on the sphere …
+    dphi = -pref * (g3 + csch2 * g1 - cth * g2)         # … and so does its ξ-derivative
+    # U_n = a ch(pξ) + b sh(pξ) + c ch(qξ) + d sh(qξ); the plane gives c = −a, d = −p b / q
+    # rows of the sphere conditions scaled by s = e^{−qα} against overflow at large n
+    x1, x2 = np.exp(-2 * p * alpha), np.exp(-2 * q * alpha)
+    s = np.exp(-q * alpha)
+    ch1, sh1 = 0.5 * np.exp((p - q) * alpha) * (1 + x1), 0.5 * np.exp((p - q) * alpha) * (1 - x1)
+    ch2, sh2 = 0.5 * (1 + x2), 0.5 * (1 - x2)
+    m11, m12 = ch1 - ch2, sh1 - p / q * sh2
+    m21, m22 = p * sh1 - q * sh2, p * (ch1 - ch2)
+    det = m11 * m22 - m12 * m21
+    b_n = (m11 * dphi * s - m21 * phi * s) / det          # (a_n drops out: a_n + c_n = 0)
+    return 2 * np.pi * SQRT2 / c * float(np.sum(b_n * (1 - p / q)))   # a + b + c + d = b (1 − p/q)
+
+
+def _stagnation(gap_ratio: float, rtol: float) -> tuple[float]:
+    alpha = _alpha(gap_ratio)
+    n_terms = int(np.ceil(16.0 / alpha)) + 16
+    prev = _stagnation_force(alpha, n_terms)
+    while True:
+        n_terms *= 2
+        if n_terms > MAX_TERMS:
+            raise RuntimeError(f"stagnation-flow series at delta/a = {gap_ratio} did not converge")
+        cur = _stagnation_force(alpha, n_terms)
+        if abs(cur - prev) <= rtol * abs(cur):
+            # upward force over 6πμa A h² (the ambient vertical velocity at the centre)
+            return (-cur / (6 * np.pi * np.cosh(alpha) ** 2),)
+        prev = cur
+
+
+def stagnation_flow(gap_ratio, rtol: float = 1e-10):
+    """``g``: normal force ``F_z = 6πμa g u_z(h)`` on a sphere held fixed in the axisymmetric wall flow
+    ``u_z = A z², u_ρ = −A ρ z`` (any smooth flow near a no-slip wall, to leading order in z),
+    normalised by that flow's velocity at the centre ``u_z(h) = A h²`` (Goren & O'Neill 1971).
+
+    Stimson & Jeffery's stream function ``ψ = (cosh ξ − μ)^{-3/2} Σ U_n(ξ) C_{n+1}^{-1/2}(μ)`` as in
+    Brenner (1961), with the disturbance equal to ``−ψ∞`` on the sphere; ``ψ∞ = A ρ² z²/2`` expands
+    through Brenner's eq 1.11 and ``sinh²ξ (cosh ξ − μ)^{-5/2} = (4/3)(∂²_ξ − coth ξ ∂_ξ)(cosh ξ − μ)^{-1/2}``,
+    so each n is a 4×4 system; the force is Stimson & Jeffery's ``(2√2πμ/c) Σ (a_n + b_n + c_n + d_n)``.
+    ``g → 1`` far from the wall (Faxén: ``1 + a²/3h²`` times the wall's λ), ``g → 3.2293`` at contact
+    (Goren & O'Neill: 3.23).
+    """
+    return _each(_stagnation, gap_ratio, rtol)[0]
+
+
 def resistance(gap_ratio, rtol: float = 1e-10):
     """All seven functions ``(f_t, f_r, t_t, t_r, f_s, t_s, λ)`` at gap ratios δ/a."""
     f_t, t_t = parallel_translation(gap_ratio, rtol)

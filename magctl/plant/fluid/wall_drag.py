@@ -86,7 +86,7 @@ TABLE_RANGE = (1e-6, 100.0)
 """δ/a span of ``models/wall_resistance.toml``; below it the near-contact expansions, above it
 the method of reflections, each blended over a factor 2 (below) / 1.5 (above) in δ/a."""
 _POINTS_PER_DECADE = 16
-_NAMES = ("f_t", "f_r", "t_t", "t_r", "f_s", "t_s", "lambda_n")
+_NAMES = ("f_t", "f_r", "t_t", "t_r", "f_s", "t_s", "lambda_n", "g_stag")
 
 # Chaoui & Feuillebois (2003), Tables 11 and 13: near-contact expansions in δ = gap/a,
 # leading logarithmic terms of O'Neill & Stewartson (1967) and Cooley & O'Neill (1969)
@@ -120,10 +120,16 @@ def lubrication_coefficients(gap_ratio):
             np.full_like(d, SHEAR_CONTACT[0]), np.full_like(d, SHEAR_CONTACT[1]))
 
 
+# force on a sphere held fixed in the wall flow u_z = A z² at contact, over 6πμa A h² (the exact
+# series of bispherical.stagnation_flow at δ/a → 0; Goren & O'Neill 1971: 3.23)
+STAGNATION_CONTACT = 3.229332
+
+
 def lubrication_normal(gap_ratio):
-    """Brenner's λ near contact: ``1/δ − (1/5) ln δ + 0.971264`` (Cox & Brenner 1967)."""
+    """Brenner's λ near contact: ``1/δ − (1/5) ln δ + 0.971264`` (Cox & Brenner 1967), and the
+    stagnation-flow force factor ``g`` at its contact value (error O(δ))."""
     d = np.asarray(gap_ratio, float)
-    return 1.0 / d - 0.2 * np.log(d) + _CB_NORMAL
+    return 1.0 / d - 0.2 * np.log(d) + _CB_NORMAL, np.full_like(d, STAGNATION_CONTACT)
 
 
 def far_coefficients(gap_ratio):
@@ -140,23 +146,26 @@ def far_coefficients(gap_ratio):
 
 
 def far_normal(gap_ratio):
-    """Brenner's λ far from the wall (Lorentz/Faxén reflections): ``1/(1 − 9/8 λ + 1/2 λ³)``, λ = a/h."""
+    """Normal motion far from the wall, in λ = a/h: Brenner's drag factor by reflections (Lorentz,
+    Faxén) ``1/(1 − 9/8 λ + 1/2 λ³)``, and the stagnation-flow factor ``g`` = that factor times Faxén's
+    ``1 + λ²/3`` (the ambient flow's Laplacian term)."""
     lam = 1.0 / (1.0 + np.asarray(gap_ratio, float))
-    return 1.0 / (1 - 9 / 8 * lam + lam**3 / 2)
+    drag = 1.0 / (1 - 9 / 8 * lam + lam**3 / 2)
+    return drag, drag * (1 + lam**2 / 3)
 
 
 def tabulate_exact(path=None, points_per_decade: int = _POINTS_PER_DECADE):
     """Tabulate the seven exact functions (:mod:`magctl.plant.fluid.bispherical`) on a log grid of
     δ/a over :data:`TABLE_RANGE` and write ``models/wall_resistance.toml`` (or ``path``).
 
-    Returns the grid and the ``(7, n)`` table. About a minute on one core.
+    Returns the grid and the ``(8, n)`` table. About half a minute on one core.
     """
-    from magctl.plant.fluid.bispherical import resistance
+    from magctl.plant.fluid.bispherical import resistance, stagnation_flow
 
     lo, hi = np.log10(TABLE_RANGE[0]), np.log10(TABLE_RANGE[1])
     n = int(round((hi - lo) * points_per_decade)) + 1
     grid = np.array([float(f"{g:.6g}") for g in np.logspace(lo, hi, n)])
-    values = np.array(resistance(grid))
+    values = np.array([*resistance(grid), stagnation_flow(grid)])
     path = path if path is not None else models_dir() / "wall_resistance.toml"
     header = [
         "# Resistance functions of a sphere (radius a, centre height h = a + delta) near a plane no-slip wall.",
@@ -164,13 +173,15 @@ def tabulate_exact(path=None, points_per_decade: int = _POINTS_PER_DECADE):
         "#   magctl.plant.fluid.wall_drag.tabulate_exact()   (module magctl.plant.fluid.bispherical):",
         "# translation parallel to the wall (O'Neill 1964), rotation about a parallel axis (Dean & O'Neill 1963",
         "# as corrected by Goldman, Cox & Brenner 1967a), the sphere held fixed in the wall shear flow",
-        "# (Goldman, Cox & Brenner 1967b) and translation normal to the wall (Brenner 1961, eq 2.19); every",
+        "# (Goldman, Cox & Brenner 1967b), translation normal to the wall (Brenner 1961, eq 2.19) and the sphere",
+        "# held in the axisymmetric wall flow (Goren & O'Neill 1971); every",
         "# series truncated where 9 significant digits are stable. Log grid in delta/a, "
         f"{points_per_decade} points per decade.",
         "# Normalisation (Goldman, Cox & Brenner 1967a,b): force from translation F = 6 pi mu a V f_t; from",
         "# rotation F = 6 pi mu a^2 W f_r; torque from translation T = 8 pi mu a^2 V t_t; from rotation",
         "# T = 8 pi mu a^3 W t_r; shear flow u = g z: F = 6 pi mu a h g f_s, T = 4 pi mu a^3 g t_s; normal",
-        "# translation with W: F = -6 pi mu a W lambda_n.",
+        "# translation with W: F = -6 pi mu a W lambda_n; sphere held in the wall flow u_z = A z^2, u_rho = -A rho z",
+        "# (Goren & O'Neill 1971, same Stimson-Jeffery series as Brenner's): F = 6 pi mu a g_stag A h^2.",
         "",
         "[table]",
     ]
@@ -187,7 +198,7 @@ def tabulate_exact(path=None, points_per_decade: int = _POINTS_PER_DECADE):
 
 @lru_cache(maxsize=1)
 def _table():
-    """One cubic spline of ln|f| against ln(δ/a) for the seven tabulated functions, their signs and
+    """One cubic spline of ln|f| against ln(δ/a) for the eight tabulated functions, their signs and
     the ln δ/a ends of the two blends."""
     t = load_model("wall_resistance").table
     x = np.log(np.asarray(t.gap, float))
@@ -210,7 +221,7 @@ def _smoothstep(x, a, b):
 
 
 def _evaluate(gap_ratio):
-    """The seven functions ``(7, …)`` at δ/a: table, blended with the expansions below and the
+    """The eight functions ``(8, …)`` at δ/a: table, blended with the expansions below and the
     reflections above it (evaluated only where a gap falls in a blend)."""
     d = np.asarray(gap_ratio, float)
     if np.any(~(d > 0)):
@@ -222,16 +233,16 @@ def _evaluate(gap_ratio):
     low = lx < n1
     if low.any():
         dl = flat[low]
-        near = np.array([*lubrication_coefficients(dl), lubrication_normal(dl)])
+        near = np.array([*lubrication_coefficients(dl), *lubrication_normal(dl)])
         w = 1.0 - _smoothstep(lx[low], n0, n1)
         out[:, low] = w * near + (1 - w) * out[:, low]
     high = lx > f0
     if high.any():
         dh = flat[high]
-        far = np.array([*far_coefficients(dh), far_normal(dh)])
+        far = np.array([*far_coefficients(dh), *far_normal(dh)])
         w = _smoothstep(lx[high], f0, f1)
         out[:, high] = w * far + (1 - w) * out[:, high]
-    return out.reshape((7,) + d.shape)
+    return out.reshape((len(_NAMES),) + d.shape)
 
 
 def accurate_coefficients(gap_ratio):
@@ -251,6 +262,13 @@ def normal_resistance(gap_ratio):
     return _evaluate(gap_ratio)[6]
 
 
+def stagnation_factor(gap_ratio):
+    """``g(δ/a)``: force ``6πμa g u_z(h)`` of the wall flow ``u_z ∝ z²`` on a held sphere (Goren &
+    O'Neill 1971; :func:`magctl.plant.fluid.bispherical.stagnation_flow`), tabulated and blended as
+    :func:`normal_resistance`."""
+    return _evaluate(gap_ratio)[7]
+
+
 def accurate_mobility(radius, gap, roughness):
     """V_p/U of a force- and torque-free sphere in the local shear flow ``U z / h``.
 
@@ -266,13 +284,16 @@ def accurate_mobility(radius, gap, roughness):
     return (-f_s * t_r + f_r * half * t_s) / det
 
 
-def normal_drag_factor(mode: str, radius, gap, roughness):
-    """Factor on the free-stream normal drag 6πμR of eq 9: 1 in ``paper`` mode (eq 9 as printed),
-    Brenner's λ((gap + ε)/R) in ``accurate`` mode (:func:`normal_resistance`)."""
+def normal_factors(mode: str, radius, gap, roughness):
+    """``(λ, g)`` of the vertical balance: the sphere's normal drag is 6πμRλ and the flow's vertical
+    velocity U_z at its centre pushes it with 6πμR g U_z. ``paper`` mode: λ = g = 1 (eq 9 as printed);
+    ``accurate`` mode: Brenner's λ and Goren & O'Neill's g at δ/a = (gap + ε)/R."""
+    gap = np.asarray(gap, float)
     if mode == "paper":
-        return np.ones_like(np.asarray(gap, float))
+        return np.ones_like(gap), np.ones_like(gap)
     if mode == "accurate":
-        return normal_resistance((np.asarray(gap, float) + roughness) / radius)
+        values = _evaluate((gap + roughness) / radius)
+        return values[6], values[7]
     raise ValueError(f"drag mode must be 'paper' or 'accurate', got {mode!r}")
 
 

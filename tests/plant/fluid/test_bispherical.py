@@ -12,6 +12,7 @@ from magctl.plant.fluid.bispherical import (
     parallel_translation,
     resistance,
     shear_flow,
+    stagnation_flow,
 )
 
 
@@ -130,3 +131,18 @@ def test_bad_gap_is_refused():
     for bad in (0.0, -0.1, np.nan):
         with pytest.raises(ValueError, match="gap ratio"):
             parallel_translation(bad)
+
+
+def test_stagnation_flow_limits():
+    """The held sphere in the wall flow u_z = A z²: the same 4×4-per-n Stimson–Jeffery machinery
+    reproduces Brenner's λ when given his boundary condition (checked through ``normal_translation``
+    above); far away the force is Faxén's 6πμa (u + a²∇²u/6) = 6πμa A (h² + a²/3) times the wall's
+    reflection factor 1/(1 − 9/8 λ + λ³/2) (δ/a = 300: to 1e-6), and at contact it tends to Goren &
+    O'Neill's (1971) 3.23 times 6πμa A a²."""
+    q = 1 / 301.0
+    g = float(stagnation_flow(300.0))
+    assert g == pytest.approx((1 + q**2 / 3) / (1 - 9 / 8 * q + q**3 / 2), rel=1e-6)
+    assert float(stagnation_flow(1e-5)) == pytest.approx(3.23, abs=0.005)
+    # monotonic between: the wall always strengthens the push of the flow on the sphere
+    values = stagnation_flow(np.geomspace(1e-4, 100.0, 13))
+    assert np.all(np.diff(values) < 0)

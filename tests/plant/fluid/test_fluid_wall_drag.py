@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from magctl.plant.fluid.bispherical import resistance
+from magctl.plant.fluid.bispherical import resistance, stagnation_flow
 from magctl.plant.fluid.wall_drag import (
     accurate_coefficients,
     accurate_mobility,
@@ -14,12 +14,13 @@ from magctl.plant.fluid.wall_drag import (
     lubrication_coefficients,
     lubrication_normal,
     mobility,
-    normal_drag_factor,
+    normal_factors,
     normal_resistance,
     paper_coefficients,
     paper_force,
     paper_mobility,
     paper_rotation_ratio,
+    stagnation_factor,
 )
 
 R, EPS = 105e-6, 25e-9
@@ -57,7 +58,7 @@ def test_paper_mobility_zeroes_the_force(gap, u):
 # Goldman, Cox & Brenner (1967b): sphere fixed in wall shear flow, F*_s at h/a
 GCB_SHEAR = [(10.0677, 1.0587), (3.7622, 1.1671), (2.3524, 1.2780), (1.5431, 1.4391), (1.1276, 1.6160),
              (1.0453, 1.6682), (1.005004, 1.6969), (1.003202, 1.6982)]
-NAMES = ("f_t", "f_r", "t_t", "t_r", "f_s", "t_s", "lambda")
+NAMES = ("f_t", "f_r", "t_t", "t_r", "f_s", "t_s", "lambda", "g_stag")
 
 
 @pytest.fixture(scope="module")
@@ -65,11 +66,11 @@ def exact_on_grid():
     """The exact series (bispherical) at 47 gaps spanning 1e-3 <= δ/a <= 10, off the table's nodes."""
     d = np.geomspace(1e-3, 10.0, 47) * np.exp(0.037)
     d[0], d[-1] = 1e-3, 10.0
-    return d, np.array(resistance(d))
+    return d, np.array([*resistance(d), stagnation_flow(d)])
 
 
 def production(d):
-    return np.array([*accurate_coefficients(d), normal_resistance(d)])
+    return np.array([*accurate_coefficients(d), normal_resistance(d), stagnation_factor(d)])
 
 
 def test_production_path_matches_the_exact_series(exact_on_grid):
@@ -116,15 +117,17 @@ def test_accurate_mode_limits():
     d = np.array([150.0, 400.0])
     for a, b in zip(accurate_coefficients(d), far_coefficients(d), strict=True):
         assert np.allclose(a, b, rtol=1e-12)
-    assert np.allclose(normal_resistance(d), far_normal(d), rtol=1e-12)
+    assert np.allclose(normal_resistance(d), far_normal(d)[0], rtol=1e-12)
+    assert np.allclose(stagnation_factor(d), far_normal(d)[1], rtol=1e-12)
     d = np.array([1e-8, 1e-7])
     for a, b in zip(accurate_coefficients(d), lubrication_coefficients(d), strict=True):
         assert np.allclose(a, b, rtol=1e-12)
-    assert np.allclose(normal_resistance(d), lubrication_normal(d), rtol=1e-12)
+    assert np.allclose(normal_resistance(d), lubrication_normal(d)[0], rtol=1e-12)
+    assert np.allclose(stagnation_factor(d), lubrication_normal(d)[1], rtol=1e-12)
     # and the expansions are the exact solution there: Chaoui & Feuillebois / Cox & Brenner at 1e-6
     e = 1e-6
-    near = [*lubrication_coefficients(e), lubrication_normal(e)]
-    np.testing.assert_allclose(near, np.array(resistance(e)), rtol=2e-6)
+    near = [*lubrication_coefficients(e), *lubrication_normal(e)]
+    np.testing.assert_allclose(near, np.array([*resistance(e), stagnation_flow(e)]), rtol=2e-6)
     # a free sphere far from the wall moves with the fluid
     assert accurate_mobility(R, 200 * R, EPS) == pytest.approx(1.0, abs=1e-3)
 
@@ -136,7 +139,7 @@ def test_accurate_mode_is_smooth_across_the_joints():
     for lo, hi in ((3e-7, 6e-6), (30.0, 300.0)):
         d = np.geomspace(lo, hi, 600)
         h = np.diff(np.log(d))[0]
-        for name, f in zip(NAMES, [*accurate_coefficients(d), normal_resistance(d)], strict=True):
+        for name, f in zip(NAMES, production(d), strict=True):
             g = np.log(np.abs(f))
             slope = np.diff(g) / h
             curv = np.diff(slope) / h
@@ -154,12 +157,16 @@ def test_bad_gap_ratio():
 def test_modes_agree_at_contact_and_bad_mode():
     # at rest on the glass both give V/U ~ 0.34 (eq 4-5 vs the exact solution)
     assert mobility("paper", R, 0.0, EPS) == pytest.approx(mobility("accurate", R, 0.0, EPS), rel=0.03)
-    # eq 9's normal drag: as printed in the paper mode, Brenner's lambda in the accurate mode
-    assert normal_drag_factor("paper", R, np.array([0.0, 1e-6]), EPS).tolist() == [1.0, 1.0]
-    assert normal_drag_factor("accurate", R, 0.5430806348152437 * R - EPS, EPS) == pytest.approx(3.0360641,
-                                                                                                rel=2e-7)
+    # eq 9's vertical balance: as printed in the paper mode (λ = g = 1); Brenner's λ (Table 1,
+    # h/a = cosh 1) and Goren & O'Neill's g (3.23 at contact) in the accurate mode
+    lam, g = normal_factors("paper", R, np.array([0.0, 1e-6]), EPS)
+    assert lam.tolist() == [1.0, 1.0] and g.tolist() == [1.0, 1.0]
+    lam, g = normal_factors("accurate", R, 0.5430806348152437 * R - EPS, EPS)
+    assert lam == pytest.approx(3.0360641, rel=2e-7)
+    lam, g = normal_factors("accurate", R, 0.0, 1e-9 * R)
+    assert g == pytest.approx(3.23, abs=0.005) and lam == pytest.approx(1e9, rel=1e-6)
     with pytest.raises(ValueError, match="drag mode"):
-        normal_drag_factor("comsol", R, 0.0, EPS)
+        normal_factors("comsol", R, 0.0, EPS)
     with pytest.raises(ValueError, match="drag mode"):
         mobility("comsol", R, 0.0, EPS)
     with pytest.raises(ValueError, match="gap"):
