@@ -2,7 +2,7 @@
 
 A sphere of radius ``a`` has its centre at height ``h`` above a no-slip plane; the gap is
 ``δ = h − a`` and the bispherical parameter ``α = arccosh(h/a)`` (the sphere is the surface
-``ξ = α``, the plane ``ξ = 0``, and ``c = a sinh α``). Four problems are solved, each as an
+``ξ = α``, the plane ``ξ = 0``, and ``c = a sinh α``). Five problems are solved, each as an
 infinite linear system truncated adaptively:
 
 * **translation parallel to the wall** (O'Neill 1964, *Mathematika* 11, 67; Goldman, Cox &
@@ -23,20 +23,23 @@ infinite linear system truncated adaptively:
   ``½ γ e_y × r`` of the boundary velocity, as in the rotation problem.
 * **translation normal to the wall** (Brenner 1961, *Chem. Eng. Sci.* 16, 242, eq 2.19): the
   closed-form series for the drag factor λ.
+* **the sphere held fixed in the axisymmetric wall flow** ``u_z = A z², u_ρ = −A ρ z`` (Goren &
+  O'Neill 1971, *Chem. Eng. Sci.* 26, 325): Stimson & Jeffery's stream-function series as in
+  Brenner (1961), four unknowns per n (:func:`stagnation_flow`).
 
 Normalisation (Goldman, Cox & Brenner 1967a,b): a sphere translating with ``V`` along x feels
 ``F = 6πμaV f_t`` and torque ``T_y = 8πμa²V t_t``; rotating with ``Ω`` about y,
 ``F = 6πμa²Ω f_r`` and ``T_y = 8πμa³Ω t_r``; held fixed in ``u = γ z e_x``,
 ``F = 6πμahγ f_s`` and ``T_y = 4πμa³γ t_s``; translating normal to the wall with ``W``,
-``F_z = −6πμaW λ``. Far from the wall ``f_t, t_r → −1``, ``f_s, t_s, λ → 1``,
-``f_r, t_t → 0``; reciprocity gives ``f_r = (4/3) t_t`` (GCB 1967a, eq 3.12), which the two
-independent series satisfy to round-off.
+``F_z = −6πμaW λ``; held in ``u_z = A z²``, ``F_z = 6πμa g A h²``. Far from the wall
+``f_t, t_r → −1``, ``f_s, t_s, λ, g → 1``, ``f_r, t_t → 0``; reciprocity gives
+``f_r = (4/3) t_t`` (GCB 1967a, eq 3.12), which the two independent series satisfy to round-off.
 
 **Truncation rule.** A system of ``N`` unknowns starts at ``N = ⌈16/α⌉ + 16`` (the
 coefficients decay like ``e^{−2nα}``) and is doubled until every returned quantity changes
 by less than ``rtol`` (default 1e-10, i.e. ≥ 9 stable significant digits) relative to its
 value — absolute ``rtol`` for the cross terms ``f_r, t_t``, which vanish far from the wall.
-Brenner's series is summed the same way. The cost grows like 1/α ≈ (2δ/a)^{-1/2}: about
+Brenner's and the stagnation-flow series are summed the same way. The cost grows like 1/α ≈ (2δ/a)^{-1/2}: about
 1 ms at δ/a = 1, 20 ms at δ/a = 1e-4. These are for building ``models/wall_resistance.toml``
 and for tests; the simulation reads the table (:mod:`magctl.plant.fluid.wall_drag`).
 """
