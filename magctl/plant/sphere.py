@@ -40,7 +40,7 @@ from magctl.plant.fluid.flow import RobotFlow, robot_flow
 from magctl.plant.fluid.geometry import Polygon, RobotGeometry
 from magctl.plant.fluid.params import GRAVITY, SphereParams, fluid_viscosity, sphere_params
 from magctl.plant.fluid.surface import pull_off_range
-from magctl.plant.fluid.wall_drag import mobility
+from magctl.plant.fluid.wall_drag import mobility, normal_factors
 from magctl.plant.sphere_kernel import sphere_frame
 
 InitialPositions = np.ndarray | Callable[[int, object], np.ndarray]
@@ -191,6 +191,10 @@ class Spheres(Block):
         self.reach = float(np.linalg.norm(self.footprint, axis=1).max()) + r
         self._flow: RobotFlow | None = None
         self._k_contact = float(mobility(self.mode, r, 0.0, self.roughness))   # V_p/U resting on the glass
+        # the vertical balance resting on the glass: 1/λ and g, both 1 in the paper mode (eq 9), Brenner's
+        # and Goren & O'Neill's wall factors in the accurate mode
+        lam0, g0 = normal_factors(self.mode, r, 0.0, self.roughness)
+        self._inv_lambda_contact, self._flow_push_contact = 1.0 / float(lam0), float(g0)
         self.compiled = bool(compiled)
         poly = self._footprint
         self._edges = tuple(np.ascontiguousarray(a) for a in (poly.x0, poly.y0, poly.dx, poly.dy, poly.ab2, poly.y1))
@@ -281,11 +285,41 @@ class Spheres(Block):
         return np.minimum(k * mult, 1.0)
 
     def _gap_rate(self, uz, gap):
-        """dδ/dt of eq 8-9: the flow's vertical velocity against buoyant weight and adhesion P."""
+        """dδ/dt of eq 8-9: the flow's vertical velocity against buoyant weight and adhesion P.
+
+        ``paper`` mode, eq 9 as printed: ``dδ/dt = U_z − (W_b + P)/(6πμR)``.
+
+        ``accurate`` mode: the quasi-steady normal force balance on the sphere,
+        ``−6πμR λ dδ/dt + 6πμR g U_z − W_b − P = 0``, so
+        ``dδ/dt = (g U_z − (W_b + P)/(6πμR)) / λ`` at δ/R = (δ + ε)/R (roughness added as in eq 4):
+        λ is Brenner's (1961) normal drag factor, g Goren & O'Neill's (1971) force of the wall flow
+        on the held sphere. ``U_z`` is the flow's vertical velocity at the sphere centre, read from
+        the flow map computed without the sphere. Near a no-slip wall any flow has ``u_z ∝ z²``
+        (``u_z = ∂u_z/∂z = 0`` on the glass), and that local quadratic flow ``u_z = U_z (z/h)²`` —
+        the vertical counterpart of the paper's local shear ``U z/h`` behind eq 4 — pushes a held
+        sphere with 6πμR g U_z, g → 1 far from the wall and g → 3.23 at contact. Dividing by λ
+        (≈ R/δ near contact) makes U_z's share of the gap rate vanish like δ: lifting a sphere off
+        the glass needs fluid to enter the gap, and the lubrication pressure that resists settling
+        resists it equally. Whether a sphere lifts (the sign of the rate) depends on ``g U_z``
+        against the settling speed, not on λ.
+        """
+        if self.mode == "paper":
+            if self.pull_off:
+                pull = np.where(gap <= self.params.adhesion_range, self.pull_off, 0.0)
+                return uz - (self.buoyant_weight + pull) / self.zeta
+            return uz - self.buoyant_weight / self.zeta
+        inv = np.full(np.shape(gap), self._inv_lambda_contact)
+        push = np.full(np.shape(gap), self._flow_push_contact)
+        lifted = gap > 0
+        if lifted.any():
+            lam, g = normal_factors(self.mode, self.radius, gap[lifted], self.roughness)
+            inv[lifted], push[lifted] = 1.0 / lam, g
         if self.pull_off:
             pull = np.where(gap <= self.params.adhesion_range, self.pull_off, 0.0)
-            return uz - (self.buoyant_weight + pull) / self.zeta
-        return uz - self.buoyant_weight / self.zeta
+            rate = push * uz - (self.buoyant_weight + pull) / self.zeta
+        else:
+            rate = push * uz - self.buoyant_weight / self.zeta
+        return rate * inv
 
     def _rates(self, x, y, gap, k, pos, c, s, vbx, vby):
         """World-frame flow velocity ``(v_x, v_y)`` at the spheres ``(x, y)`` (B, N), the gap rate
@@ -324,7 +358,7 @@ class Spheres(Block):
             self.flow.points, self.flow.forces, self.flow.eps, self.flow.viscosity, self.flow.height,
             *self._edges, self.radius, self.reach, self._box[0], self._box[1], self.buoyant_weight / self.zeta,
             (self.buoyant_weight + self.pull_off) / self.zeta, self.params.adhesion_range, self._k_contact,
-            self.mode == "paper", self.roughness)
+            self.mode == "paper", self.roughness, self._inv_lambda_contact, self._flow_push_contact)
         new = {"xy": np.stack([z.real, z.imag], axis=-1), "gap": gap, "mobility": mult, "contact": contact}
         return new, ok
 

@@ -3,7 +3,8 @@
 The array form (``Spheres._update_arrays``) makes about 150 numpy calls per sub-step; at the
 batch sizes of a study (≈ 100 trials) each call is dominated by its fixed cost, not
 by the arithmetic. This module runs the same frame — flow look-up in the robot-frame
-map, inertia-free move ``V_p = k U`` (eq 4), gap balance (eq 8–9), non-penetration of
+map, inertia-free move ``V_p = k U`` (eq 4), gap balance (eq 8–9; in the ``accurate`` mode
+with Brenner's and Goren & O'Neill's wall factors, ``Spheres._gap_rate``), non-penetration of
 the footprint and between spheres — as one numba-compiled loop over trials, spheres
 and sub-steps, with the same operations in the same order per trial.
 
@@ -164,7 +165,7 @@ def _separate(z, radius, iterations):
 def sphere_frame(z, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps,
                  viscosity, height,
                  x0, y0, dx, dy, ab2, y1, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range,
-                 k_contact, paper_mode, roughness):
+                 k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact):
     """Advance every trial's spheres by one frame of ``n_sub`` sub-steps, in place where it can.
 
     Parameters
@@ -188,6 +189,10 @@ def sphere_frame(z, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dg
         ``adhesion_range`` of the glass.
     k_contact, paper_mode, roughness
         V_p/U on the glass, whether the drag mode is ``paper`` (eq 4–5), and ε [m].
+    inv_lambda_contact, flow_push_contact : float
+        1/λ and g of the gap balance on the glass in the ``accurate`` mode (Brenner's normal drag
+        factor and Goren & O'Neill's wall-flow factor at δ = 0, ``Spheres._gap_rate``), where the
+        kernel only ever sees spheres on the glass; unused in the ``paper`` mode (eq 9 as printed).
 
     Returns
     -------
@@ -223,7 +228,11 @@ def sphere_frame(z, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dg
                 # eq 4 mobility at the gap the sub-step starts from, capped at the free-sphere limit 1
                 k_now = k_contact if gb[i] <= 0 else _paper_mobility(radius, gb[i], roughness)
                 zb[i] += min(k_now * mult[b, i], 1.0) * (complex(ux, uy) * turn[b]) * tau
-                rate = uz - (held_rate if gb[i] <= adhesion_range else sink_rate)
+                if paper_mode:
+                    rate = uz - (held_rate if gb[i] <= adhesion_range else sink_rate)
+                else:   # accurate mode, sphere on the glass: (g U_z − settling) / λ at δ = 0
+                    rate = (flow_push_contact * uz - (held_rate if gb[i] <= adhesion_range else sink_rate)) \
+                        * inv_lambda_contact
                 gb[i] = max(gb[i] + rate * tau, 0.0)
                 if gb[i] > 0 and not paper_mode:
                     handled = False

@@ -1,16 +1,19 @@
 """Near-wall hydrodynamics of a sphere resting on the glass (eq 4-5, 9).
 
 Two modes give the in-plane velocity of a force- and torque-free sphere in the
-robot's flow:
+robot's flow, and the normal drag of its gap balance:
 
 ``paper``
     eq 4-5 exactly as printed: the Goldman-Cox-Brenner near-contact forces with
-    the paper's bounds and the fitted rotation rate of eq 5.
+    the paper's bounds and the fitted rotation rate of eq 5; eq 9's free-stream
+    normal drag 6πμR.
 ``accurate``
-    the full resistance functions at every gap: Goldman, Cox & Brenner's (1967)
-    lubrication asymptotes for δ/a ≤ 0.01, the tabulated exact solution
-    (``models/wall_resistance.toml``) for 0.1 ≤ δ/a ≤ 9, the method-of-reflections
-    far field (Faxén; Goldman et al.) beyond, blended smoothly in log(δ/a).
+    the exact Stokes resistance functions at every gap (:mod:`magctl.plant.fluid.bispherical`),
+    tabulated in ``models/wall_resistance.toml`` for 1e-6 ≤ δ/a ≤ 100 (:func:`tabulate_exact`)
+    and read as cubic splines in ln δ/a; below the table the near-contact expansions of
+    Chaoui & Feuillebois (2003) and Cox & Brenner (1967), above it the method of reflections
+    (Faxén; Goldman, Cox & Brenner 1967a,b; Lorentz), blended smoothly in ln δ/a. The normal
+    drag is Brenner's (1961) 6πμRλ(δ).
 
 Both treat the flow at the sphere centre ``U`` as a local shear ``U z / h`` (the
 paper's assumption behind eq 4).
@@ -21,9 +24,9 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
+from scipy.interpolate import CubicSpline
 
-from magctl.config import load_model
+from magctl.config import load_model, models_dir
 
 ROT_BOUND = 0.5676
 """Upper bound of ΩR/V in eq 5."""
@@ -79,27 +82,137 @@ def paper_force(radius, viscosity, flow, velocity, gap, roughness):
 
 
 # --- accurate mode -----------------------------------------------------------------------------
+TABLE_RANGE = (1e-6, 100.0)
+"""δ/a span of ``models/wall_resistance.toml``; below it the near-contact expansions, above it
+the method of reflections, each blended over a factor 2 (below) / 1.5 (above) in δ/a."""
+_POINTS_PER_DECADE = 16
+_NAMES = ("f_t", "f_r", "t_t", "t_r", "f_s", "t_s", "lambda_n", "g_stag")
+
+# Chaoui & Feuillebois (2003), Tables 11 and 13: near-contact expansions in δ = gap/a,
+# leading logarithmic terms of O'Neill & Stewartson (1967) and Cooley & O'Neill (1969)
+_CF_FT = ((-8 / 15, 0.954293724783876), (-64 / 375, 0.429450132564500))      # −f_t: (ln δ, 1) at δ^0, δ^1
+_CF_TT = ((-1 / 10, -0.192952745666190), (-43 / 250, 0.100579155700110))     # t_t
+_CF_TR = ((-2 / 5, 0.370892565890165), (-0.528001276176667, 0.340079923061464))   # −t_r
+# sphere fixed in the wall shear flow at contact: the exact series of bispherical.shear_flow at
+# δ/a → 0 (Goldman, Cox & Brenner 1967b give 1.7005 and 0.94399; O'Neill 1968 1.701, 0.944)
+SHEAR_CONTACT = (1.700618, 0.943987)
+# Cox & Brenner (1967): λ = 1/δ − (1/5) ln δ + 0.971264 + o(1)
+_CB_NORMAL = 0.971264
+
+
 def lubrication_coefficients(gap_ratio):
-    """Goldman, Cox & Brenner (1967a,b) near-contact asymptotes ``(f_t, f_r, t_t, t_r, f_s, t_s)``."""
-    lg = np.log(np.asarray(gap_ratio, float))
-    return (8 / 15 * lg - 0.9588, -2 / 15 * lg - 0.2526, -0.1 * lg - 0.1895, 0.4 * lg - 0.3817,
-            np.full_like(lg, 1.7005), np.full_like(lg, 0.9440))
+    """Near-contact expansions ``(f_t, f_r, t_t, t_r, f_s, t_s)`` at δ/a ≪ 1.
+
+    ``f_t, t_t, t_r`` to O(δ) with the O(δ ln δ) terms (Chaoui & Feuillebois 2003, Tables 11,
+    13; error < 1e-8 at δ/a = 1e-5), ``f_r = (4/3) t_t`` by reciprocity (Goldman, Cox & Brenner
+    1967a, eq 3.12), ``f_s, t_s`` their contact values (error O(δ)).
+    """
+    d = np.asarray(gap_ratio, float)
+    lg = np.log(d)
+
+    def series(c):
+        (l0, c0), (l1, c1) = c
+        return l0 * lg + c0 + d * (l1 * lg + c1)
+
+    f_t = -series(_CF_FT)
+    t_t = series(_CF_TT)
+    return (f_t, 4.0 / 3.0 * t_t, t_t, -series(_CF_TR),
+            np.full_like(d, SHEAR_CONTACT[0]), np.full_like(d, SHEAR_CONTACT[1]))
+
+
+# force on a sphere held fixed in the wall flow u_z = A z² at contact, over 6πμa A h² (the exact
+# series of bispherical.stagnation_flow at δ/a → 0; Goren & O'Neill 1971: 3.23)
+STAGNATION_CONTACT = 3.229332
+
+
+def lubrication_normal(gap_ratio):
+    """Brenner's λ near contact: ``1/δ − (1/5) ln δ + 0.971264`` (Cox & Brenner 1967), and the
+    stagnation-flow force factor ``g`` at its contact value (error O(δ))."""
+    d = np.asarray(gap_ratio, float)
+    return 1.0 / d - 0.2 * np.log(d) + _CB_NORMAL, np.full_like(d, STAGNATION_CONTACT)
 
 
 def far_coefficients(gap_ratio):
-    """Method-of-reflections far field: Faxén's parallel drag, Goldman et al.'s rotation and shear terms."""
+    """Method-of-reflections far field ``(f_t, f_r, t_t, t_r, f_s, t_s)`` in λ = a/h.
+
+    Faxén's ``f_t = −1/(1 − 9/16 λ + 1/8 λ³ − 45/256 λ⁴ − 1/16 λ⁵)``; Goldman, Cox & Brenner
+    (1967a, eq 2.64 and 3.8) ``t_t = (3/32) λ⁴ (1 − 3/8 λ)``, ``f_r = (4/3) t_t``,
+    ``t_r = −(1 + 5/16 λ³)``; (1967b) ``f_s = 1 + 9/16 λ``, ``t_s = 1 − 3/16 λ³``.
+    """
     lam = 1.0 / (1.0 + np.asarray(gap_ratio, float))
     f_t = -1.0 / (1 - 9 / 16 * lam + lam**3 / 8 - 45 / 256 * lam**4 - lam**5 / 16)
-    t_r = -1.0 / (1 - 5 / 16 * lam**3)
-    zero = np.zeros_like(lam)
-    return f_t, zero, zero, t_r, 1 + 9 / 16 * lam, 1 - 3 / 16 * lam**3
+    t_t = 3 / 32 * lam**4 * (1 - 3 / 8 * lam)
+    return f_t, 4.0 / 3.0 * t_t, t_t, -(1 + 5 / 16 * lam**3), 1 + 9 / 16 * lam, 1 - 3 / 16 * lam**3
+
+
+def far_normal(gap_ratio):
+    """Normal motion far from the wall, in λ = a/h: Brenner's drag factor by reflections (Lorentz,
+    Faxén) ``1/(1 − 9/8 λ + 1/2 λ³)``, and the stagnation-flow factor ``g`` = that factor times Faxén's
+    ``1 + λ²/3`` (the ambient flow's Laplacian term)."""
+    lam = 1.0 / (1.0 + np.asarray(gap_ratio, float))
+    drag = 1.0 / (1 - 9 / 8 * lam + lam**3 / 2)
+    return drag, drag * (1 + lam**2 / 3)
+
+
+def tabulate_exact(path=None, points_per_decade: int = _POINTS_PER_DECADE):
+    """Tabulate the seven exact functions (:mod:`magctl.plant.fluid.bispherical`) on a log grid of
+    δ/a over :data:`TABLE_RANGE` and write ``models/wall_resistance.toml`` (or ``path``).
+
+    Returns the grid and the ``(8, n)`` table. About half a minute on one core.
+    """
+    from magctl.plant.fluid.bispherical import resistance, stagnation_flow
+
+    lo, hi = np.log10(TABLE_RANGE[0]), np.log10(TABLE_RANGE[1])
+    n = int(round((hi - lo) * points_per_decade)) + 1
+    grid = np.array([float(f"{g:.6g}") for g in np.logspace(lo, hi, n)])
+    values = np.array([*resistance(grid), stagnation_flow(grid)])
+    path = path if path is not None else models_dir() / "wall_resistance.toml"
+    header = [
+        "# Resistance functions of a sphere (radius a, centre height h = a + delta) near a plane no-slip wall.",
+        "# Exact Stokes solutions in bispherical coordinates, regenerated by",
+        "#   magctl.plant.fluid.wall_drag.tabulate_exact()   (module magctl.plant.fluid.bispherical):",
+        "# translation parallel to the wall (O'Neill 1964), rotation about a parallel axis (Dean & O'Neill 1963",
+        "# as corrected by Goldman, Cox & Brenner 1967a), the sphere held fixed in the wall shear flow",
+        "# (Goldman, Cox & Brenner 1967b), translation normal to the wall (Brenner 1961, eq 2.19) and the sphere",
+        "# held in the axisymmetric wall flow (Goren & O'Neill 1971); every",
+        "# series truncated where 9 significant digits are stable. Log grid in delta/a, "
+        f"{points_per_decade} points per decade.",
+        "# Normalisation (Goldman, Cox & Brenner 1967a,b): force from translation F = 6 pi mu a V f_t; from",
+        "# rotation F = 6 pi mu a^2 W f_r; torque from translation T = 8 pi mu a^2 V t_t; from rotation",
+        "# T = 8 pi mu a^3 W t_r; shear flow u = g z: F = 6 pi mu a h g f_s, T = 4 pi mu a^3 g t_s; normal",
+        "# translation with W: F = -6 pi mu a W lambda_n; sphere held in the wall flow u_z = A z^2, u_rho = -A rho z",
+        "# (Goren & O'Neill 1971, same Stimson-Jeffery series as Brenner's): F = 6 pi mu a g_stag A h^2.",
+        "",
+        "[table]",
+    ]
+    src = "computed: magctl.plant.fluid.wall_drag.tabulate_exact (exact bispherical series, see header)"
+    lines = [f'gap_ratio = {{ value = [{", ".join(f"{g:.10g}" for g in grid)}], '
+             f'source = "assumed: log grid of delta/a, {points_per_decade} points per decade" }}']
+    for name, row in zip(_NAMES, values, strict=True):
+        lines.append(f'{name}_ratio = {{ value = [{", ".join(f"{v:.10g}" for v in row)}], source = "{src}" }}')
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write("\n".join(header + lines) + "\n")
+    _table.cache_clear()
+    return grid, values
 
 
 @lru_cache(maxsize=1)
 def _table():
+    """One cubic spline of ln|f| against ln(δ/a) for the eight tabulated functions, their signs and
+    the ln δ/a ends of the two blends."""
     t = load_model("wall_resistance").table
-    x = np.log(t.gap)
-    return x, [PchipInterpolator(x, getattr(t, k)) for k in ("f_t", "f_r", "t_t", "t_r", "f_s", "t_s")]
+    x = np.log(np.asarray(t.gap, float))
+    rows = []
+    signs = []
+    for name in _NAMES:
+        y = np.asarray(getattr(t, name), float)
+        sign = float(np.sign(y[0]))
+        if not np.all(np.sign(y) == sign):
+            raise ValueError(f"models/wall_resistance.toml: {name} changes sign; it cannot be interpolated in log")
+        rows.append(np.log(sign * y))
+        signs.append(sign)
+    spline = CubicSpline(x, np.array(rows).T)
+    return spline, np.array(signs)[:, None], (x[0], x[0] + np.log(2.0)), (x[-1] - np.log(1.5), x[-1])
 
 
 def _smoothstep(x, a, b):
@@ -107,25 +220,61 @@ def _smoothstep(x, a, b):
     return s * s * (3 - 2 * s)
 
 
+def _evaluate(gap_ratio):
+    """The eight functions ``(8, …)`` at δ/a: table, blended with the expansions below and the
+    reflections above it (evaluated only where a gap falls in a blend)."""
+    d = np.asarray(gap_ratio, float)
+    if np.any(~(d > 0)):
+        raise ValueError("gap ratio delta/a must be > 0 (add the roughness to the gap)")
+    flat = d.reshape(-1)
+    lx = np.log(flat)
+    spline, signs, (n0, n1), (f0, f1) = _table()
+    out = signs * np.exp(spline(np.clip(lx, n0, f1)).T)
+    low = lx < n1
+    if low.any():
+        dl = flat[low]
+        near = np.array([*lubrication_coefficients(dl), *lubrication_normal(dl)])
+        w = 1.0 - _smoothstep(lx[low], n0, n1)
+        out[:, low] = w * near + (1 - w) * out[:, low]
+    high = lx > f0
+    if high.any():
+        dh = flat[high]
+        far = np.array([*far_coefficients(dh), *far_normal(dh)])
+        w = _smoothstep(lx[high], f0, f1)
+        out[:, high] = w * far + (1 - w) * out[:, high]
+    return out.reshape((len(_NAMES),) + d.shape)
+
+
 def accurate_coefficients(gap_ratio):
-    """Resistance functions ``(f_t, f_r, t_t, t_r, f_s, t_s)`` at gap δ/a (Goldman et al. normalisation)."""
-    d = np.maximum(np.asarray(gap_ratio, float), 1e-12)
-    lx = np.log(d)
-    x, splines = _table()
-    mid = [s(np.clip(lx, x[0], x[-1])) for s in splines]
-    near = lubrication_coefficients(d)
-    far = far_coefficients(d)
-    w_near = 1.0 - _smoothstep(lx, np.log(0.01), x[0])      # lubrication → table
-    w_far = _smoothstep(lx, x[-2], x[-1] + np.log(1.5))      # table → far field
-    return tuple((w_near * n + (1 - w_near) * m) * (1 - w_far) + w_far * f
-                 for n, m, f in zip(near, mid, far, strict=True))
+    """Resistance functions ``(f_t, f_r, t_t, t_r, f_s, t_s)`` at gap δ/a (Goldman et al. normalisation).
+
+    The exact solution tabulated in ``models/wall_resistance.toml`` (cubic spline of ln|f| in
+    ln δ/a) over :data:`TABLE_RANGE`; below it :func:`lubrication_coefficients`, above it
+    :func:`far_coefficients`, joined by cubic smoothsteps in ln δ/a over the table's end
+    intervals (where both sides agree to < 1e-6 near and < 3e-5 far, so no joint is visible).
+    """
+    return tuple(_evaluate(gap_ratio)[:6])
+
+
+def normal_resistance(gap_ratio):
+    """Brenner's (1961) λ(δ/a): normal drag ``6πμaλ`` of a sphere at gap δ (tabulated exact series,
+    :func:`lubrication_normal` below, :func:`far_normal` above, blended as :func:`accurate_coefficients`)."""
+    return _evaluate(gap_ratio)[6]
+
+
+def stagnation_factor(gap_ratio):
+    """``g(δ/a)``: force ``6πμa g u_z(h)`` of the wall flow ``u_z ∝ z²`` on a held sphere (Goren &
+    O'Neill 1971; :func:`magctl.plant.fluid.bispherical.stagnation_flow`), tabulated and blended as
+    :func:`normal_resistance`."""
+    return _evaluate(gap_ratio)[7]
 
 
 def accurate_mobility(radius, gap, roughness):
     """V_p/U of a force- and torque-free sphere in the local shear flow ``U z / h``.
 
-    Solves ``f_s U + f_t V + f_r aΩ = 0`` and ``t_t V + t_r aΩ + (a / 2h) t_s U = 0``.
-    The roughness ε is added to the gap as in eq 4.
+    Solves ``f_s U + f_t V + f_r aΩ = 0`` and ``t_t V + t_r aΩ + (a / 2h) t_s U = 0``
+    (Goldman, Cox & Brenner 1967b, their free-sphere problem) with :func:`accurate_coefficients`.
+    The roughness ε is added to the gap as in eq 4: ``δ/a = (gap + ε)/R``, ``h = R + gap + ε``.
     """
     gap = np.asarray(gap, float)
     d = (gap + roughness) / radius
@@ -133,6 +282,19 @@ def accurate_mobility(radius, gap, roughness):
     half = 0.5 * radius / (radius + gap + roughness)
     det = f_t * t_r - f_r * t_t
     return (-f_s * t_r + f_r * half * t_s) / det
+
+
+def normal_factors(mode: str, radius, gap, roughness):
+    """``(λ, g)`` of the vertical balance: the sphere's normal drag is 6πμRλ and the flow's vertical
+    velocity U_z at its centre pushes it with 6πμR g U_z. ``paper`` mode: λ = g = 1 (eq 9 as printed);
+    ``accurate`` mode: Brenner's λ and Goren & O'Neill's g at δ/a = (gap + ε)/R."""
+    gap = np.asarray(gap, float)
+    if mode == "paper":
+        return np.ones_like(gap), np.ones_like(gap)
+    if mode == "accurate":
+        values = _evaluate((gap + roughness) / radius)
+        return values[6], values[7]
+    raise ValueError(f"drag mode must be 'paper' or 'accurate', got {mode!r}")
 
 
 def mobility(mode: str, radius, gap, roughness):
@@ -148,7 +310,9 @@ def tabulate_resistance(gap_ratios, n_points: int = 900, source_radius: float = 
     """Resistance functions of a sphere near a wall from the Blake-Stokeslet solver.
 
     Returns an array ``(len(gap_ratios), 7)``: surface residual, f_t, f_r, t_t, t_r, f_s, t_s.
-    This produced ``models/wall_resistance.toml``.
+    A check of the Blake-Stokeslet solver (:mod:`magctl.plant.fluid.stokes`) against the published
+    sphere tables (``tests/plant/fluid/test_fluid_stokes.py``); the drag table itself comes from the
+    exact solutions (:func:`tabulate_exact`).
     """
     from magctl.plant.fluid.stokes import fibonacci_sphere, solve_rigid_body
 

@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from magctl.plant.fluid.bispherical import stagnation_flow
 from magctl.plant.fluid.params import sphere_params
 from magctl.plant.sphere import Spheres
 
@@ -73,6 +74,7 @@ def test_kernel_hands_back_lifted_spheres_in_the_accurate_mode():
     array form's numbers."""
     block = Spheres(np.zeros((1, 2)), drag_mode="accurate")
     state, u = _random_frame(block, 3, seed=7, spread=3e-4)
+    u["velocity"] *= 0.05           # a slow robot: its flow lifts no sphere off the glass in this frame
     state["gap"][:] = 0.0
     state["gap"][1] = 1e-7
     before = state["xy"].copy()
@@ -103,3 +105,34 @@ def test_kernel_uses_the_adhesion_and_substeps_of_the_parameters():
             assert (compiled["gap"] > 0).sum() < 0.5 * (default["gap"] > 0).sum()
         else:
             assert np.abs(compiled["xy"] - default["xy"]).max() > 1e-9
+
+
+def test_accurate_mode_vertical_law_same_in_kernel_and_arrays():
+    """The accurate mode's gap balance is (g U_z − settling)/λ at (δ + ε)/R: the kernel (spheres on the
+    glass) and the array form give the same numbers; on the glass λ(ε/R) = 1/δ* − ln(δ*)/5 + 0.971
+    (Cox & Brenner 1967), about 4200 at ε = 25 nm, and g is the exact stagnation-flow series."""
+    paper = Spheres(np.zeros((2, 2)))
+    accurate = Spheres(np.zeros((2, 2)), drag_mode="accurate")
+    state, u = _random_frame(accurate, 300, seed=13)
+    state["gap"][:] = 0.0
+    reference = accurate._update_arrays({k: v.copy() for k, v in state.items()}, u)
+    compiled, covered = accurate.compiled_frame({k: v.copy() for k, v in state.items()}, u)
+    assert covered.mean() > 0.5 and (~covered).any()      # some trials lift a sphere and go back
+    np.testing.assert_allclose(compiled["xy"][covered], reference["xy"][covered], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(compiled["gap"][covered], reference["gap"][covered], rtol=0, atol=1e-18)
+    full = accurate.update({k: v.copy() for k, v in state.items()}, u)
+    np.testing.assert_allclose(full["gap"], reference["gap"], rtol=0, atol=1e-18)
+    # the rate itself: eq 9 as printed in the paper mode, (g U_z − W_b/ζ)/λ in the accurate mode
+    uz = np.array([[1e-3, -1e-3]])
+    sink = accurate.buoyant_weight / accurate.zeta
+    gap = np.zeros((1, 2))
+    np.testing.assert_allclose(paper._gap_rate(uz, gap), uz - sink, rtol=1e-12)
+    d = accurate.roughness / accurate.radius
+    lam = 1 / d - 0.2 * np.log(d) + 0.971264
+    g = float(stagnation_flow(d))
+    np.testing.assert_allclose(accurate._gap_rate(uz, gap), (g * uz - sink) / lam, rtol=1e-6)
+    # at h/a = cosh 1 the sphere feels Brenner's (1961) Table 1 value λ = 3.0360641
+    d = 0.5430806348152437
+    gap = np.full((1, 2), d * accurate.radius - accurate.roughness)
+    g = float(stagnation_flow(d))
+    np.testing.assert_allclose(accurate._gap_rate(uz, gap), (g * uz - sink) / 3.0360641, rtol=1e-6)
