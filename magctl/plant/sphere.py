@@ -15,8 +15,8 @@ split into sub-steps. Each sub-step
 3. enforces non-penetration against the robot's footprint (including the concave
    front face) and between spheres.
 
-A frame runs for the whole batch in one compiled call (:mod:`magctl.plant.sphere_kernel`);
-the array form below is its reference and handles the trials the kernel hands back.
+A frame runs for the whole batch in one compiled call (:mod:`magctl.plant.sphere_kernel`), in
+either drag mode; the array form below is its reference (``Spheres(compiled=False)``).
 
 Optional seeded per-trial variability (off by default, ``models/sphere.toml``):
 a sphere may sit on a sticky patch that scales its mobility (§VI-B, "stuck on a
@@ -40,10 +40,11 @@ from magctl.plant.fluid.flow import RobotFlow, robot_flow
 from magctl.plant.fluid.geometry import Polygon, RobotGeometry
 from magctl.plant.fluid.params import GRAVITY, SphereParams, fluid_viscosity, sphere_params
 from magctl.plant.fluid.surface import pull_off_range
-from magctl.plant.fluid.wall_drag import mobility, normal_factors
+from magctl.plant.fluid.wall_drag import mobility, normal_factors, wall_table
 from magctl.plant.sphere_kernel import sphere_frame
 
 InitialPositions = np.ndarray | Callable[[int, object], np.ndarray]
+
 
 
 def _rot(theta):
@@ -153,8 +154,8 @@ class Spheres(Block):
     dt : float
         Frame period [s].
     compiled : bool
-        Run frames through the compiled kernel (:mod:`magctl.plant.sphere_kernel`), which
-        hands trials it does not cover back to the array form; False: array form only.
+        Run frames through the compiled kernel (:mod:`magctl.plant.sphere_kernel`); False: the
+        array form (the reference, same numbers to round-off).
     """
 
     def __init__(self, initial_positions: InitialPositions, name: str = "spheres", *,
@@ -196,6 +197,8 @@ class Spheres(Block):
         lam0, g0 = normal_factors(self.mode, r, 0.0, self.roughness)
         self._inv_lambda_contact, self._flow_push_contact = 1.0 / float(lam0), float(g0)
         self.compiled = bool(compiled)
+        # the accurate mode's resistance functions as arrays, for lifted spheres in the compiled frame
+        self._wall = tuple(wall_table()) if self.mode == "accurate" else _no_wall_table()
         poly = self._footprint
         self._edges = tuple(np.ascontiguousarray(a) for a in (poly.x0, poly.y0, poly.dx, poly.dy, poly.ab2, poly.y1))
 
@@ -334,36 +337,27 @@ class Spheres(Block):
     def update(self, state, u):
         if not self.compiled:
             return self._update_arrays(state, u)
-        new, ok = self.compiled_frame(state, u)
-        if not ok.all():   # trials the kernel does not cover: the array form, from the start of the frame
-            rows = np.nonzero(~ok)[0]
-            redo = self._update_arrays({k: v[rows] for k, v in state.items()},
-                                       {k: np.asarray(v)[rows] for k, v in u.items()})
-            for key in ("xy", "gap", "contact"):
-                new[key][rows] = redo[key]
-        return new
+        return self.compiled_frame(state, u)
 
-    def compiled_frame(self, state, u) -> tuple[dict, np.ndarray]:
-        """One frame by :func:`~magctl.plant.sphere_kernel.sphere_frame`: the next state, and a bool
-        array of the trials it covered (the others are returned unchanged)."""
+    def compiled_frame(self, state, u) -> dict:
+        """One frame by :func:`~magctl.plant.sphere_kernel.sphere_frame`: the next state."""
         z = _complex(state["xy"])
         gap = state["gap"].copy()
         mult = state["mobility"]
         heading = np.asarray(u["heading"], float)
         flat, dgx, dgy = self.flow._flat_maps()
-        contact, ok = sphere_frame(
+        contact = sphere_frame(
             z, gap, mult, _complex(np.asarray(u["position"], float)),
             _complex(np.asarray(u["velocity"], float)), np.cos(heading) + 1j * np.sin(heading),
             self.params.substeps, self.dt / self.params.substeps, flat, self.flow.gx, self.flow.gy, dgx, dgy,
             self.flow.points, self.flow.forces, self.flow.eps, self.flow.viscosity, self.flow.height,
             *self._edges, self.radius, self.reach, self._box[0], self._box[1], self.buoyant_weight / self.zeta,
             (self.buoyant_weight + self.pull_off) / self.zeta, self.params.adhesion_range, self._k_contact,
-            self.mode == "paper", self.roughness, self._inv_lambda_contact, self._flow_push_contact)
-        new = {"xy": np.stack([z.real, z.imag], axis=-1), "gap": gap, "mobility": mult, "contact": contact}
-        return new, ok
+            self.mode == "paper", self.roughness, self._inv_lambda_contact, self._flow_push_contact, self._wall)
+        return {"xy": np.stack([z.real, z.imag], axis=-1), "gap": gap, "mobility": mult, "contact": contact}
 
     def _update_arrays(self, state, u):
-        """One frame in numpy array operations, for any trials (the reference form of the kernel)."""
+        """One frame in numpy array operations (the reference form of the compiled frame)."""
         # Plane points and vectors are complex numbers x + iy inside the frame: a rotation by the
         # heading is then one multiplication by e^{±iθ} (fewer array operations per sub-step).
         pos = _complex(np.asarray(u["position"], float))
@@ -426,6 +420,15 @@ def _complex(xy: np.ndarray) -> np.ndarray:
     z = np.empty(xy.shape[:-1], complex)
     z.real, z.imag = xy[..., 0], xy[..., 1]
     return z
+
+
+def _no_wall_table() -> tuple:
+    """The compiled frame's table argument in the paper mode, which never reads it: read-only arrays
+    of a :class:`~magctl.plant.fluid.wall_drag.WallTable`'s types, so both modes share one compilation."""
+    arrays = (np.zeros(2), np.zeros((8, 1, 4)), np.ones(8))
+    for a in arrays:
+        a.flags.writeable = False
+    return (*arrays, 0.0, 0.0, 0.0, 0.0)
 
 
 def integrate_inertial(block: Spheres, start: np.ndarray, robot_path: Callable[[float], tuple], t_end: float,

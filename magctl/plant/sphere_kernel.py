@@ -9,12 +9,16 @@ the footprint and between spheres — as one numba-compiled loop over trials, sp
 and sub-steps, with the same operations in the same order per trial.
 
 Off the flow map it sums the robot's regularised Blake Stokeslets directly, as the
-array form does. A trial is handed back (``ok[b] = False``) only when, in the
-``accurate`` drag mode, one of its spheres is lifted off the glass (those tabulated
-resistance functions are not compiled; the ``paper`` mode's eq 4–5 are).
+array form does. Both drag modes are compiled for a sphere at any gap: the ``paper`` mode's
+eq 4–5, and the ``accurate`` mode's tabulated resistance functions
+(:func:`wall_functions`: the spline of ``models/wall_resistance.toml`` passed in as the arrays of
+:class:`magctl.plant.fluid.wall_drag.WallTable`, and the near-contact expansions, reflections and
+blend of :mod:`magctl.plant.fluid.wall_drag`, whose shared definitions are compiled here unchanged).
 
-Such trials are re-run by the array form from the start of the frame, so every trial's
-result depends on that trial alone, never on which other trials share its batch.
+numba's on-disk cache of this module is keyed on this file only: after editing the formulas it
+compiles from ``wall_drag.py`` (``near_contact_terms``, ``far_field_terms``, ``smoothstep``,
+``blend``), delete ``magctl/plant/__pycache__/sphere_kernel*.nb*`` (the kernel tests would
+otherwise fail against the edited array form).
 """
 
 from __future__ import annotations
@@ -22,7 +26,15 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from magctl.plant.fluid.wall_drag import ROT_BOUND
+from magctl.plant.fluid.wall_drag import (
+    ROT_BOUND,
+    SHEAR_CONTACT,
+    STAGNATION_CONTACT,
+    blend,
+    far_field_terms,
+    near_contact_terms,
+    smoothstep,
+)
 
 # a push-out pass counts a centre as touching below this fraction of R (the array form's tolerance)
 _TOUCH = 1.0 - 1e-9
@@ -98,6 +110,63 @@ def _paper_mobility(radius, gap, roughness):
 
 
 @numba.njit(cache=True, nogil=True)
+def wall_functions(d, table, out):
+    """The accurate mode's eight functions ``(f_t, f_r, t_t, t_r, f_s, t_s, λ, g)`` at one δ/a = ``d``
+    into ``out (8,)``, with the steps of ``magctl.plant.fluid.wall_drag._evaluate`` for one gap:
+    the cubic spline of ln|f| in ln δ/a (evaluated as scipy's ``PPoly``: interval by bisection,
+    ``c3 + c2 s + c1 s² + c0 s³`` summed in that order), blended below the table with the
+    near-contact expansions (Chaoui & Feuillebois 2003; Cox & Brenner 1967) and above it with the
+    reflections (Faxén; Goldman, Cox & Brenner 1967a,b; Lorentz).
+
+    ``table`` is a :class:`~magctl.plant.fluid.wall_drag.WallTable` (a tuple of its fields).
+    """
+    knots, coef, signs, near_lo, near_hi, far_lo, far_hi = table
+    lx = np.log(d)
+    x = min(max(lx, near_lo), far_hi)
+    n = knots.shape[0]
+    i = min(max(np.searchsorted(knots, x, side="right") - 1, 0), n - 2)
+    s = x - knots[i]
+    s2 = s * s
+    s3 = s2 * s
+    for j in range(8):
+        c = coef[j, i]
+        v = 0.0 + c[3]
+        v = v + c[2] * s
+        v = v + c[1] * s2
+        v = v + c[0] * s3
+        out[j] = signs[j] * np.exp(v)
+    if lx < near_hi:
+        w = 1.0 - smoothstep(lx, near_lo, near_hi)
+        f_t, f_r, t_t, t_r, lam = near_contact_terms(d)
+        out[0] = blend(w, f_t, out[0])
+        out[1] = blend(w, f_r, out[1])
+        out[2] = blend(w, t_t, out[2])
+        out[3] = blend(w, t_r, out[3])
+        out[4] = blend(w, SHEAR_CONTACT[0], out[4])
+        out[5] = blend(w, SHEAR_CONTACT[1], out[5])
+        out[6] = blend(w, lam, out[6])
+        out[7] = blend(w, STAGNATION_CONTACT, out[7])
+    if lx > far_lo:
+        w = smoothstep(lx, far_lo, far_hi)
+        far = far_field_terms(d)
+        for j in range(8):
+            out[j] = blend(w, far[j], out[j])
+
+
+@numba.njit(cache=True, nogil=True)
+def accurate_state(radius, gap, roughness, table, out):
+    """V_p/U, λ and g of a sphere at gap δ in the ``accurate`` mode, at δ/a = (δ + ε)/R
+    (``wall_drag.accurate_mobility`` and ``wall_drag.normal_factors``: the free-sphere force and
+    torque balance of Goldman, Cox & Brenner 1967b; Brenner's 1961 normal drag factor; Goren &
+    O'Neill's 1971 wall-flow factor). ``out (8,)`` is scratch for :func:`wall_functions`."""
+    wall_functions((gap + roughness) / radius, table, out)
+    f_t, f_r, t_t, t_r, f_s, t_s = out[0], out[1], out[2], out[3], out[4], out[5]
+    half = 0.5 * radius / (radius + gap + roughness)
+    det = f_t * t_r - f_r * t_t
+    return (-f_s * t_r + f_r * half * t_s) / det, out[6], out[7]
+
+
+@numba.njit(cache=True, nogil=True)
 def _push_out_point(px, py, x0, y0, dx, dy, ab2, y1, radius, iterations):
     """One circle centre (robot frame) moved off the polygon: up to ``iterations`` passes of
     nearest-edge projection, as ``magctl.plant.sphere._push_out``. Returns ``x, y, touched``."""
@@ -165,15 +234,15 @@ def _separate(z, radius, iterations):
 def sphere_frame(z, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps,
                  viscosity, height,
                  x0, y0, dx, dy, ab2, y1, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range,
-                 k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact):
-    """Advance every trial's spheres by one frame of ``n_sub`` sub-steps, in place where it can.
+                 k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact, table):
+    """Advance every trial's spheres by one frame of ``n_sub`` sub-steps, in place.
 
     Parameters
     ----------
     z : complex (B, N)
-        Sphere centres ``x + iy`` [m]; overwritten for the trials it handles.
+        Sphere centres ``x + iy`` [m]; overwritten.
     gap : float (B, N)
-        Gaps δ [m]; overwritten likewise.
+        Gaps δ [m]; overwritten.
     mult : float (B, N)
         Per-sphere mobility multiplier (sticky patches, release scatter).
     pos, vel, turn : complex (B,)
@@ -191,54 +260,50 @@ def sphere_frame(z, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dg
         V_p/U on the glass, whether the drag mode is ``paper`` (eq 4–5), and ε [m].
     inv_lambda_contact, flow_push_contact : float
         1/λ and g of the gap balance on the glass in the ``accurate`` mode (Brenner's normal drag
-        factor and Goren & O'Neill's wall-flow factor at δ = 0, ``Spheres._gap_rate``), where the
-        kernel only ever sees spheres on the glass; unused in the ``paper`` mode (eq 9 as printed).
+        factor and Goren & O'Neill's wall-flow factor at δ = 0, ``Spheres._gap_rate``); unused in
+        the ``paper`` mode (eq 9 as printed).
+    table : WallTable
+        The ``accurate`` mode's resistance functions (:func:`wall_functions`), for lifted spheres;
+        unused in the ``paper`` mode.
 
     Returns
     -------
     contact : bool (B,)
         Some sphere touched the robot during the frame.
-    ok : bool (B,)
-        False for trials left for the array form (``z`` and ``gap`` of those rows untouched).
     """
     batch, n = z.shape
     contact = np.zeros(batch, np.bool_)
-    ok = np.ones(batch, np.bool_)
     zb = np.empty(n, np.complex128)
     gb = np.empty(n)
+    scratch = np.empty(8)
     for b in range(batch):
         back = turn[b].conjugate()
         vb = vel[b] * back
-        handled = True
         for i in range(n):
             zb[i] = z[b, i]
             gb[i] = gap[b, i]
-            if gb[i] > 0 and not paper_mode:
-                handled = False
         touched = False
         for k in range(n_sub):
-            if not handled:
-                break
             p_mid = pos[b] + vel[b] * (k + 0.5) * tau
             p_end = pos[b] + vel[b] * (k + 1.0) * tau
             for i in range(n):
                 rel = (zb[i] - p_mid) * back
                 ux, uy, uz = _flow_at(rel.real, rel.imag, vb.real, vb.imag, flat, gx, gy, dgx, dgy,
                                       points, forces, eps, viscosity, height)
-                # eq 4 mobility at the gap the sub-step starts from, capped at the free-sphere limit 1
-                k_now = k_contact if gb[i] <= 0 else _paper_mobility(radius, gb[i], roughness)
-                zb[i] += min(k_now * mult[b, i], 1.0) * (complex(ux, uy) * turn[b]) * tau
+                settle = held_rate if gb[i] <= adhesion_range else sink_rate
+                # mobility (eq 4) and gap rate (eq 8-9) at the gap the sub-step starts from
                 if paper_mode:
-                    rate = uz - (held_rate if gb[i] <= adhesion_range else sink_rate)
-                else:   # accurate mode, sphere on the glass: (g U_z − settling) / λ at δ = 0
-                    rate = (flow_push_contact * uz - (held_rate if gb[i] <= adhesion_range else sink_rate)) \
-                        * inv_lambda_contact
+                    k_now = k_contact if gb[i] <= 0 else _paper_mobility(radius, gb[i], roughness)
+                    rate = uz - settle
+                elif gb[i] <= 0:    # accurate mode on the glass: (g U_z − settling) / λ at δ = 0
+                    k_now = k_contact
+                    rate = (flow_push_contact * uz - settle) * inv_lambda_contact
+                else:               # accurate mode, lifted: the tabulated functions at (δ + ε)/R
+                    k_now, lam, push = accurate_state(radius, gb[i], roughness, table, scratch)
+                    rate = (push * uz - settle) * (1.0 / lam)
+                # capped at the free-sphere limit 1
+                zb[i] += min(k_now * mult[b, i], 1.0) * (complex(ux, uy) * turn[b]) * tau
                 gb[i] = max(gb[i] + rate * tau, 0.0)
-                if gb[i] > 0 and not paper_mode:
-                    handled = False
-                    break
-            if not handled:
-                break
             for i in range(n):
                 d = zb[i] - p_end
                 if abs(d) >= reach:
@@ -252,11 +317,8 @@ def sphere_frame(z, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dg
                     touched = True
             if n > 1:
                 _separate(zb, radius, 3)
-        if handled:
-            for i in range(n):
-                z[b, i] = zb[i]
-                gap[b, i] = gb[i]
-            contact[b] = touched
-        else:
-            ok[b] = False
-    return contact, ok
+        for i in range(n):
+            z[b, i] = zb[i]
+            gap[b, i] = gb[i]
+        contact[b] = touched
+    return contact

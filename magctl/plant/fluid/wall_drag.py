@@ -22,8 +22,10 @@ paper's assumption behind eq 4).
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
+from numba.extending import register_jitable
 from scipy.interpolate import CubicSpline
 
 from magctl.config import load_model, models_dir
@@ -100,24 +102,39 @@ SHEAR_CONTACT = (1.700618, 0.943987)
 _CB_NORMAL = 0.971264
 
 
+@register_jitable
+def _series(c, d, lg):
+    """``l0 ln δ + c0 + δ (l1 ln δ + c1)`` for ``c = ((l0, c0), (l1, c1))``."""
+    (l0, c0), (l1, c1) = c
+    return l0 * lg + c0 + d * (l1 * lg + c1)
+
+
+@register_jitable
+def near_contact_terms(d):
+    """The gap-dependent near-contact expansions at δ/a = ``d`` (array or float; compiled unchanged
+    into :mod:`magctl.plant.sphere_kernel`): ``(f_t, f_r, t_t, t_r, λ)``.
+
+    ``f_t, t_t, t_r`` to O(δ) with the O(δ ln δ) terms (Chaoui & Feuillebois 2003, Tables 11, 13),
+    ``f_r = (4/3) t_t`` by reciprocity (Goldman, Cox & Brenner 1967a, eq 3.12), Brenner's normal
+    drag factor ``λ = 1/δ − (1/5) ln δ + 0.971264`` (Cox & Brenner 1967). The shear-flow ``f_s, t_s``
+    and the wall-flow ``g`` are their contact values :data:`SHEAR_CONTACT`, :data:`STAGNATION_CONTACT`.
+    """
+    lg = np.log(d)
+    t_t = _series(_CF_TT, d, lg)
+    return (-_series(_CF_FT, d, lg), 4.0 / 3.0 * t_t, t_t, -_series(_CF_TR, d, lg),
+            1.0 / d - 0.2 * lg + _CB_NORMAL)
+
+
 def lubrication_coefficients(gap_ratio):
     """Near-contact expansions ``(f_t, f_r, t_t, t_r, f_s, t_s)`` at δ/a ≪ 1.
 
     ``f_t, t_t, t_r`` to O(δ) with the O(δ ln δ) terms (Chaoui & Feuillebois 2003, Tables 11,
     13; error < 1e-8 at δ/a = 1e-5), ``f_r = (4/3) t_t`` by reciprocity (Goldman, Cox & Brenner
-    1967a, eq 3.12), ``f_s, t_s`` their contact values (error O(δ)).
+    1967a, eq 3.12), ``f_s, t_s`` their contact values (error O(δ)); :func:`near_contact_terms`.
     """
     d = np.asarray(gap_ratio, float)
-    lg = np.log(d)
-
-    def series(c):
-        (l0, c0), (l1, c1) = c
-        return l0 * lg + c0 + d * (l1 * lg + c1)
-
-    f_t = -series(_CF_FT)
-    t_t = series(_CF_TT)
-    return (f_t, 4.0 / 3.0 * t_t, t_t, -series(_CF_TR),
-            np.full_like(d, SHEAR_CONTACT[0]), np.full_like(d, SHEAR_CONTACT[1]))
+    f_t, f_r, t_t, t_r, _ = near_contact_terms(d)
+    return f_t, f_r, t_t, t_r, np.full_like(d, SHEAR_CONTACT[0]), np.full_like(d, SHEAR_CONTACT[1])
 
 
 # force on a sphere held fixed in the wall flow u_z = A z² at contact, over 6πμa A h² (the exact
@@ -127,31 +144,46 @@ STAGNATION_CONTACT = 3.229332
 
 def lubrication_normal(gap_ratio):
     """Brenner's λ near contact: ``1/δ − (1/5) ln δ + 0.971264`` (Cox & Brenner 1967), and the
-    stagnation-flow force factor ``g`` at its contact value (error O(δ))."""
+    stagnation-flow force factor ``g`` at its contact value (error O(δ)); :func:`near_contact_terms`."""
     d = np.asarray(gap_ratio, float)
-    return 1.0 / d - 0.2 * np.log(d) + _CB_NORMAL, np.full_like(d, STAGNATION_CONTACT)
+    return near_contact_terms(d)[4], np.full_like(d, STAGNATION_CONTACT)
 
 
-def far_coefficients(gap_ratio):
-    """Method-of-reflections far field ``(f_t, f_r, t_t, t_r, f_s, t_s)`` in λ = a/h.
+@register_jitable
+def far_field_terms(d):
+    """The method-of-reflections far field at δ/a = ``d`` (array or float; compiled unchanged into
+    :mod:`magctl.plant.sphere_kernel`), in λ = a/h: ``(f_t, f_r, t_t, t_r, f_s, t_s, λ_n, g)``.
 
     Faxén's ``f_t = −1/(1 − 9/16 λ + 1/8 λ³ − 45/256 λ⁴ − 1/16 λ⁵)``; Goldman, Cox & Brenner
     (1967a, eq 2.64 and 3.8) ``t_t = (3/32) λ⁴ (1 − 3/8 λ)``, ``f_r = (4/3) t_t``,
-    ``t_r = −(1 + 5/16 λ³)``; (1967b) ``f_s = 1 + 9/16 λ``, ``t_s = 1 − 3/16 λ³``.
+    ``t_r = −(1 + 5/16 λ³)``; (1967b) ``f_s = 1 + 9/16 λ``, ``t_s = 1 − 3/16 λ³``; Brenner's normal
+    drag factor by reflections (Lorentz, Faxén) ``λ_n = 1/(1 − 9/8 λ + 1/2 λ³)`` and the stagnation-flow
+    factor ``g = λ_n (1 + λ²/3)`` (Faxén's Laplacian term). Powers as products, so that arrays and
+    the compiled scalars take the same operations.
     """
-    lam = 1.0 / (1.0 + np.asarray(gap_ratio, float))
-    f_t = -1.0 / (1 - 9 / 16 * lam + lam**3 / 8 - 45 / 256 * lam**4 - lam**5 / 16)
-    t_t = 3 / 32 * lam**4 * (1 - 3 / 8 * lam)
-    return f_t, 4.0 / 3.0 * t_t, t_t, -(1 + 5 / 16 * lam**3), 1 + 9 / 16 * lam, 1 - 3 / 16 * lam**3
+    lam = 1.0 / (1.0 + d)
+    lam2 = lam * lam
+    lam3 = lam2 * lam
+    lam4 = lam3 * lam
+    lam5 = lam4 * lam
+    f_t = -1.0 / (1 - 9 / 16 * lam + lam3 / 8 - 45 / 256 * lam4 - lam5 / 16)
+    t_t = 3 / 32 * lam4 * (1 - 3 / 8 * lam)
+    drag = 1.0 / (1 - 9 / 8 * lam + lam3 / 2)
+    return (f_t, 4.0 / 3.0 * t_t, t_t, -(1 + 5 / 16 * lam3), 1 + 9 / 16 * lam, 1 - 3 / 16 * lam3,
+            drag, drag * (1 + lam2 / 3))
+
+
+def far_coefficients(gap_ratio):
+    """Method-of-reflections far field ``(f_t, f_r, t_t, t_r, f_s, t_s)`` in λ = a/h
+    (:func:`far_field_terms`: Faxén; Goldman, Cox & Brenner 1967a,b)."""
+    return far_field_terms(np.asarray(gap_ratio, float))[:6]
 
 
 def far_normal(gap_ratio):
     """Normal motion far from the wall, in λ = a/h: Brenner's drag factor by reflections (Lorentz,
     Faxén) ``1/(1 − 9/8 λ + 1/2 λ³)``, and the stagnation-flow factor ``g`` = that factor times Faxén's
-    ``1 + λ²/3`` (the ambient flow's Laplacian term)."""
-    lam = 1.0 / (1.0 + np.asarray(gap_ratio, float))
-    drag = 1.0 / (1 - 9 / 8 * lam + lam**3 / 2)
-    return drag, drag * (1 + lam**2 / 3)
+    ``1 + λ²/3`` (the ambient flow's Laplacian term); :func:`far_field_terms`."""
+    return far_field_terms(np.asarray(gap_ratio, float))[6:]
 
 
 def tabulate_exact(path=None, points_per_decade: int = _POINTS_PER_DECADE):
@@ -196,10 +228,26 @@ def tabulate_exact(path=None, points_per_decade: int = _POINTS_PER_DECADE):
     return grid, values
 
 
+class WallTable(NamedTuple):
+    """The accurate mode's functions as plain arrays: on ``knots[i] ≤ x < knots[i+1]``
+    (x = ln δ/a, clipped to the table) ``ln|f_j| = c_j3 + c_j2 s + c_j1 s² + c_j0 s³`` with
+    ``s = x − knots[i]`` and ``coef[j, i] = (c_j0, c_j1, c_j2, c_j3)`` (scipy's ``PPoly`` layout),
+    ``f_j = signs[j] e^{ln|f_j|}``; below ``near_hi`` blended with the expansions from ``near_lo``,
+    above ``far_lo`` with the reflections up to ``far_hi`` (ln δ/a)."""
+
+    knots: np.ndarray
+    coef: np.ndarray
+    signs: np.ndarray
+    near_lo: float
+    near_hi: float
+    far_lo: float
+    far_hi: float
+
+
 @lru_cache(maxsize=1)
 def _table():
-    """One cubic spline of ln|f| against ln(δ/a) for the eight tabulated functions, their signs and
-    the ln δ/a ends of the two blends."""
+    """One cubic spline of ln|f| against ln(δ/a) for the eight tabulated functions, and the same
+    spline as the arrays of :class:`WallTable`."""
     t = load_model("wall_resistance").table
     x = np.log(np.asarray(t.gap, float))
     rows = []
@@ -212,36 +260,55 @@ def _table():
         rows.append(np.log(sign * y))
         signs.append(sign)
     spline = CubicSpline(x, np.array(rows).T)
-    return spline, np.array(signs)[:, None], (x[0], x[0] + np.log(2.0)), (x[-1] - np.log(1.5), x[-1])
+    table = WallTable(np.ascontiguousarray(spline.x), np.ascontiguousarray(spline.c.transpose(2, 1, 0)),
+                      np.array(signs), float(x[0]), float(x[0] + np.log(2.0)), float(x[-1] - np.log(1.5)),
+                      float(x[-1]))
+    for a in (table.knots, table.coef, table.signs):
+        a.flags.writeable = False
+    return spline, table
 
 
-def _smoothstep(x, a, b):
-    s = np.clip((x - a) / (b - a), 0.0, 1.0)
+def wall_table() -> WallTable:
+    """The accurate mode's spline and blend bounds as arrays (``models/wall_resistance.toml``, read
+    once), for the compiled frame (:mod:`magctl.plant.sphere_kernel`)."""
+    return _table()[1]
+
+
+@register_jitable
+def smoothstep(x, a, b):
+    """Cubic smoothstep ``3s² − 2s³`` of ``s = (x − a)/(b − a)`` clipped to [0, 1] (array or float)."""
+    s = np.minimum(np.maximum((x - a) / (b - a), 0.0), 1.0)
     return s * s * (3 - 2 * s)
+
+
+@register_jitable
+def blend(w, edge, table):
+    """``w · edge + (1 − w) · table``: the joint of the table with an expansion (array or float)."""
+    return w * edge + (1 - w) * table
 
 
 def _evaluate(gap_ratio):
     """The eight functions ``(8, …)`` at δ/a: table, blended with the expansions below and the
-    reflections above it (evaluated only where a gap falls in a blend)."""
+    reflections above it (evaluated only where a gap falls in a blend). The compiled frame takes
+    the same steps per gap (``sphere_kernel.wall_functions``)."""
     d = np.asarray(gap_ratio, float)
     if np.any(~(d > 0)):
         raise ValueError("gap ratio delta/a must be > 0 (add the roughness to the gap)")
     flat = d.reshape(-1)
     lx = np.log(flat)
-    spline, signs, (n0, n1), (f0, f1) = _table()
-    out = signs * np.exp(spline(np.clip(lx, n0, f1)).T)
-    low = lx < n1
+    spline, table = _table()
+    out = table.signs[:, None] * np.exp(spline(np.clip(lx, table.near_lo, table.far_hi)).T)
+    low = lx < table.near_hi
     if low.any():
         dl = flat[low]
         near = np.array([*lubrication_coefficients(dl), *lubrication_normal(dl)])
-        w = 1.0 - _smoothstep(lx[low], n0, n1)
-        out[:, low] = w * near + (1 - w) * out[:, low]
-    high = lx > f0
+        w = 1.0 - smoothstep(lx[low], table.near_lo, table.near_hi)
+        out[:, low] = blend(w, near, out[:, low])
+    high = lx > table.far_lo
     if high.any():
-        dh = flat[high]
-        far = np.array([*far_coefficients(dh), *far_normal(dh)])
-        w = _smoothstep(lx[high], f0, f1)
-        out[:, high] = w * far + (1 - w) * out[:, high]
+        far = np.array(far_field_terms(flat[high]))
+        w = smoothstep(lx[high], table.far_lo, table.far_hi)
+        out[:, high] = blend(w, far, out[:, high])
     return out.reshape((len(_NAMES),) + d.shape)
 
 

@@ -7,11 +7,16 @@ import dataclasses
 import numpy as np
 import pytest
 
+import magctl.loops
+from magctl.plant.fluid import wall_drag
 from magctl.plant.fluid.bispherical import stagnation_flow
 from magctl.plant.fluid.params import sphere_params
 from magctl.plant.sphere import Spheres
+from magctl.plant.sphere_kernel import accurate_state, wall_functions
+from magctl.studies.release_calibration import in_task_release
 
 UM = 1e-6
+MODES = ("paper", "accurate")
 
 
 def _random_frame(block: Spheres, batch: int, seed: int, spread: float = 1.0e-3):
@@ -33,58 +38,133 @@ def _random_frame(block: Spheres, batch: int, seed: int, spread: float = 1.0e-3)
     return state, u
 
 
-@pytest.mark.parametrize("n_spheres", [1, 3])
-def test_compiled_frame_matches_the_array_form(n_spheres):
-    """Same frame, same numbers: positions to 1e-15 m, gaps to 1e-18 m, identical contact flags,
-    over trials that push, lift, collide and turn."""
-    block = Spheres(np.zeros((n_spheres, 2)))
-    state, u = _random_frame(block, 400, seed=n_spheres)
+def _both_forms(block: Spheres, state, u):
+    """One frame by the array form and by the compiled frame, from copies of the same state."""
     reference = block._update_arrays({k: v.copy() for k, v in state.items()}, u)
-    compiled, covered = block.compiled_frame({k: v.copy() for k, v in state.items()}, u)
-    assert covered.mean() > 0.95                 # the kernel did the work, not the fallback
-    assert reference["contact"][covered].mean() > 0.3
-    assert (reference["gap"][covered] > 0).any()
-    np.testing.assert_allclose(compiled["xy"][covered], reference["xy"][covered], rtol=0, atol=1e-15)
-    np.testing.assert_allclose(compiled["gap"][covered], reference["gap"][covered], rtol=0, atol=1e-18)
-    np.testing.assert_array_equal(compiled["contact"][covered], reference["contact"][covered])
-    # and the block's own update (kernel plus fallback) equals the array form on every trial
+    compiled = block.compiled_frame({k: v.copy() for k, v in state.items()}, u)
+    return reference, compiled
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("n_spheres", [1, 3])
+def test_compiled_frame_matches_the_array_form(mode, n_spheres):
+    """Same frame, same numbers in either drag mode: positions to 1e-15 m, gaps to 1e-18 m,
+    identical contact flags, over trials that push, lift, collide and turn — lifted spheres
+    included (the accurate mode's tabulated functions are compiled too)."""
+    block = Spheres(np.zeros((n_spheres, 2)), drag_mode=mode)
+    state, u = _random_frame(block, 400, seed=n_spheres)
+    reference, compiled = _both_forms(block, state, u)
+    assert reference["contact"].mean() > 0.3
+    assert (state["gap"] > 0).sum() > 50 and (reference["gap"] > 0).sum() > 20    # lifted, before and after
+    np.testing.assert_allclose(compiled["xy"], reference["xy"], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(compiled["gap"], reference["gap"], rtol=0, atol=1e-18)
+    np.testing.assert_array_equal(compiled["contact"], reference["contact"])
+    # the block's own update is the compiled frame
     full = block.update({k: v.copy() for k, v in state.items()}, u)
-    np.testing.assert_allclose(full["xy"], reference["xy"], rtol=0, atol=1e-15)
-    np.testing.assert_array_equal(full["contact"], reference["contact"])
+    np.testing.assert_array_equal(full["xy"], compiled["xy"])
+    np.testing.assert_array_equal(full["gap"], compiled["gap"])
 
 
-def test_spheres_off_the_map_are_summed_directly():
+@pytest.mark.parametrize("mode", MODES)
+def test_spheres_off_the_map_are_summed_directly(mode):
     """Beyond the 1.5 mm flow map the kernel sums the Stokeslets as the array form does, and the
-    flow it finds there still moves the sphere."""
-    block = Spheres(np.zeros((2, 2)))
+    flow it finds there still moves the sphere, lifted or not."""
+    block = Spheres(np.zeros((2, 2)), drag_mode=mode)
     state, u = _random_frame(block, 40, seed=5, spread=4e-3)
     off_map = (np.abs(state["xy"] - u["position"][:, None]).max(axis=-1) > 1.6e-3).any(axis=1)
-    assert off_map.sum() > 20
-    reference = block._update_arrays({k: v.copy() for k, v in state.items()}, u)
-    compiled, covered = block.compiled_frame({k: v.copy() for k, v in state.items()}, u)
-    assert covered.all()
+    assert off_map.sum() > 20 and (state["gap"][off_map] > 0).any()
+    reference, compiled = _both_forms(block, state, u)
     np.testing.assert_allclose(compiled["xy"], reference["xy"], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(compiled["gap"], reference["gap"], rtol=0, atol=1e-18)
     moved = np.abs(compiled["xy"] - state["xy"]).max(axis=(1, 2))
     assert (moved[off_map] > 1e-12).all()
 
 
-def test_kernel_hands_back_lifted_spheres_in_the_accurate_mode():
-    """The accurate drag mode's tabulated mobility is not compiled: a trial with a lifted sphere is
-    left for the array form (its row returned untouched) and the block's update still gives the
-    array form's numbers."""
-    block = Spheres(np.zeros((1, 2)), drag_mode="accurate")
-    state, u = _random_frame(block, 3, seed=7, spread=3e-4)
-    u["velocity"] *= 0.05           # a slow robot: its flow lifts no sphere off the glass in this frame
-    state["gap"][:] = 0.0
-    state["gap"][1] = 1e-7
-    before = state["xy"].copy()
-    new, covered = block.compiled_frame(state, u)
-    assert covered.tolist() == [True, False, True]
-    np.testing.assert_array_equal(new["xy"][1], before[1])
-    full = block.update(state, u)
-    reference = block._update_arrays(state, u)
-    np.testing.assert_array_equal(full["xy"][1], reference["xy"][1])
-    np.testing.assert_allclose(full["xy"], reference["xy"], rtol=0, atol=1e-15)
+def test_lifted_spheres_over_many_frames_in_the_accurate_mode():
+    """Spheres lifted from the glass to a radius and more, driven for 20 frames in the accurate mode:
+    every frame of the compiled form follows the array form to 1e-15 m, while the gaps cross the
+    table's whole range and the lower and upper blends (δ/a from below 2e-6 to above 67; a roughness
+    ε of 10 pm lets the gap reach the near-contact expansions)."""
+    block = Spheres(np.zeros((3, 2)), drag_mode="accurate", roughness=1e-11)
+    state, u = _random_frame(block, 60, seed=17)
+    rng = np.random.default_rng(17)
+    ratio = rng.permutation(np.geomspace(2e-7, 300.0, state["gap"].size)).reshape(state["gap"].shape)
+    state["gap"] = ratio * block.radius - block.roughness
+    ratio = (state["gap"] + block.roughness) / block.radius
+    assert (ratio < 2e-6).sum() > 5 and (ratio > 67).sum() > 5
+    ref, comp = state, {k: v.copy() for k, v in state.items()}
+    for _ in range(20):
+        ref = block._update_arrays(ref, u)
+        comp = block.compiled_frame(comp, u)
+        np.testing.assert_allclose(comp["xy"], ref["xy"], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(comp["gap"], ref["gap"], rtol=1e-14, atol=1e-18)
+        np.testing.assert_array_equal(comp["contact"], ref["contact"])
+    assert (np.abs(ref["xy"] - state["xy"]) > 1e-7).any()
+
+
+# Brenner (1961), Table 1: λ at h/a = cosh α; Goldman, Cox & Brenner (1967b): F*_s (= f_s) at h/a
+BRENNER_NORMAL = [(np.cosh(0.5), 9.2517663), (np.cosh(1.0), 3.0360641), (np.cosh(3.0), 1.1252465)]
+GCB_SHEAR = [(3.7622, 1.1671), (1.5431, 1.4391), (1.1276, 1.6160), (1.005004, 1.6969)]
+
+
+def test_compiled_wall_functions_equal_the_array_form():
+    """The compiled accurate-mode functions against ``wall_drag`` at 2001 gaps 1e-4 ≤ δ/a ≤ 100
+    (and 1e-8 … 1e4, through both blends and beyond the table) to 1e-12 relative, the free-sphere
+    mobility and the vertical factors λ, g with them; and against published values: Brenner's
+    (1961) λ and Goldman, Cox & Brenner's (1967b) shear force."""
+    table = tuple(wall_drag.wall_table())
+    out = np.empty(8)
+
+    def compiled(d):
+        got = np.empty((8, len(d)))
+        for m, x in enumerate(d):
+            wall_functions(x, table, out)
+            got[:, m] = out
+        return got
+
+    d = np.concatenate([np.geomspace(1e-4, 100.0, 2001), np.geomspace(1e-8, 1e4, 301)])
+    got = compiled(d)
+    want = np.array([*wall_drag.accurate_coefficients(d), wall_drag.normal_resistance(d),
+                     wall_drag.stagnation_factor(d)])
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
+    radius, eps = 105e-6, 25e-9
+    gaps = radius * d[:2001]
+    state = np.array([accurate_state(radius, g, eps, table, out) for g in gaps])
+    lam, g_stag = wall_drag.normal_factors("accurate", radius, gaps, eps)
+    np.testing.assert_allclose(state[:, 0], wall_drag.accurate_mobility(radius, gaps, eps), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(state[:, 1], lam, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(state[:, 2], g_stag, rtol=1e-12, atol=0)
+    for h, lam_brenner in BRENNER_NORMAL:
+        np.testing.assert_allclose(compiled([h - 1.0])[6, 0], lam_brenner, rtol=1e-6)
+    for h, f_s in GCB_SHEAR:
+        np.testing.assert_allclose(compiled([h - 1.0])[4, 0], f_s, atol=1.5e-4)
+
+
+def test_closed_loop_release_identical_in_both_forms(monkeypatch):
+    """Eight closed-loop front pushes in the accurate drag mode at the calibrated roughness
+    (ε = 15.86 µm), where spheres lift near the robot in many frames: the compiled frame and the
+    array form give the same pull-back, overshoot, stop gap and retract per trial to 1e-12 m."""
+    accurate = dataclasses.replace(sphere_params(), drag_mode="accurate")
+    monkeypatch.setattr(magctl.loops, "sphere_params", lambda: accurate)
+    lifted = []
+    compiled_update = Spheres.update
+
+    def counted(self, state, u):
+        lifted.append(bool((state["gap"] > 0).any()))
+        return compiled_update(self, state, u)
+
+    monkeypatch.setattr(Spheres, "update", counted)
+    fast = in_task_release(15.86e-6, trials=8)
+    assert sum(lifted) > 50                     # frames with a lifted sphere, all compiled
+    monkeypatch.setattr(Spheres, "update", Spheres._update_arrays)
+    slow = in_task_release(15.86e-6, trials=8)
+    for name in ("pull_back", "overshoot", "stop_gap", "retract"):
+        np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=0, atol=1e-12)
+    # the accurate mode with its exact vertical law releases differently from the paper mode
+    monkeypatch.setattr(magctl.loops, "sphere_params", sphere_params)
+    monkeypatch.setattr(Spheres, "update", compiled_update)
+    paper = in_task_release(15.86e-6, trials=8)
+    assert np.abs(paper.pull_back - fast.pull_back).max() > 1e-6
 
 
 def test_kernel_uses_the_adhesion_and_substeps_of_the_parameters():
@@ -92,15 +172,13 @@ def test_kernel_uses_the_adhesion_and_substeps_of_the_parameters():
     the sub-step count changes the path exactly as it does in the array form."""
     plain = Spheres(np.zeros((1, 2)))
     state, u = _random_frame(plain, 200, seed=11)
-    default = plain.compiled_frame({k: v.copy() for k, v in state.items()}, u)[0]
+    default = plain.compiled_frame({k: v.copy() for k, v in state.items()}, u)
     for params in (dataclasses.replace(sphere_params(), adhesion=True),
                    dataclasses.replace(sphere_params(), substeps=7)):
         block = Spheres(np.zeros((1, 2)), params=params)
-        reference = block._update_arrays({k: v.copy() for k, v in state.items()}, u)
-        compiled, covered = block.compiled_frame({k: v.copy() for k, v in state.items()}, u)
-        assert covered.mean() > 0.95
-        np.testing.assert_allclose(compiled["xy"][covered], reference["xy"][covered], rtol=0, atol=1e-15)
-        np.testing.assert_allclose(compiled["gap"][covered], reference["gap"][covered], rtol=0, atol=1e-18)
+        reference, compiled = _both_forms(block, state, u)
+        np.testing.assert_allclose(compiled["xy"], reference["xy"], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(compiled["gap"], reference["gap"], rtol=0, atol=1e-18)
         if params.adhesion:     # P keeps most spheres the flow lifts without it on the glass
             assert (compiled["gap"] > 0).sum() < 0.5 * (default["gap"] > 0).sum()
         else:
@@ -108,20 +186,18 @@ def test_kernel_uses_the_adhesion_and_substeps_of_the_parameters():
 
 
 def test_accurate_mode_vertical_law_same_in_kernel_and_arrays():
-    """The accurate mode's gap balance is (g U_z − settling)/λ at (δ + ε)/R: the kernel (spheres on the
-    glass) and the array form give the same numbers; on the glass λ(ε/R) = 1/δ* − ln(δ*)/5 + 0.971
+    """The accurate mode's gap balance is (g U_z − settling)/λ at (δ + ε)/R: from spheres all on the
+    glass, some of which the flow lifts within the frame, the kernel and the array form give the same
+    numbers; on the glass λ(ε/R) = 1/δ* − ln(δ*)/5 + 0.971
     (Cox & Brenner 1967), about 4200 at ε = 25 nm, and g is the exact stagnation-flow series."""
     paper = Spheres(np.zeros((2, 2)))
     accurate = Spheres(np.zeros((2, 2)), drag_mode="accurate")
     state, u = _random_frame(accurate, 300, seed=13)
     state["gap"][:] = 0.0
-    reference = accurate._update_arrays({k: v.copy() for k, v in state.items()}, u)
-    compiled, covered = accurate.compiled_frame({k: v.copy() for k, v in state.items()}, u)
-    assert covered.mean() > 0.5 and (~covered).any()      # some trials lift a sphere and go back
-    np.testing.assert_allclose(compiled["xy"][covered], reference["xy"][covered], rtol=0, atol=1e-15)
-    np.testing.assert_allclose(compiled["gap"][covered], reference["gap"][covered], rtol=0, atol=1e-18)
-    full = accurate.update({k: v.copy() for k, v in state.items()}, u)
-    np.testing.assert_allclose(full["gap"], reference["gap"], rtol=0, atol=1e-18)
+    reference, compiled = _both_forms(accurate, state, u)
+    assert (reference["gap"] > 0).any()                   # the flow lifts some spheres in the frame
+    np.testing.assert_allclose(compiled["xy"], reference["xy"], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(compiled["gap"], reference["gap"], rtol=0, atol=1e-18)
     # the rate itself: eq 9 as printed in the paper mode, (g U_z − W_b/ζ)/λ in the accurate mode
     uz = np.array([[1e-3, -1e-3]])
     sink = accurate.buoyant_weight / accurate.zeta
