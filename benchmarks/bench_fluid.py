@@ -2,6 +2,10 @@
 
 Targets (issue 4): the Fig 6 curve with >= 20 gaps from a cold start in <= 2 s;
 flow evaluation per trial-step inside a batched simulation in <= 5 us.
+
+Also the cost of one sphere frame (``Spheres.update``) at B = 1 and B = 100 in both drag modes,
+compiled frame against the array form, on frames where half the spheres are lifted off the glass
+(as near the robot in the accurate mode's closed loop).
 """
 
 from __future__ import annotations
@@ -16,6 +20,49 @@ from magctl.plant.sphere import Spheres
 
 COLD_TARGET_S = 2.0
 EVAL_TARGET_US = 5.0
+
+
+def _frame_inputs(block: Spheres, batch: int, seed: int = 0):
+    """Sphere states round a robot pushing at 0.4 mm/s: one sphere per trial in front of it (in
+    and beside the notch), one further out; half of them lifted 1 nm – 10 µm off the glass."""
+    rng = np.random.default_rng(seed)
+    state = block.initial_state(batch)
+    front = np.column_stack([rng.uniform(-150e-6, 150e-6, batch), rng.uniform(230e-6, 400e-6, batch)])
+    state["xy"] = np.stack([front, rng.uniform(-1.2e-3, 1.2e-3, (batch, 2))], axis=1)
+    lifted = rng.random((batch, 2)) < 0.5
+    state["gap"] = np.where(lifted, np.exp(rng.uniform(np.log(1e-9), np.log(1e-5), (batch, 2))), 0.0)
+    u = {"position": np.zeros((batch, 2)), "heading": np.full(batch, np.pi / 2),
+         "velocity": np.tile([0.0, 4e-4], (batch, 1))}
+    return state, u
+
+
+def sphere_frame_cost(quick: bool = False, repeats: int = 3) -> dict:
+    """µs per ``Spheres.update`` frame (best of ``repeats`` runs of ``frames`` chained frames), two
+    spheres per trial, for B = 1 and 100, drag modes ``paper`` and ``accurate``, compiled and array forms."""
+    frames = 10 if quick else 30
+    out: dict = {"frames": frames, "spheres_per_trial": 2, "lifted_fraction_at_start": 0.5}
+    for mode in ("paper", "accurate"):
+        block = Spheres(np.zeros((2, 2)), drag_mode=mode)
+        state, u = _frame_inputs(block, 100)
+        lifted = []
+        for _ in range(frames):
+            lifted.append(float((state["gap"] > 0).mean()))
+            state = block.update(state, u)
+        out[f"{mode}_lifted_fraction_mean"] = float(np.mean(lifted))
+        for form in ("compiled", "array"):
+            block = Spheres(np.zeros((2, 2)), drag_mode=mode, compiled=form == "compiled")
+            block.prepare()
+            for batch in (1, 100):
+                start, u = _frame_inputs(block, batch)
+                best = np.inf
+                for _ in range(repeats):
+                    state = {k: v.copy() for k, v in start.items()}
+                    t0 = time.perf_counter()
+                    for _ in range(frames):
+                        state = block.update(state, u)
+                    best = min(best, time.perf_counter() - t0)
+                out[f"{mode}_{form}_B{batch}_us_per_frame"] = best / frames * 1e6
+    return out
 
 
 def run(quick: bool = False) -> dict:
@@ -64,4 +111,5 @@ def run(quick: bool = False) -> dict:
         "block_update_us_per_trial_step": update_us,
         "substeps_per_frame": block.params.substeps,
         "surface_points": len(flow.points), "map_nodes": int(flow.maps.shape[1] * flow.maps.shape[2]),
+        "sphere_frame": sphere_frame_cost(quick),
     }
