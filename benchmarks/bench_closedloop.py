@@ -7,15 +7,28 @@ a side push, from the start of a trial. Speed = (batch × simulated seconds) / w
 ``output`` + ``update`` (or ``step``, which feedthrough blocks get once per frame) per step at B = 100
 and B = 1, to show where the time goes, and a front push at B = 1000 shows how the lockstep batch
 scales (informational, no target).
+
+``drag_modes`` runs the first attempt of the front push at the calibrated ε
+(:func:`magctl.studies.release_calibration.in_task_release`) in the ``paper`` and ``accurate`` drag
+modes with the compiled sphere frame and with the array form: the accurate mode lifts spheres near the
+robot in many frames, and the loop should cost what the paper mode's does.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from unittest import mock
 
+import numpy as np
+
+import magctl.loops
 from magctl import FRAME_PERIOD_S
 from magctl.core import simulate
 from magctl.loops import Experiment, push_loop
+from magctl.plant.fluid.params import sphere_params
+from magctl.plant.sphere import Spheres
+from magctl.studies.release_calibration import FIRST_ATTEMPT_FRAMES, in_task_release
 
 BATCH = 100
 SPEED_TARGET = 5000.0
@@ -73,6 +86,45 @@ def _per_block(exp: Experiment, frames: int, batch: int) -> dict[str, float]:
     return table
 
 
+def drag_modes(quick: bool = False, roughness: float = 15.86e-6, repeats: int = 2) -> dict:
+    """ms per frame of the whole loop and µs per frame of the Spheres block in the first attempt of
+    the front push (``in_task_release``, ``FIRST_ATTEMPT_FRAMES`` frames), per drag mode, frame form
+    (compiled / array) and batch, best of ``repeats``; and how many frames held a lifted sphere. The
+    drag mode is switched in the loop's sphere parameters, the form by the Spheres block's ``update``."""
+    inner = {"compiled": Spheres.update, "array": Spheres._update_arrays}
+    out: dict = {"roughness_m": roughness, "frames": FIRST_ATTEMPT_FRAMES}
+    for mode in ("paper", "accurate"):
+        params = dataclasses.replace(sphere_params(), drag_mode=mode)
+        for form, update in inner.items():
+            spent: list[float] = []
+            lifted: list[bool] = []
+
+            def timed(self, state, u, _update=update, _spent=spent, _lifted=lifted):
+                _lifted.append(bool((state["gap"] > 0).any()))
+                t0 = time.perf_counter()
+                new = _update(self, state, u)
+                _spent.append(time.perf_counter() - t0)
+                return new
+
+            with mock.patch.object(magctl.loops, "sphere_params", lambda _p=params: _p), \
+                    mock.patch.object(Spheres, "update", timed):
+                in_task_release(roughness, trials=1)          # flow map and kernel, not timed
+                for batch in ((1, 16) if quick else (1, 16, 100)):
+                    loop, block = np.inf, np.inf
+                    for _ in range(1 if quick else repeats):
+                        spent.clear()
+                        lifted.clear()
+                        t0 = time.perf_counter()
+                        in_task_release(roughness, trials=batch)
+                        loop = min(loop, (time.perf_counter() - t0) / FIRST_ATTEMPT_FRAMES)
+                        block = min(block, sum(spent) / len(spent))
+                    key = f"{mode}_{form}_B{batch}"
+                    out[f"{key}_loop_ms_per_frame"] = 1e3 * loop
+                    out[f"{key}_spheres_us_per_frame"] = 1e6 * block
+                    out[f"{key}_frames_with_lifted_sphere"] = sum(lifted)
+    return out
+
+
 def run(quick: bool = False) -> dict:
     frames = 150 if quick else 600
     repeats = 1 if quick else 3
@@ -93,6 +145,7 @@ def run(quick: bool = False) -> dict:
     wall, speed = _speed(EXPERIMENTS["front"], frames // 2, big, 1)
     out["front_large_batch"] = {"batch": big, "step_ms": 2e3 * wall / frames, "speed_x": speed}
     out["speed_met"] = all(out[name]["speed_met"] for name in EXPERIMENTS)
+    out["drag_modes"] = drag_modes(quick)
     return out
 
 

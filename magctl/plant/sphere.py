@@ -46,7 +46,6 @@ from magctl.plant.sphere_kernel import sphere_frame
 InitialPositions = np.ndarray | Callable[[int, object], np.ndarray]
 
 
-
 def _rot(theta):
     c, s = np.cos(theta), np.sin(theta)
     return c, s
