@@ -40,7 +40,8 @@ def _common(p) -> None:
 def _context(args, name: str, cache: studies.TrialCache | None = None) -> studies.StudyContext:
     return studies.StudyContext(
         out=args.out / name, trials=args.trials, seed=args.seed, scheduler=args.scheduler,
-        workers=args.workers, quiet=args.quiet, fem=args.fem, trial_cache=cache if cache is not None else studies.TrialCache(),
+        workers=args.workers, quiet=args.quiet, fem=args.fem,
+        trial_cache=cache if cache is not None else studies.TrialCache(),
     )
 
 
