@@ -20,13 +20,17 @@ def register(sub) -> None:
     s = fs.add_parser("sidepush", help="sphere displacement D_s for side gaps D_g (Fig 6) and the eq 22 fit")
     s.add_argument("--gap-um", type=float, nargs="+", default=None, help="side gaps D_g in µm (default 200-650)")
     s.add_argument("--ds-um", type=float, default=None, help="also give the gap D_g for this desired D_s (eq 22)")
-    s.add_argument("--drag", choices=["paper", "accurate"], default="paper")
+    s.add_argument("--drag", choices=["paper", "accurate"], default=None,
+                   help="near-wall drag: the exact resistance ('accurate', models/sphere.toml's default) or eq 4-5 as "
+                        "printed ('paper')")
     s.add_argument("--roughness-nm", type=float, default=None, help="sphere-glass roughness ε (default 25 nm)")
     add_json(s)
     s.set_defaults(func=cmd_sidepush)
 
     r = fs.add_parser("release", help="release displacement D_p,r after a front push")
-    r.add_argument("--drag", choices=["paper", "accurate"], default="paper")
+    r.add_argument("--drag", choices=["paper", "accurate"], default=None,
+                   help="near-wall drag: the exact resistance ('accurate', models/sphere.toml's default) or eq 4-5 as "
+                        "printed ('paper')")
     r.add_argument("--roughness-nm", type=float, default=None, help="sphere-glass roughness ε (default 25 nm)")
     add_json(r)
     r.set_defaults(func=cmd_release)

@@ -161,7 +161,8 @@ def test_closed_loop_release_identical_in_both_forms(monkeypatch):
     for name in ("pull_back", "overshoot", "stop_gap", "retract"):
         np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=0, atol=1e-12)
     # the accurate mode with its exact vertical law releases differently from the paper mode
-    monkeypatch.setattr(magctl.loops, "sphere_params", sphere_params)
+    paper_mode = dataclasses.replace(sphere_params(), drag_mode="paper")
+    monkeypatch.setattr(magctl.loops, "sphere_params", lambda: paper_mode)
     monkeypatch.setattr(Spheres, "update", compiled_update)
     paper = in_task_release(15.86e-6, trials=8)
     assert np.abs(paper.pull_back - fast.pull_back).max() > 1e-6
@@ -170,11 +171,11 @@ def test_closed_loop_release_identical_in_both_forms(monkeypatch):
 def test_kernel_uses_the_adhesion_and_substeps_of_the_parameters():
     """A changed parameter set reaches the kernel: adhesion P holds a sphere the flow would lift, and
     the sub-step count changes the path exactly as it does in the array form."""
-    plain = Spheres(np.zeros((1, 2)))
+    base = dataclasses.replace(sphere_params(), drag_mode="paper")   # eq 9: the flow lifts freely
+    plain = Spheres(np.zeros((1, 2)), params=base)
     state, u = _random_frame(plain, 200, seed=11)
     default = plain.compiled_frame({k: v.copy() for k, v in state.items()}, u)
-    for params in (dataclasses.replace(sphere_params(), adhesion=True),
-                   dataclasses.replace(sphere_params(), substeps=7)):
+    for params in (dataclasses.replace(base, adhesion=True), dataclasses.replace(base, substeps=7)):
         block = Spheres(np.zeros((1, 2)), params=params)
         reference, compiled = _both_forms(block, state, u)
         np.testing.assert_allclose(compiled["xy"], reference["xy"], rtol=0, atol=1e-15)
@@ -190,7 +191,7 @@ def test_accurate_mode_vertical_law_same_in_kernel_and_arrays():
     glass, some of which the flow lifts within the frame, the kernel and the array form give the same
     numbers; on the glass λ(ε/R) = 1/δ* − ln(δ*)/5 + 0.971
     (Cox & Brenner 1967), about 4200 at ε = 25 nm, and g is the exact stagnation-flow series."""
-    paper = Spheres(np.zeros((2, 2)))
+    paper = Spheres(np.zeros((2, 2)), drag_mode="paper")
     accurate = Spheres(np.zeros((2, 2)), drag_mode="accurate")
     state, u = _random_frame(accurate, 300, seed=13)
     state["gap"][:] = 0.0
