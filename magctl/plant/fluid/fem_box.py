@@ -190,9 +190,9 @@ def box_mesh(geometry: RobotGeometry, domain: Domain, spec: MeshSpec = MeshSpec(
     map as :meth:`RobotGeometry.to_frame` (tilt about the resting edge, clearance above the glass).
     ``robot=False`` meshes the empty box (for checks).
     """
-    skfem, gmsh = require_fem()
     size, gap, far, grading = spec.resolved(geometry)
     (x0, x1), (y0, y1), (z0, z1) = _box_bounds(domain, robot_x)
+    skfem, gmsh = require_fem()
     if robot:
         corners = geometry.to_frame(np.array([[x, y, z] for x, y in geometry.outline
                                               for z in (0.0, geometry.thickness)]))
@@ -374,7 +374,7 @@ def evaluate(basis, coeffs: np.ndarray, points: np.ndarray) -> np.ndarray:
         ref = basis.mapping.invF(x[:, :, None], tind=c)
         vals = np.zeros((comp, ok.sum()))
         for k in range(basis.Nbfun):
-            phi = basis.elem.gbasis(basis.mapping, ref, k, tind=c)[0].value
+            phi = np.asarray(basis.elem.gbasis(basis.mapping, ref, k, tind=c)[0])
             vals += phi.reshape(comp, -1) * coeffs[basis.element_dofs[k, c]]
         out[:, ok] = vals
     return out.T if comp == 3 else out[0]
@@ -390,7 +390,8 @@ def solve_stokes(mesh: TetMesh, viscosity: float, dirichlet, pin_pressure: bool,
     viscosity : float
         μ [Pa·s].
     dirichlet : iterable of ``(face, {component: value})``
-        Prescribed velocity components (0, 1, 2 for x, y, z) [m/s] on the facets ``mesh.facets[face]``.
+        Prescribed velocity components (0, 1, 2 for x, y, z) [m/s] on the facets ``mesh.facets[face]``;
+        a value is a number or a function of the coordinates ``(3, n)`` of the degrees of freedom.
         Components not prescribed on a boundary have zero traction there (natural condition of
         the symmetric-gradient form): a face with only the normal component prescribed is a slip
         (symmetry) face, a face with nothing prescribed is traction-free.
@@ -427,7 +428,7 @@ def solve_stokes(mesh: TetMesh, viscosity: float, dirichlet, pin_pressure: bool,
         dofs = ub.get_dofs(mesh.facets[face])
         for c, val in comps.items():
             idx = dofs.all([COMPONENTS[c]])
-            x[idx] = val
+            x[idx] = val(ub.doflocs[:, idx]) if callable(val) else val
             fixed[idx] = True
     if pin_pressure:
         fixed[nu] = True
@@ -565,6 +566,14 @@ def _cache_key(*parts) -> str:
     return h.hexdigest()[:24]
 
 
+def map_key(geometry: RobotGeometry, viscosity: float, height: float, domain: Domain, gx, gy, spec: MeshSpec,
+            robot_x: float, outlet: str) -> str:
+    """Hash of every input of a box map (and :data:`CACHE_VERSION`): the name of its cache file."""
+    return _cache_key(CACHE_VERSION, geometry.key(), round(float(viscosity), 15), round(float(height), 12),
+                      domain.key(), np.asarray(gx, float), np.asarray(gy, float), spec.resolved(geometry),
+                      round(float(robot_x), 12), outlet)
+
+
 def box_flow_solution(geometry: RobotGeometry, viscosity: float, height: float, domain: Domain, gx, gy,
                       mesh_size: float | MeshSpec = 30e-6, robot_x: float = 0.0, outlet: str = "velocity",
                       solver: str = "auto", cache: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -577,6 +586,7 @@ def box_flow_solution(geometry: RobotGeometry, viscosity: float, height: float, 
     """
     spec = mesh_size if isinstance(mesh_size, MeshSpec) else MeshSpec(float(mesh_size))
     resolved = spec.resolved(geometry)
+    require_fem()
     gx, gy = np.asarray(gx, float), np.asarray(gy, float)
     if gx.ndim != 1 or gy.ndim != 1 or len(gx) < 2 or len(gy) < 2 or np.any(np.diff(gx) <= 0) \
             or np.any(np.diff(gy) <= 0):
@@ -588,9 +598,7 @@ def box_flow_solution(geometry: RobotGeometry, viscosity: float, height: float, 
         raise ParameterError(f"map height {height!r} m is above the box top {h!r} m")
     if outlet not in OUTLETS:
         raise ParameterError(f"outlet must be one of {', '.join(OUTLETS)}, got {outlet!r}")
-    key = _cache_key(CACHE_VERSION, geometry.key(), round(float(viscosity), 15), round(float(height), 12),
-                     domain.key(), gx, gy, resolved, round(float(robot_x), 12), outlet)
-    path = _cache_dir() / f"fem_box_{key}.npz"
+    path = _cache_dir() / f"fem_box_{map_key(geometry, viscosity, height, domain, gx, gy, spec, robot_x, outlet)}.npz"
     if cache and path.exists():
         with np.load(path) as z:
             info = json.loads(str(z["info"]))
