@@ -64,7 +64,8 @@ def side_push(**block_kw) -> dict:
             "r2": r2, "contact_threshold_um": thr * UM, "drift_above_threshold": drift,
             "drift": "pushed out" if drift["final_um"] > 0 else "pull-in",
             "curve_um": {"gaps": (GAPS * UM).tolist(), "D_s": (res.displacement * UM).tolist(),
-                         "contact": res.contact.tolist()},
+                         "along": (res.along * UM).tolist(), "contact": res.contact.tolist()},
+            "backward": bool(np.any(res.along[free] < 0)),
             "side_pass_time_s": time.perf_counter() - t0}
 
 

@@ -184,8 +184,8 @@ def box_mesh(geometry: RobotGeometry, domain: Domain, spec: MeshSpec = MeshSpec(
              robot: bool = True) -> TetMesh:
     """Tetrahedral mesh of the half box minus the half robot (paper §IV-C), robot frame, metres.
 
-    The box spans ``robot_x`` ± L/2 … i.e. ``-L/2 - robot_x ≤ x ≤ L/2 - robot_x`` (the robot's
-    reference point sits ``robot_x`` ahead of the box centre), ``0 ≤ y ≤ W``, ``0 ≤ z ≤ H``. The
+    In the robot frame the box spans ``-L/2 - robot_x ≤ x ≤ L/2 - robot_x`` (the robot's reference
+    point sits ``robot_x`` ahead of the box centre), ``0 ≤ y ≤ W``, ``0 ≤ z ≤ H``. The
     robot is the outline of ``geometry`` extruded to its thickness and placed by the same affine
     map as :meth:`RobotGeometry.to_frame` (tilt about the resting edge, clearance above the glass).
     ``robot=False`` meshes the empty box (for checks).
@@ -231,9 +231,9 @@ def box_mesh(geometry: RobotGeometry, domain: Domain, spec: MeshSpec = MeshSpec(
                 on_box |= {t for _, t in found}
             robot_faces = [t for _, t in gmsh.model.getEntities(2) if t not in on_box]
             low = geometry.clearance * s + 0.5 * gap * s
+            # the robot's edges within half a gap element of its lowest point: where the oil film is thinnest
             low_curves = [t for _, t in gmsh.model.getEntities(1)
-                          if gmsh.model.getBoundingBox(1, t)[2] <= low and gmsh.model.getBoundingBox(1, t)[5] > 0.0
-                          and not _on_box_curve(gmsh, t, bb)]
+                          if gmsh.model.getBoundingBox(1, t)[2] <= low and not _on_box_curve(gmsh, t, bb)]
             f_body = gmsh.model.mesh.field.add("Distance")
             gmsh.model.mesh.field.setNumbers(f_body, "SurfacesList", robot_faces)
             gmsh.model.mesh.field.setNumber(f_body, "Sampling", 60)
@@ -570,7 +570,8 @@ def map_key(geometry: RobotGeometry, viscosity: float, height: float, domain: Do
             robot_x: float, outlet: str) -> str:
     """Hash of every input of a box map (and :data:`CACHE_VERSION`): the name of its cache file."""
     return _cache_key(CACHE_VERSION, geometry.key(), round(float(viscosity), 15), round(float(height), 12),
-                      domain.key(), np.asarray(gx, float), np.asarray(gy, float), spec.resolved(geometry),
+                      domain.key(), np.asarray(gx, float), np.asarray(gy, float),
+                      tuple(round(v, 12) for v in spec.resolved(geometry)),
                       round(float(robot_x), 12), outlet)
 
 
