@@ -155,13 +155,17 @@ class Spheres(Block):
     compiled : bool
         Run frames through the compiled kernel (:mod:`magctl.plant.sphere_kernel`); False: the
         array form (the reference, same numbers to round-off).
+    flow : RobotFlow, optional
+        The robot's flow to use instead of :func:`~magctl.plant.fluid.flow.robot_flow`'s (e.g. the
+        finite-element box model, :class:`magctl.plant.fluid.fem_box.BoxFlow`); ``geometry``
+        defaults to its geometry and must match it when given.
     """
 
     def __init__(self, initial_positions: InitialPositions, name: str = "spheres", *,
                  params: SphereParams | None = None, geometry: RobotGeometry | None = None,
                  viscosity: float | None = None, fluid_density: float | None = None,
                  drag_mode: str | None = None, roughness: float | None = None, dt: float = FRAME_PERIOD_S,
-                 compiled: bool = True):
+                 compiled: bool = True, flow: RobotFlow | None = None):
         self.params = params if params is not None else sphere_params()
         self.init = initial_positions
         n = self._count(initial_positions)
@@ -170,7 +174,11 @@ class Spheres(Block):
                          outputs=[Port("spheres", (n, 2), "m"), Port("contact", (), "1", "bool")],
                          dt=dt, feedthrough=False)
         self.n = n
-        self.geometry = geometry if geometry is not None else RobotGeometry.from_params()
+        if flow is not None and geometry is not None and flow.geometry.key() != geometry.key():
+            raise ParameterError("Spheres: the given flow was solved for another robot geometry than `geometry`")
+        if geometry is None:
+            geometry = flow.geometry if flow is not None else RobotGeometry.from_params()
+        self.geometry = geometry
         self.viscosity = float(viscosity) if viscosity is not None else fluid_viscosity()
         rho_f = float(fluid_density) if fluid_density is not None else fluid_params.fluid_density()
         self.mode = drag_mode if drag_mode is not None else self.params.drag_mode
@@ -189,7 +197,7 @@ class Spheres(Block):
         self._footprint = Polygon(self.footprint)
         self._box = np.abs(self.footprint).max(axis=0) + r
         self.reach = float(np.linalg.norm(self.footprint, axis=1).max()) + r
-        self._flow: RobotFlow | None = None
+        self._flow: RobotFlow | None = flow
         self._k_contact = float(mobility(self.mode, r, 0.0, self.roughness))   # V_p/U resting on the glass
         # the vertical balance resting on the glass: 1/λ and g, both 1 in the paper mode (eq 9), Brenner's
         # and Goren & O'Neill's wall factors in the accurate mode

@@ -71,7 +71,9 @@ class SidePushResult:
 def sidepush_curve(gaps, speed: float = ROBOT_SPEED, travel: float = APPROACH, **block_kw) -> SidePushResult:
     """Fig 6: the robot drives along +x past a sphere at ``(0, D_g)``, from ``-travel`` to ``+travel``.
 
-    Extra keywords go to :class:`magctl.plant.sphere.Spheres` (``drag_mode``, ``roughness``…).
+    Extra keywords go to :class:`magctl.plant.sphere.Spheres` (``drag_mode``, ``roughness``, ``flow``…;
+    ``flow=`` replaces the robot's flow, e.g. by the box model's
+    :class:`~magctl.plant.fluid.fem_box.BoxFlow`).
     """
     gaps = np.atleast_1d(np.asarray(gaps, float))
     if np.any(gaps <= 0):
@@ -122,7 +124,8 @@ def gap_for_displacement(ds, a: float, b: float):
 def contact_threshold(lo: float = 200e-6, hi: float = 650e-6, tol: float = 2e-6, **block_kw) -> float:
     """Smallest side gap at which the passing robot does not touch the sphere [m] (Fig 6's division).
 
-    Bisection on batched passes (8 gaps per round).
+    Bisection on batched passes (8 gaps per round). Keywords go to :func:`sidepush_curve` and on to
+    :class:`magctl.plant.sphere.Spheres` (``flow=`` among them).
     """
     while hi - lo > tol:
         g = np.linspace(lo, hi, 8)
