@@ -25,6 +25,7 @@ import math
 import os
 import tomllib
 from collections.abc import Iterator
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -227,12 +228,25 @@ def _rule_problem(v, kind, lo, hi) -> str | None:
     return None
 
 
+def data_dir(kind: str) -> Path:
+    """Where the shipped ``models/`` or ``analysis/`` folder is: the checkout's, else the installed package's.
+
+    In a source checkout (``pyproject.toml`` beside the package) the folder at the top of the
+    repository is used, so edits there take effect at once; an installed wheel carries the same
+    files as package data (``magctl/_data/<kind>``, read through :mod:`importlib.resources`).
+    """
+    root = Path(__file__).resolve().parents[1]
+    if (root / "pyproject.toml").is_file() and (root / kind).is_dir():
+        return root / kind
+    return Path(str(resources.files("magctl") / "_data" / kind))
+
+
 def models_dir() -> Path:
-    """The folder of parameter files: ``$MAGCTL_MODELS`` or ``models/`` beside the package."""
+    """The folder of parameter files: ``$MAGCTL_MODELS`` (a user's own set) or the shipped ``models/``."""
     env = os.environ.get("MAGCTL_MODELS")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[1] / "models"
+    return data_dir("models")
 
 
 def load_file(path: str | os.PathLike) -> Params:

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-from magctl.cli.common import add_json, emit
+from magctl.cli.common import add_json, emit, existing_file, output_file
 
 
 def register(sub) -> None:
@@ -14,18 +13,18 @@ def register(sub) -> None:
     ls.required = True
 
     s = ls.add_parser("show", help="summary of a run log")
-    s.add_argument("file", type=Path)
+    s.add_argument("file", type=existing_file, help="run log (JSON lines)")
     add_json(s)
     s.set_defaults(func=cmd_show)
 
     e = ls.add_parser("export", help="export the events to Parquet (.parquet) or HDF5 (.h5)")
-    e.add_argument("file", type=Path)
-    e.add_argument("--out", type=Path, required=True, help="output file: .parquet, .h5 or .hdf5")
+    e.add_argument("file", type=existing_file, help="run log (JSON lines)")
+    e.add_argument("--out", type=output_file, required=True, help="output file: .parquet, .h5 or .hdf5")
     add_json(e)
     e.set_defaults(func=cmd_export)
 
     r = ls.add_parser("replay", help="feed the logged observations through the controller; compare commands")
-    r.add_argument("file", type=Path)
+    r.add_argument("file", type=existing_file, help="run log (JSON lines)")
     add_json(r)
     r.set_defaults(func=cmd_replay)
 

@@ -7,9 +7,16 @@ import sys
 import time
 from pathlib import Path
 
-from magctl.cli.common import add_json, emit, to_jsonable
-from magctl.studies import runner as studies
-from magctl.studies.report import write_report
+from magctl.cli.common import (
+    add_json,
+    contact_scheduler,
+    emit,
+    output_dir,
+    positive_int,
+    scheduler_address,
+    seed,
+    to_jsonable,
+)
 
 
 def register(sub) -> None:
@@ -18,24 +25,27 @@ def register(sub) -> None:
     p.add_argument("--list", action="store_true", help="list the studies and exit")
     _common(p)
     add_json(p)
-    p.set_defaults(func=cmd_study)
+    p.set_defaults(func=cmd_study, parser=p)
 
     r = sub.add_parser("reproduce", help="run every study and write DIR/report.md and DIR/results.json")
     _common(r)
-    r.set_defaults(func=cmd_reproduce)
+    r.set_defaults(func=cmd_reproduce, parser=r)
 
 
 def _common(p) -> None:
-    p.add_argument("--trials", type=int, default=None, help="Monte Carlo trials per controller")
-    p.add_argument("--out", type=Path, default=Path("out"), help="output folder (default: out)")
-    p.add_argument("--seed", type=int, default=0, help="root seed")
-    p.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://127.0.0.1:8786")
-    p.add_argument("--workers", type=int, default=None, help="local worker processes")
+    p.add_argument("--trials", type=positive_int, default=None, help="Monte Carlo trials per controller (>= 1)")
+    p.add_argument("--out", type=output_dir, default=Path("out"), help="output folder (default: out)")
+    p.add_argument("--seed", type=seed, default=0, help="root seed (integer >= 0)")
+    p.add_argument("--scheduler", type=scheduler_address, default=None,
+                   help="Dask scheduler address, e.g. tcp://127.0.0.1:8786 (contacted before any study runs)")
+    p.add_argument("--workers", type=positive_int, default=None, help="local worker processes")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--no-figures", action="store_true", help="compute and summarise only; draw no figures")
 
 
-def _context(args, name: str, cache: studies.TrialCache | None = None) -> studies.StudyContext:
+def _context(args, name: str, cache=None):
+    from magctl.studies import runner as studies
+
     return studies.StudyContext(
         out=args.out / name, trials=args.trials, seed=args.seed, scheduler=args.scheduler,
         workers=args.workers, quiet=args.quiet, trial_cache=cache if cache is not None else studies.TrialCache(),
@@ -43,10 +53,14 @@ def _context(args, name: str, cache: studies.TrialCache | None = None) -> studie
 
 
 def cmd_study(args) -> int:
+    from magctl.studies import runner as studies
+
     if args.list or not args.name:
         for name, module in studies.discover().items():
             print(f"{name:18s} {getattr(module, 'TITLE', '')}")
         return 0
+    studies.get(args.name)  # an unknown name is an error before the scheduler is contacted
+    contact_scheduler(args.parser, args.scheduler)
     result = studies.run_study(args.name, _context(args, args.name), figures=not args.no_figures)
     doc = {"study": result.name, **result.results, "figures": [str(f) for f in result.figures]}
     emit(args, doc, lambda _: "\n".join([f"# {result.name}", *result.summary,
@@ -55,8 +69,12 @@ def cmd_study(args) -> int:
 
 
 def cmd_reproduce(args) -> int:
+    from magctl.studies import runner as studies
+    from magctl.studies.report import write_report
+
     found = studies.discover()
     studies.check_reuses(found)
+    contact_scheduler(args.parser, args.scheduler)
     cache = studies.TrialCache()  # one per run: studies that declare REUSES take trials from it
     results, timings = [], {}
     for name in found:

@@ -469,14 +469,20 @@ def export(log_path, out_path) -> Path:
     meta = {"start": log.start, "descriptor": log.descriptor, "stop": log.stop, "torn_tail": log.torn_tail}
     suffix = out.suffix.lower()
     if suffix == ".parquet":
-        import pyarrow as pa
-        import pyarrow.parquet as pq
+        try:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+        except ImportError:
+            raise LogError("Parquet export needs pyarrow: pip install 'magctl[export]'") from None
 
         table = pa.table(cols)
         table = table.replace_schema_metadata({k.encode(): json.dumps(v).encode() for k, v in meta.items()})
         pq.write_table(table, out)
     elif suffix in (".h5", ".hdf5"):
-        import h5py
+        try:
+            import h5py
+        except ImportError:
+            raise LogError("HDF5 export needs h5py: pip install 'magctl[export]'") from None
 
         with h5py.File(out, "w") as f:
             g = f.create_group("events")
