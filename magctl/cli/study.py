@@ -28,6 +28,8 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_study, parser=p)
 
     r = sub.add_parser("reproduce", help="run every study and write DIR/report.md and DIR/results.json")
+    r.add_argument("--only", nargs="+", metavar="NAME", default=None,
+                   help="run only these studies (magctl study --list shows them)")
     _common(r)
     r.set_defaults(func=cmd_reproduce, parser=r)
 
@@ -61,7 +63,10 @@ def cmd_study(args) -> int:
         return 0
     studies.get(args.name)  # an unknown name is an error before the scheduler is contacted
     contact_scheduler(args.parser, args.scheduler)
+    _say(args, f"[study] {args.name} …")
+    t0 = time.perf_counter()
     result = studies.run_study(args.name, _context(args, args.name), figures=not args.no_figures)
+    _say(args, f"[study] {args.name} done in {time.perf_counter() - t0:.1f} s")
     doc = {"study": result.name, **result.results, "figures": [str(f) for f in result.figures]}
     emit(args, doc, lambda _: "\n".join([f"# {result.name}", *result.summary,
                                          *(f"figure: {f}" for f in result.figures)]))
@@ -74,23 +79,37 @@ def cmd_reproduce(args) -> int:
 
     found = studies.discover()
     studies.check_reuses(found)
+    if args.only:
+        unknown = [name for name in args.only if name not in found]
+        if unknown:
+            args.parser.error(f"argument --only: no study {', '.join(map(repr, unknown))}; "
+                              f"studies: {', '.join(found)}")
+        found = {name: module for name, module in found.items() if name in args.only}
     contact_scheduler(args.parser, args.scheduler)
     cache = studies.TrialCache()  # one per run: studies that declare REUSES take trials from it
     results, timings = [], {}
-    for name in found:
-        if not args.quiet:
-            print(f"[reproduce] {name} …", file=sys.stderr, flush=True)
+    for k, name in enumerate(found, 1):
+        _say(args, f"[reproduce {k}/{len(found)}] {name} …")
         t0 = time.perf_counter()
         results.append(studies.run_study(name, _context(args, name, cache), figures=not args.no_figures))
         timings[name] = time.perf_counter() - t0
+        _say(args, f"[reproduce {k}/{len(found)}] {name} done in {timings[name]:.1f} s")
     args.out.mkdir(parents=True, exist_ok=True)
+    # results.json holds only what the trials computed, so two runs (any executor) give the same bytes;
+    # the wall times go beside it
     doc = {
         "studies": {r.name: r.results for r in results},
         "paper_vs_magctl": [vars(row) | {"study": r.name} for r in results for row in r.paper],
-        "wall_time_s": timings,
     }
     (args.out / "results.json").write_text(json.dumps(to_jsonable(doc), indent=2))
+    (args.out / "timings.json").write_text(json.dumps({"wall_time_s": timings}, indent=2))
     report = write_report(args.out, results, timings)
-    print(f"wrote {report} and {args.out / 'results.json'} ({len(results)} studies, "
+    print(f"wrote {report}, {args.out / 'results.json'} and timings.json ({len(results)} studies, "
           f"{sum(timings.values()):.1f} s)")
     return 0
+
+
+def _say(args, line: str) -> None:
+    """One progress line per study on stderr (the trial bars are shown only on a terminal)."""
+    if not args.quiet:
+        print(line, file=sys.stderr, flush=True)
