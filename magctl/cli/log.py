@@ -39,9 +39,41 @@ def cmd_show(args) -> int:
 
     log = read_log(args.file)
     doc = log.summary()
-    emit(args, doc, lambda d: "\n".join(f"{k}: {v}" for k, v in d.items() if k != "note"))
+    emit(args, doc, _show_text)
     _warn_crashed(log.crash_note())
     return 0
+
+
+_UNIT_TEXT = (("_um_s", "µm/s"), ("_um", "µm"), ("_ms", "ms"), ("_s", "s"))
+
+
+def _named(key: str) -> tuple[str, str]:
+    """``"push_speed_um_s"`` → ``("push_speed", " µm/s")``: the unit suffix of a key as written text."""
+    for suffix, text in _UNIT_TEXT:
+        if key.endswith(suffix):
+            return key[: -len(suffix)], f" {text}"
+    return key, ""
+
+
+def _fmt(v) -> str:
+    if isinstance(v, dict):
+        return ", ".join(f"{name} {_fmt(x)}{unit}" for name, unit, x in ((*_named(k), x) for k, x in v.items()))
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return str(v)
+
+
+def _show_text(d: dict) -> str:
+    """``log show`` as text: one line per item, units written out (µm, µm/s, ms, s)."""
+    lines = []
+    for key, value in d.items():
+        if key == "note":
+            continue
+        name, unit = _named(key)
+        lines.append(f"{name.replace('_', ' ')}: {_fmt(value)}{unit if value is not None else ''}")
+    return "\n".join(lines)
 
 
 def cmd_export(args) -> int:
