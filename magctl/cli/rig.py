@@ -18,7 +18,6 @@ from magctl.cli.common import (
     positive_int,
     seed,
 )
-from magctl.config import load_model
 from magctl.core.errors import MagctlError
 
 
@@ -94,6 +93,7 @@ def register(sub) -> None:
 def _scene(args):
     import numpy as np
 
+    from magctl.config import load_model
     from magctl.rig.plant import Scene
 
     params = load_model("rig")

@@ -7,9 +7,16 @@ from magctl.cli.common import add_json, emit, nonneg_float, nonneg_int, positive
 
 def register_servo(subparsers) -> None:
     """Add ``servo`` to the ``stability`` sub-commands."""
-    from magctl.config import load_model  # the settings' names, without importing the servo block
+    import tomllib
 
-    settings = sorted(k for k in load_model("servo") if k != "choice")
+    from magctl.config import models_dir
+
+    # the settings' names, read without numpy or the servo block (the command checks the file itself)
+    try:
+        with open(models_dir() / "servo.toml", "rb") as fh:
+            settings = sorted(k for k in tomllib.load(fh) if k != "choice")
+    except (OSError, tomllib.TOMLDecodeError):
+        settings = None
     p = subparsers.add_parser("servo", help="PI visual-servo loop: poles, margins, overshoot (linear vs simulated)")
     p.add_argument("--setting", default=None, choices=settings,
                    help="parameter set from models/servo.toml (default: its [choice] default)")
