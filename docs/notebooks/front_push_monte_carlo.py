@@ -23,7 +23,7 @@
 #
 # Each trial is the closed loop the rig runs (controller → coils → robot → fluid-coupled sphere →
 # camera → tracker → servo), stepped for all trials at once. The trial function is the one the
-# `front-push` study uses; run through `magctl.sweep.run_trials`, trial *k*'s result does not depend
+# `front-push` study uses; run through `magctl.sweep.run_sweeps`, trial *k*'s result does not depend
 # on the batch or the executor. A small number of trials keeps the notebook quick; `magctl study
 # front-push` runs 100 per controller.
 
@@ -35,17 +35,19 @@ from magctl.control.status import Status
 from magctl.loops import Experiment, Variability
 from magctl.studies.push import controller_summary
 from magctl.studies.trials import run_push_trials
-from magctl.sweep import run_trials
+from magctl.sweep import run_sweeps
 
-TRIALS = 10
+TRIALS = 8
 SEED = 0
 plant = Variability(calibrated=True, release_scatter=0.1)
 experiments = {f"K_c={kc:g}": Experiment("front", task={"kc": kc, "delta0": 0.0}, max_frames=4000,
                                          variability=plant, label=f"K_c={kc:g}")
                for kc in (0.0, 0.5, 1.0)}
 
-runs = {label: run_trials(run_push_trials, TRIALS, seed=SEED, scheduler="serial", progress=False, exp=exp)
-        for label, exp in experiments.items()}
+# the three controllers' trials as one sweep, in this process (scheduler=None would use local processes,
+# a Dask address a cluster: the same numbers, trial for trial)
+jobs = {label: (run_push_trials, TRIALS, {"exp": exp}) for label, exp in experiments.items()}
+runs = run_sweeps(jobs, seed=SEED, chunk_size=TRIALS, scheduler="serial", progress=False)
 summaries = {label: controller_summary(r) for label, r in runs.items()}
 for label, s in summaries.items():
     print(f"{label}: {100 * s['converged_fraction']:.0f} % converged, mean attempts "
