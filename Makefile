@@ -2,28 +2,45 @@
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+DEMO_STAMP := $(VENV)/.installed-demo
+DEV_STAMP := $(VENV)/.installed-dev
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test wheel-check docs bench lint clean
 
-$(STAMP): pyproject.toml
+$(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev,dask]'
-	touch $(STAMP)
 
-demo: $(STAMP)
+# the demo needs magctl and its run-time dependencies only
+$(DEMO_STAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e .
+	touch $@
+
+# tests, lint, docs, notebooks, wheel building, and every optional extra
+$(DEV_STAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $@ $(DEMO_STAMP)
+
+demo: $(DEMO_STAMP)
 	$(BIN)/magctl reproduce --out out
 
-test: $(STAMP)
-	$(BIN)/ruff check magctl analysis tests benchmarks
+test: $(DEV_STAMP)
+	$(BIN)/ruff check magctl analysis tests benchmarks docs/notebooks
+	$(BIN)/mkdocs build --strict --quiet --site-dir site
+	PYTHON=$(PYTHON) BUILD_PY=$(BIN)/python .ci/wheel-check
 	$(BIN)/python -m pytest -q
 
-bench: $(STAMP)
+wheel-check: $(DEV_STAMP)
+	PYTHON=$(PYTHON) BUILD_PY=$(BIN)/python .ci/wheel-check
+
+docs: $(DEV_STAMP)
+	$(BIN)/mkdocs build --strict --site-dir site
+
+bench: $(DEV_STAMP)
 	$(BIN)/python benchmarks/run.py --out benchmarks/results.json
 
-lint: $(STAMP)
-	$(BIN)/ruff check magctl analysis tests benchmarks
+lint: $(DEV_STAMP)
+	$(BIN)/ruff check magctl analysis tests benchmarks docs/notebooks
 
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) .venv-wheel dist site out .pytest_cache

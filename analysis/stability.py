@@ -42,7 +42,7 @@ def _front_convergence(trials: int, seed: int) -> tuple[dict, dict]:
     for kc, d0 in FRONT_CASES:
         mk = S.front_attempts_markov(kc, d0)
         mc = S.front_attempts_monte_carlo(kc, d0, trials=trials, seed=seed)
-        label = f"K_c={kc:g}, delta0={d0 / UM:g} um"
+        label = f"K_c={kc:g}, delta0={d0 / UM:g} µm"
         curves[label] = (np.cumsum(mk[:-1]), np.cumsum(mc[:-1]))
         out[label] = {
             "kc": kc, "delta0_um": d0 / UM, "p_converged_by_attempt_markov": np.cumsum(mk[:-1]).tolist(),
@@ -55,8 +55,8 @@ def _front_convergence(trials: int, seed: int) -> tuple[dict, dict]:
 
 def _side_maps(seed: int) -> tuple[dict, dict]:
     cases = {
-        "naive D_g=370 um": {"ks": 0.0, "fixed_gap": 370 * UM},
-        "naive D_g=500 um": {"ks": 0.0, "fixed_gap": 500 * UM},
+        "naive D_g=370 µm": {"ks": 0.0, "fixed_gap": 370 * UM},
+        "naive D_g=500 µm": {"ks": 0.0, "fixed_gap": 500 * UM},
         "exp, K_s=0": {"ks": 0.0, "model": "exp"},
         "lin, K_s=0": {"ks": 0.0, "model": "lin"},
         "lin, K_s=0.5": {"ks": 0.5, "model": "lin"},
@@ -172,8 +172,8 @@ def _draw_front_convergence(curves: dict, ctx: StudyContext):
         line, = ax.plot(n, markov, "-", label=label)
         ax.plot(n, monte_carlo, "o", color=line.get_color(), ms=3)
     ax.set_xlabel("pushing attempts")
-    ax.set_ylabel("fraction converged (eps_p = 75 um)")
-    ax.set_title("front push, D_p,r ~ N(300, 75^2) um: Markov (lines), Monte Carlo (dots)", fontsize=9)
+    ax.set_ylabel("fraction converged (eps_p = 75 µm)")
+    ax.set_title("front push, D_p,r ~ N(300, 75^2) µm: Markov (lines), Monte Carlo (dots)", fontsize=9)
     ax.legend(fontsize=7)
     return save_figure(fig, ctx.figure_path("stability_front_convergence"), dpi=110)
 
@@ -187,8 +187,8 @@ def _draw_side_maps(curves: dict, ctx: StudyContext):
         ax.semilogy(np.arange(e.size), np.maximum(e, 0.1), ".-", label=label)
     ax.axhline(7.5, color="k", ls=":", lw=0.8)
     ax.set_xlabel("pushing attempts")
-    ax.set_ylabel("|positioning error| (um)")
-    ax.set_title("side push from 300 um, plant eq 22 (attempt map)", fontsize=9)
+    ax.set_ylabel("|positioning error| (µm)")
+    ax.set_title("side push from 300 µm, plant eq 22 (attempt map)", fontsize=9)
     ax.legend(fontsize=7)
     return save_figure(fig, ctx.figure_path("stability_side_maps"), dpi=110)
 
@@ -201,29 +201,29 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
     tangent = r["eq23_tangent_at_ds500um"]
     nl_range = r["side_nonlinear_stable_gain_range"]
     nl_range = None if nl_range is None else tuple(nl_range)
-    best_front = front["K_c=1, delta0=127 um"]
+    best_front = front["K_c=1, delta0=127 µm"]
     paper = [
         PaperRow("front K_c stable range", "0 < K_c < 2", "0 < K_c < 2 (pole 1 - K_c)"),
         PaperRow("front K_c = 1", "critically damped", computed.data["front_kc1_damping"] + " (dead-beat, pole 0)"),
-        PaperRow("front naive steady error", "~200 um", "200 um with 300 um release, 100 um overshoot",
+        PaperRow("front naive steady error", "~200 µm", "200 µm with 300 µm release, 100 µm overshoot",
                  "attempt map, overshoot as the paper explains it"),
         PaperRow("front best: converged by attempt 4", "all 10 trials (Fig 14)",
-                 f"{best_front['p_converged_by_attempt_markov'][3]:.2f} (K_c=1, delta0=127 um)",
-                 "Markov chain, D_p,r ~ N(300, 75^2) um"),
+                 f"{best_front['p_converged_by_attempt_markov'][3]:.2f} (K_c=1, delta0=127 µm)",
+                 "Markov chain, D_p,r ~ N(300, 75^2) µm"),
         PaperRow("side stability condition", "0 < K_s ratio < 2",
                  "0 < ratio < 2 and 0 < K_s < 4/ratio - 2", "feed-forward path adds a state"),
         PaperRow("side local model ratio (eq 23 vs eq 22)", "~1 (K_s=0.9 for critical damping)",
                  f"{r_lo:.2f} .. {r_hi:.2f} over the operating range", "slope ratio at the actual displacement"),
-        PaperRow("side best: attempts from 300 um", "<= 10 (Fig 14)",
+        PaperRow("side best: attempts from 300 µm", "<= 10 (Fig 14)",
                  f"{side['lin, K_s=0.9']['attempts']} (K_s=0.9, lin, eq 22 plant)"),
-        PaperRow("side naive D_g = 370 um", "fails in many cases, oscillates",
-                 "oscillates 52.6 / -9.2 um, never within 7.5 um" if side["naive D_g=370 um"]["attempts"] < 0
-                 else f"{side['naive D_g=370 um']['attempts']} attempts"),
+        PaperRow("side naive D_g = 370 µm", "fails in many cases, oscillates",
+                 "oscillates 52.6 / -9.2 µm, never within 7.5 µm" if side["naive D_g=370 µm"]["attempts"] < 0
+                 else f"{side['naive D_g=370 µm']['attempts']} attempts"),
         PaperRow("eq 18 sign", "+K_s [D_s,act - D_s,des]",
                  "diverges as printed; converges with -K_s", "see docs/push-control.md"),
-        PaperRow("eq 23: F linearised about D_s = 500 um", "-5.29 D_s + 621 um",
-                 f"tangent there: {tangent['slope']:.3f} D_s + {tangent['intercept_um']:.0f} um",
-                 "eq 23 fits eq 22 near D_g ~ 500 um (D_s ~ 20 um)"),
+        PaperRow("eq 23: F linearised about D_s = 500 µm", "-5.29 D_s + 621 µm",
+                 f"tangent there: {tangent['slope']:.3f} D_s + {tangent['intercept_um']:.0f} µm",
+                 "eq 23 fits eq 22 near D_g ~ 500 µm (D_s ~ 20 µm)"),
     ]
     summary = [
         "Front push (eq 15): pole 1 - K_c; K_c = 1 is dead-beat (the paper's 'critically damped').",

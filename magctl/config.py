@@ -25,10 +25,9 @@ import math
 import os
 import tomllib
 from collections.abc import Iterator
+from importlib import resources
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from magctl.core.errors import ParameterError
 
@@ -38,7 +37,7 @@ UNITS: dict[str, tuple[str, float]] = {
     "s": ("s", 1.0), "ms": ("s", 1e-3), "us": ("s", 1e-6),
     "Hz": ("1/s", 1.0), "per_s": ("1/s", 1.0), "per_s2": ("1/s^2", 1.0), "per_um": ("1/m", 1e6),
     "m_s": ("m/s", 1.0), "mm_s": ("m/s", 1e-3), "um_s": ("m/s", 1e-6),
-    "rad": ("rad", 1.0), "deg": ("rad", np.pi / 180.0), "rad_s": ("rad/s", 1.0),
+    "rad": ("rad", 1.0), "deg": ("rad", math.pi / 180.0), "rad_s": ("rad/s", 1.0),
     "kg": ("kg", 1.0), "kg_m3": ("kg/m^3", 1.0), "g_cm3": ("kg/m^3", 1e3),
     "N": ("N", 1.0), "uN": ("N", 1e-6), "nN": ("N", 1e-9),
     "Pa_s": ("Pa*s", 1.0), "mPa_s": ("Pa*s", 1e-3), "cSt": ("m^2/s", 1e-6),
@@ -131,6 +130,8 @@ def _parse_table(where: str, table: dict[str, Any]) -> Params:
                     f"{loc}: numeric parameter needs a unit suffix in its key (e.g. _um, _s, _A, _1); "
                     f"known suffixes: {', '.join(sorted(UNITS))}"
                 )
+            import numpy as np  # here, so that reading the parameter layout does not need it
+
             try:
                 arr = np.asarray(value, dtype=float)
             except (TypeError, ValueError):
@@ -227,12 +228,25 @@ def _rule_problem(v, kind, lo, hi) -> str | None:
     return None
 
 
+def data_dir(kind: str) -> Path:
+    """Where the shipped ``models/`` or ``analysis/`` folder is: the checkout's, else the installed package's.
+
+    In a source checkout (``pyproject.toml`` beside the package) the folder at the top of the
+    repository is used, so edits there take effect at once; an installed wheel carries the same
+    files as package data (``magctl/_data/<kind>``, read through :mod:`importlib.resources`).
+    """
+    root = Path(__file__).resolve().parents[1]
+    if (root / "pyproject.toml").is_file() and (root / kind).is_dir():
+        return root / kind
+    return Path(str(resources.files("magctl") / "_data" / kind))
+
+
 def models_dir() -> Path:
-    """The folder of parameter files: ``$MAGCTL_MODELS`` or ``models/`` beside the package."""
+    """The folder of parameter files: ``$MAGCTL_MODELS`` (a user's own set) or the shipped ``models/``."""
     env = os.environ.get("MAGCTL_MODELS")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[1] / "models"
+    return data_dir("models")
 
 
 def load_file(path: str | os.PathLike) -> Params:

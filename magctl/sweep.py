@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from magctl.core.errors import MagctlError
-from magctl.core.progress import progress as progress_bar
+from magctl.core.progress import trial_counter
 
 SERIAL = "serial"
 PROCESSES = "processes"
@@ -195,8 +195,20 @@ def default_chunk_size(n_trials: int, parallelism: int) -> int:
 
 
 def _call_chunk(fn: Callable, indices: list[int], seed: int, kwargs: dict) -> Any:
+    """Run one chunk with BLAS on one thread, wherever it runs.
+
+    A multi-threaded BLAS splits a matrix product differently with the number of its threads, and
+    the last bits of the result follow the split. Dask workers start with one BLAS thread
+    (``OPENBLAS_NUM_THREADS=1`` …), local processes and this process with one per core, so without
+    this the same trial differed in its last bits between executors. One thread everywhere makes a
+    trial's result the same bit for bit whatever ran it (the per-trial batches are small; BLAS
+    threads do not pay for themselves here).
+    """
+    from threadpoolctl import threadpool_limits
+
     # kwargs travel as one positional dict so none of them is taken for an executor option
-    return fn(indices, seed, **kwargs)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return fn(indices, seed, **kwargs)
 
 
 def _chunk_length(result: Any, i: int, indices: list[int]) -> None:
@@ -300,7 +312,9 @@ def run_trials(fn: Callable, n_trials: int, *, seed: int, chunk_size: int | None
         # a single chunk gains nothing from a pool; skip its start-up (same results: per-trial seeds)
         scheduler = SERIAL
     with open_executor(scheduler, workers, timeout) as (ex, parallelism):
-        return _run(ex, parallelism, fn, n_trials, seed, chunk_size, progress, desc, kwargs)
+        # the chunks (so each trial's batch) do not depend on the executor: a Dask cluster of any size
+        # computes the same batches as this machine's processes
+        return _run(ex, parallelism, fn, n_trials, seed, guess, progress, desc, kwargs)
 
 
 def _parallelism(executor: Executor, workers: int | None) -> int:
@@ -331,15 +345,17 @@ def run_sweeps(jobs: dict, *, seed: int, chunk_size: int | None = None, schedule
     each job's per-trial results in trial order, exactly as :func:`run_trials` would.
     """
     with open_executor(scheduler, workers, timeout) as (ex, parallelism):
-        return _run_jobs(ex, parallelism, jobs, int(seed), chunk_size, progress, desc)
+        return _run_jobs(ex, parallelism, jobs, int(seed), chunk_size, progress, desc,
+                         chunking=workers or default_workers())
 
 
 def _run(ex: Executor, parallelism: int, fn, n_trials, seed, chunk_size, progress, desc, kwargs):
     return _run_jobs(ex, parallelism, {None: (fn, n_trials, kwargs)}, seed, chunk_size, progress, desc)[None]
 
 
-def _run_jobs(ex: Executor, parallelism: int, jobs: dict, seed: int, chunk_size, progress, desc) -> dict:
-    chunks = {key: chunk_trials(n, int(chunk_size or default_chunk_size(n, parallelism)))
+def _run_jobs(ex: Executor, parallelism: int, jobs: dict, seed: int, chunk_size, progress, desc,
+              chunking: int | None = None) -> dict:
+    chunks = {key: chunk_trials(n, int(chunk_size or default_chunk_size(n, chunking or parallelism)))
               for key, (_, n, _) in jobs.items()}
     results = {key: [None] * len(c) for key, c in chunks.items()}
     items = [(key, i, idx) for key, c in chunks.items() for i, idx in enumerate(c)]
@@ -355,7 +371,7 @@ def _run_jobs(ex: Executor, parallelism: int, jobs: dict, seed: int, chunk_size,
 
     for _ in range(2 * parallelism):
         submit_next()
-    bar = iter(progress_bar(range(len(items)), desc=desc, total=len(items), quiet=not progress))
+    bar = trial_counter(sum(len(idx) for _, _, idx in items), desc=desc, quiet=not progress)
     try:
         while pending:
             done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
@@ -370,12 +386,10 @@ def _run_jobs(ex: Executor, parallelism: int, jobs: dict, seed: int, chunk_size,
                     ) from exc
                 _chunk_length(res, i, idx)
                 results[key][i] = res
-                next(bar, None)
+                bar.update(len(idx))
                 submit_next()
     finally:
         for fut in pending:
             fut.cancel()
-        close = getattr(bar, "close", None)
-        if close:
-            close()
+        bar.close()
     return {key: _combine(results[key], chunks[key]) for key in jobs}

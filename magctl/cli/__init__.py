@@ -1,21 +1,23 @@
-"""The ``magctl`` command: subcommands are the modules of :mod:`magctl.cli`."""
+"""The ``magctl`` command: subcommands are the modules of :mod:`magctl.cli`.
+
+Building the parser imports only the subcommand modules, which import their computing code
+inside the commands, so ``magctl --help`` starts without python-control, scipy or matplotlib.
+"""
 
 from __future__ import annotations
 
-import argparse
 import importlib
+import os
 import pkgutil
 import sys
 
 import magctl
-import magctl.cli
+from magctl.cli.common import Parser
 from magctl.core.errors import MagctlError
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="magctl", description="Magnetic micro-robot pushing: analysis, simulation, rig control."
-    )
+def build_parser() -> Parser:
+    parser = Parser(prog="magctl", description="Magnetic micro-robot pushing: analysis, simulation, rig control.")
     parser.add_argument("--version", action="version", version=f"magctl {magctl.__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
@@ -27,13 +29,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _os_error(err: OSError) -> str:
+    where = f"{err.filename}: " if err.filename else ""
+    return f"{where}{err.strerror or err}"
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run ``magctl``; every failure a user can cause is one line on stderr and a non-zero exit code.
+
+    Exit codes: 0 success, 1 the command ran but its verdict is negative (e.g. a replay that
+    differs), 2 bad input or a magctl error, 130 interrupted, 141 the output pipe was closed.
+    """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as done:  # --help, --version, or a bad argument (its one line already printed)
+        return done.code if isinstance(done.code, int) else 2
     try:
         code = args.func(args)
+        sys.stdout.flush()
+    except SystemExit as done:  # a check made once the command started (parser.error): already printed
+        return done.code if isinstance(done.code, int) else 2
+    except BrokenPipeError:
+        # the reader went away (``| head``): stop writing, and keep the interpreter's final flush quiet
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        print("magctl: error: output closed by the reader (broken pipe)", file=sys.stderr)
+        return 141
     except MagctlError as err:
-        print(f"magctl: error: {err}", file=sys.stderr)
+        print(f"magctl: error: {_one_line(err)}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"magctl: error: {_one_line(_os_error(err))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("magctl: interrupted", file=sys.stderr)

@@ -6,22 +6,36 @@ import subprocess
 import sys
 from pathlib import Path
 
+from magctl.cli.common import output_file
 from magctl.core.errors import MagctlError
+
+RUNNER = Path(__file__).resolve().parents[2] / "benchmarks" / "run.py"
+"""The benchmark runner of a source checkout (benchmarks/ is not part of the wheel)."""
+
+
+def available() -> list[str]:
+    """Names of the benchmarks beside the runner (``bench_NAME.py`` → ``NAME``)."""
+    return sorted(p.stem.removeprefix("bench_") for p in RUNNER.parent.glob("bench_*.py"))
 
 
 def register(sub) -> None:
     p = sub.add_parser("bench", help="run the benchmarks in benchmarks/ and write JSON")
     p.add_argument("--only", nargs="*", help="benchmark names, e.g. b1_servo_loop")
     p.add_argument("--quick", action="store_true", help="smaller sizes")
-    p.add_argument("--out", type=Path, default=None, help="JSON file (default benchmarks/results.json)")
+    p.add_argument("--out", type=output_file, default=None, help="JSON file (default benchmarks/results.json)")
     p.add_argument("--json", action="store_true", help="print the JSON results on stdout")
-    p.set_defaults(func=cmd_bench)
+    p.set_defaults(func=cmd_bench, parser=p)
 
 
 def cmd_bench(args) -> int:
-    runner = Path(__file__).resolve().parents[2] / "benchmarks" / "run.py"
+    runner = RUNNER
     if not runner.is_file():
-        raise MagctlError(f"benchmark runner {runner} not found (benchmarks/ ships with the source tree)")
+        raise MagctlError(f"benchmark runner {runner} not found: benchmarks/ ships with the source tree, "
+                          f"not with the wheel; run magctl bench in a checkout")
+    unknown = sorted(set(args.only or ()) - set(available()))
+    if unknown:
+        args.parser.error(f"argument --only: no benchmark {', '.join(map(repr, unknown))}; "
+                          f"benchmarks: {', '.join(available())}")
     out = args.out or runner.parent / "results.json"
     cmd = [sys.executable, str(runner), "--out", str(out)]
     if args.only:

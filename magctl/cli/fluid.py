@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import numpy as np
-
-from magctl.cli.common import add_json, emit
+from magctl.cli.common import add_json, emit, positive_float
 from magctl.core.errors import MagctlError
 
 
@@ -18,12 +16,14 @@ def register(sub) -> None:
     fs.required = True
 
     s = fs.add_parser("sidepush", help="sphere displacement D_s for side gaps D_g (Fig 6) and the eq 22 fit")
-    s.add_argument("--gap-um", type=float, nargs="+", default=None, help="side gaps D_g in µm (default 200-650)")
-    s.add_argument("--ds-um", type=float, default=None, help="also give the gap D_g for this desired D_s (eq 22)")
+    s.add_argument("--gap-um", type=positive_float, nargs="+", default=None,
+                   help="side gaps D_g in µm (default 200-650)")
+    s.add_argument("--ds-um", type=positive_float, default=None,
+                   help="also give the gap D_g for this desired D_s in µm (eq 22)")
     s.add_argument("--drag", choices=["paper", "accurate"], default=None,
                    help="near-wall drag: the exact resistance ('accurate', models/sphere.toml's default) or eq 4-5 as "
                         "printed ('paper')")
-    s.add_argument("--roughness-nm", type=float, default=None, help="sphere-glass roughness ε (default 25 nm)")
+    s.add_argument("--roughness-nm", type=positive_float, default=None, help="sphere-glass roughness ε (default 25 nm)")
     add_json(s)
     s.set_defaults(func=cmd_sidepush)
 
@@ -31,12 +31,12 @@ def register(sub) -> None:
     r.add_argument("--drag", choices=["paper", "accurate"], default=None,
                    help="near-wall drag: the exact resistance ('accurate', models/sphere.toml's default) or eq 4-5 as "
                         "printed ('paper')")
-    r.add_argument("--roughness-nm", type=float, default=None, help="sphere-glass roughness ε (default 25 nm)")
+    r.add_argument("--roughness-nm", type=positive_float, default=None, help="sphere-glass roughness ε (default 25 nm)")
     add_json(r)
     r.set_defaults(func=cmd_release)
 
     q = fs.add_parser("pulloff", help="JKR pull-off range of a polystyrene sphere on glass under oil (eq 1-3)")
-    q.add_argument("--radius-um", type=float, default=105.0)
+    q.add_argument("--radius-um", type=positive_float, default=105.0, help="sphere radius in µm (default 105)")
     add_json(q)
     q.set_defaults(func=cmd_pulloff)
 
@@ -50,6 +50,8 @@ def _roughness(args):
 
 
 def cmd_sidepush(args) -> int:
+    import numpy as np
+
     from magctl.plant.fluid.scenarios import gap_for_displacement, sidepush_curve, sidepush_fit
 
     gaps = np.linspace(200e-6, 650e-6, 24) if args.gap_um is None else np.asarray(args.gap_um) * 1e-6
@@ -68,13 +70,13 @@ def cmd_sidepush(args) -> int:
             doc["gap_for_ds_um"] = float(gap_for_displacement(args.ds_um * 1e-6, a, b)) * 1e6
 
     def text(d):
-        lines = [f"D_g {p['gap_um']:6.1f} um -> D_s {p['displacement_um']:7.1f} um"
+        lines = [f"D_g {p['gap_um']:6.1f} µm -> D_s {p['displacement_um']:7.1f} µm"
                  + ("  (contact)" if p["contact"] else "") for p in d["points"]]
         if "fit" in d:
             f = d["fit"]
-            lines.append(f"fit: D_s = {f['a_um']:.0f} um * exp(-{f['b_per_um']:.5f}/um * D_g), R2 = {f['r2']:.4f}")
+            lines.append(f"fit: D_s = {f['a_um']:.0f} µm · exp(-{f['b_per_um']:.5f}/µm · D_g), R² = {f['r2']:.4f}")
         if "gap_for_ds_um" in d:
-            lines.append(f"gap for D_s = {args.ds_um} um: {d['gap_for_ds_um']:.1f} um")
+            lines.append(f"gap for D_s = {args.ds_um:g} µm: {d['gap_for_ds_um']:.1f} µm")
         return "\n".join(lines)
 
     emit(args, doc, text)
@@ -85,7 +87,7 @@ def cmd_release(args) -> int:
     from magctl.plant.fluid.scenarios import release_displacement
 
     d = float(release_displacement(drag_mode=args.drag, **_roughness(args))[0])
-    emit(args, {"release_displacement_um": d * 1e6}, lambda r: f"D_p,r = {r['release_displacement_um']:.1f} um")
+    emit(args, {"release_displacement_um": d * 1e6}, lambda r: f"D_p,r = {r['release_displacement_um']:.1f} µm")
     return 0
 
 
@@ -97,5 +99,5 @@ def cmd_pulloff(args) -> int:
     r = pull_off_range(args.radius_um * 1e-6)
     doc = {"radius_um": args.radius_um, "pull_off_min_uN": r.p_min * 1e6, "pull_off_max_uN": r.p_max * 1e6,
            "work_of_adhesion_min_mJ_m2": r.w132_min * 1e3, "work_of_adhesion_max_mJ_m2": r.w132_max * 1e3}
-    emit(args, doc, lambda d: f"{d['pull_off_min_uN']:.2f} uN < P < {d['pull_off_max_uN']:.2f} uN")
+    emit(args, doc, lambda d: f"{d['pull_off_min_uN']:.2f} µN < P < {d['pull_off_max_uN']:.2f} µN")
     return 0

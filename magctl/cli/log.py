@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-from magctl.cli.common import add_json, emit
+from magctl.cli.common import add_json, emit, existing_file, output_file
 
 
 def register(sub) -> None:
@@ -14,18 +13,18 @@ def register(sub) -> None:
     ls.required = True
 
     s = ls.add_parser("show", help="summary of a run log")
-    s.add_argument("file", type=Path)
+    s.add_argument("file", type=existing_file, help="run log (JSON lines)")
     add_json(s)
     s.set_defaults(func=cmd_show)
 
     e = ls.add_parser("export", help="export the events to Parquet (.parquet) or HDF5 (.h5)")
-    e.add_argument("file", type=Path)
-    e.add_argument("--out", type=Path, required=True, help="output file: .parquet, .h5 or .hdf5")
+    e.add_argument("file", type=existing_file, help="run log (JSON lines)")
+    e.add_argument("--out", type=output_file, required=True, help="output file: .parquet, .h5 or .hdf5")
     add_json(e)
     e.set_defaults(func=cmd_export)
 
     r = ls.add_parser("replay", help="feed the logged observations through the controller; compare commands")
-    r.add_argument("file", type=Path)
+    r.add_argument("file", type=existing_file, help="run log (JSON lines)")
     add_json(r)
     r.set_defaults(func=cmd_replay)
 
@@ -40,9 +39,41 @@ def cmd_show(args) -> int:
 
     log = read_log(args.file)
     doc = log.summary()
-    emit(args, doc, lambda d: "\n".join(f"{k}: {v}" for k, v in d.items() if k != "note"))
+    emit(args, doc, _show_text)
     _warn_crashed(log.crash_note())
     return 0
+
+
+_UNIT_TEXT = (("_um_s", "µm/s"), ("_um", "µm"), ("_ms", "ms"), ("_s", "s"))
+
+
+def _named(key: str) -> tuple[str, str]:
+    """``"push_speed_um_s"`` → ``("push_speed", " µm/s")``: the unit suffix of a key as written text."""
+    for suffix, text in _UNIT_TEXT:
+        if key.endswith(suffix):
+            return key[: -len(suffix)], f" {text}"
+    return key, ""
+
+
+def _fmt(v) -> str:
+    if isinstance(v, dict):
+        return ", ".join(f"{name} {_fmt(x)}{unit}" for name, unit, x in ((*_named(k), x) for k, x in v.items()))
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return str(v)
+
+
+def _show_text(d: dict) -> str:
+    """``log show`` as text: one line per item, units written out (µm, µm/s, ms, s)."""
+    lines = []
+    for key, value in d.items():
+        if key == "note":
+            continue
+        name, unit = _named(key)
+        lines.append(f"{name.replace('_', ' ')}: {_fmt(value)}{unit if value is not None else ''}")
+    return "\n".join(lines)
 
 
 def cmd_export(args) -> int:

@@ -3,12 +3,21 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
-import numpy as np
-
-from magctl.cli.common import add_json, emit
-from magctl.config import load_model
+from magctl.cli.common import (
+    add_json,
+    emit,
+    existing_dir,
+    existing_file,
+    finite_float,
+    nonneg_float,
+    nonneg_int,
+    output_dir,
+    output_file,
+    positive_float,
+    positive_int,
+    seed,
+)
 from magctl.core.errors import MagctlError
 
 
@@ -19,32 +28,32 @@ def register(sub) -> None:
 
     s = rs.add_parser("serve-sim", help="serve a simulated rig (protocol v2, docs/rig-protocol.md)")
     s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ endpoint (default tcp://127.0.0.1:5555)")
-    s.add_argument("--spheres", type=int, default=1, help="number of spheres in the scene (default 1)")
+    s.add_argument("--spheres", type=nonneg_int, default=1, help="number of spheres in the scene (default 1)")
     s.add_argument("--plant", choices=("physics", "standin"), default="physics",
                    help="physics: the plant blocks (coils, stick-slip robot, Stokes-flow spheres, camera, Kalman "
                         "tracker; default); standin: the fast kinematic stand-in")
-    s.add_argument("--robot-um", type=float, nargs=2, metavar=("X", "Y"), default=None,
+    s.add_argument("--robot-um", type=finite_float, nargs=2, metavar=("X", "Y"), default=None,
                    help="robot start position in µm (default models/rig.toml [scene], inside the camera field)")
-    s.add_argument("--sphere-um", type=float, nargs=2, metavar=("X", "Y"), action="append", default=None,
+    s.add_argument("--sphere-um", type=finite_float, nargs=2, metavar=("X", "Y"), action="append", default=None,
                    help="a sphere's position in µm (repeat per sphere; default: ahead of the robot every 1 mm)")
-    s.add_argument("--blackout-s", type=float, nargs=2, metavar=("T0", "T1"), default=None,
+    s.add_argument("--blackout-s", type=nonneg_float, nargs=2, metavar=("T0", "T1"), default=None,
                    help="force tracking loss during [T0, T1) s (to exercise loss handling)")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--rt-priority", type=int, default=None, metavar="P",
+    s.add_argument("--seed", type=seed, default=0, help="root seed (integer >= 0)")
+    s.add_argument("--rt-priority", type=positive_int, default=None, metavar="P",
                    help="run under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
     s.add_argument("--lockstep", action="store_true",
                    help="step one plant frame per 'read' (simulated time, deterministic) instead of at 30 Hz")
-    s.add_argument("--curve-secret", type=Path, default=None, metavar="FILE",
+    s.add_argument("--curve-secret", type=existing_file, default=None, metavar="FILE",
                    help="server secret key (server.key_secret from 'magctl rig keys'): CURVE encryption and "
                         "client authentication; needs --curve-clients")
-    s.add_argument("--curve-clients", type=Path, default=None, metavar="DIR",
+    s.add_argument("--curve-clients", type=existing_dir, default=None, metavar="DIR",
                    help="folder of the public keys (*.key) of the clients allowed to connect")
     s.add_argument("--allow", action="append", default=[], metavar="IP",
                    help="only peers at this IP address may connect (repeatable; default: any)")
     s.set_defaults(func=cmd_serve_sim)
 
     k = rs.add_parser("keys", help="generate CURVE key pairs for a server and a client")
-    k.add_argument("--out", type=Path, required=True, help="folder for server.key(_secret), client.key(_secret), "
+    k.add_argument("--out", type=output_dir, required=True, help="folder for server.key(_secret), client.key(_secret), "
                                                             "clients/")
     add_json(k)
     k.set_defaults(func=cmd_keys)
@@ -53,34 +62,38 @@ def register(sub) -> None:
     r.add_argument("--rig", required=True, help="rig server address (tcp://HOST:PORT) or 'sim' for an in-process "
                                                  "simulated rig")
     r.add_argument("--task", required=True, help="task name: goto, front-push, side-push, assemble, patrol")
-    r.add_argument("--target-um", type=float, nargs=2, metavar=("X", "Y"), help="goto: target position in µm")
-    r.add_argument("--goal-um", type=float, nargs=2, metavar=("X", "Y"), help="push tasks: goal of the sphere in µm")
-    r.add_argument("--kc", type=float, default=None, help="front-push: learning gain K_c (eq 13)")
+    r.add_argument("--target-um", type=finite_float, nargs=2, metavar=("X", "Y"), help="goto: target position in µm")
+    r.add_argument("--goal-um", type=finite_float, nargs=2, metavar=("X", "Y"),
+                   help="push tasks: goal of the sphere in µm")
+    r.add_argument("--kc", type=finite_float, default=None, help="front-push: learning gain K_c (eq 13)")
     r.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="task option, e.g. push_speed_um_s=1000, ks=0.9, model=exp, servo=default (repeatable)")
-    r.add_argument("--log", default=None, help="run log to create (JSON lines)")
-    r.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    r.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
-    r.add_argument("--spheres", type=int, default=1, help="with --rig sim: number of spheres")
+    r.add_argument("--log", type=output_file, default=None, help="run log to create (JSON lines)")
+    r.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds (> 0)")
+    r.add_argument("--max-ticks", type=positive_int, default=None, help="stop after this many ticks (>= 1)")
+    r.add_argument("--spheres", type=nonneg_int, default=1, help="with --rig sim: number of spheres")
     r.add_argument("--fast", action="store_true", help="with --rig sim: run ticks back to back, not at 30 Hz")
     r.add_argument("--plant", choices=("physics", "standin"), default="physics",
                    help="with --rig sim: the plant blocks (default) or the fast kinematic stand-in")
-    r.add_argument("--rt-priority", type=int, default=None, metavar="P",
+    r.add_argument("--rt-priority", type=positive_int, default=None, metavar="P",
                    help="run the loop under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
     r.add_argument("--reset", action="store_true", help="ask a simulated rig server to restart its scene")
     r.add_argument("--takeover", action="store_true",
                    help="take the rig over from another client's live session (the server logs it)")
-    r.add_argument("--curve-server-key", type=Path, default=None, metavar="FILE",
+    r.add_argument("--curve-server-key", type=existing_file, default=None, metavar="FILE",
                    help="the server's public key (server.key): connect with CURVE; needs --curve-secret")
-    r.add_argument("--curve-secret", type=Path, default=None, metavar="FILE",
+    r.add_argument("--curve-secret", type=existing_file, default=None, metavar="FILE",
                    help="this client's secret key (client.key_secret from 'magctl rig keys')")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=seed, default=0, help="root seed (integer >= 0)")
     r.add_argument("--quiet", action="store_true")
     add_json(r)
-    r.set_defaults(func=cmd_run)
+    r.set_defaults(func=cmd_run, parser=r)
 
 
 def _scene(args):
+    import numpy as np
+
+    from magctl.config import load_model
     from magctl.rig.plant import Scene
 
     params = load_model("rig")
@@ -159,10 +172,14 @@ def cmd_keys(args) -> int:
     return 0
 
 
-def cmd_run(args) -> int:
-    from magctl.rig.runtime import Runtime, set_realtime_priority
+def _task_options(args) -> dict:
+    """The task and its options checked before the rig is contacted; a parse error names the option."""
+    from magctl.rig.tasks import TaskError, available_tasks, resolve_options
 
-    sched = set_realtime_priority(args.rt_priority)
+    if args.task not in available_tasks():
+        args.parser.error(f"argument --task: no task {args.task!r}; tasks: {', '.join(available_tasks())}")
+    if args.task == "goto" and not args.target_um and not any(o.startswith("target") for o in args.option):
+        args.parser.error("argument --target-um: goto needs a target (--target-um X Y)")
     options = {}
     if args.target_um:
         options["target_um"] = list(args.target_um)
@@ -173,11 +190,23 @@ def cmd_run(args) -> int:
     for item in args.option:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise MagctlError(f"--option {item!r}: write KEY=VALUE")
+            args.parser.error(f"argument --option: {item!r}: write KEY=VALUE")
         try:
             options[key] = json.loads(value)
         except json.JSONDecodeError:
             options[key] = value
+    try:
+        resolve_options(args.task, options)
+    except TaskError as err:
+        args.parser.error(f"argument --option: {err}")
+    return options
+
+
+def cmd_run(args) -> int:
+    from magctl.rig.runtime import Runtime, set_realtime_priority
+
+    options = _task_options(args)
+    sched = set_realtime_priority(args.rt_priority)
     if args.rig == "sim":
         from magctl.rig.sim import SimRig
 
@@ -214,6 +243,8 @@ def _summary(d: dict) -> str:
                      f"{d['jitter_max_ms']:.3f} ms; compute p50/p99: {d['compute_p50_ms']:.3f}/"
                      f"{d['compute_p99_ms']:.3f} ms")
     if d.get("robot_um") is not None:
+        import numpy as np
+
         lines.append(f"robot: {np.round(d['robot_um'], 1).tolist()} µm; spheres: "
                      f"{np.round(d['spheres_um'], 1).tolist()} µm; status: {d.get('status')}")
     if d.get("log"):

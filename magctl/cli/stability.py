@@ -6,10 +6,8 @@ here call :mod:`magctl.stability.iteration`.
 
 from __future__ import annotations
 
-from magctl.cli.common import add_json, emit
+from magctl.cli.common import add_json, emit, finite_float, positive_float
 from magctl.cli.stability_servo import register_servo
-from magctl.core.units import UM
-from magctl.stability.iteration import MIN_GAP, SIDE_GOAL, front_report, side_report
 
 
 def register(sub) -> None:
@@ -24,8 +22,8 @@ def register(sub) -> None:
 def _register_front(subparsers) -> None:
     """Add ``front --kc K [--delta0-um D] [--json]`` to the ``magctl stability`` subparsers."""
     p = subparsers.add_parser("front", help="front-push learning loop (eq 13-15): poles, verdict, convergence")
-    p.add_argument("--kc", type=float, required=True, help="learning gain K_c of eq 13")
-    p.add_argument("--delta0-um", type=float, default=0.0, help="initial compensation delta(0) in um (default 0)")
+    p.add_argument("--kc", type=finite_float, required=True, help="learning gain K_c of eq 13")
+    p.add_argument("--delta0-um", type=finite_float, default=0.0, help="initial compensation δ(0) in µm (default 0)")
     add_json(p)
     p.set_defaults(func=cmd_front)
 
@@ -33,11 +31,14 @@ def _register_front(subparsers) -> None:
 def _register_side(subparsers) -> None:
     """Add ``side --ks K [--model lin|exp] [--json]`` to the ``magctl stability`` subparsers."""
     p = subparsers.add_parser("side", help="side-push learning loop (eq 16-20, 22-23): poles, verdicts, ranges")
-    p.add_argument("--ks", type=float, required=True, help="learning gain K_s of eq 18")
+    p.add_argument("--ks", type=finite_float, required=True, help="learning gain K_s of eq 18")
     p.add_argument("--model", choices=["lin", "exp"], default="lin", help="controller model: eq 23 (lin) or 22 (exp)")
-    p.add_argument("--ratio", type=float, default=None, help="model ratio F_lin/F_act for eq 19-20 (default 1)")
-    p.add_argument("--min-gap-um", type=float, default=MIN_GAP / UM, help="minimum gap bound (default 370 um)")
-    p.add_argument("--goal-um", type=float, default=SIDE_GOAL / UM, help="initial goal distance (default 300 um)")
+    p.add_argument("--ratio", type=positive_float, default=None,
+                   help="model ratio F_lin/F_act for eq 19-20 (default 1)")
+    p.add_argument("--min-gap-um", type=positive_float, default=None,
+                   help="minimum gap bound in µm (default: models/push.toml, 370 µm)")
+    p.add_argument("--goal-um", type=positive_float, default=None,
+                   help="initial goal distance in µm (default: models/push.toml, 300 µm)")
     p.add_argument("--plant", choices=["exp", "fluid"], default="exp",
                    help="actual F_act: eq 22 (exp) or the fluid model's side-push curve (fluid, a few seconds)")
     add_json(p)
@@ -45,13 +46,20 @@ def _register_side(subparsers) -> None:
 
 
 def cmd_front(args) -> int:
+    from magctl.stability.iteration import front_report
+
     doc = front_report(args.kc, args.delta0_um)
     emit(args, doc, _front_summary)
     return 0
 
 
 def cmd_side(args) -> int:
-    doc = side_report(args.ks, args.model, min_gap_um=args.min_gap_um, goal_um=args.goal_um, ratio=args.ratio,
+    from magctl.core.units import UM
+    from magctl.stability.iteration import MIN_GAP, SIDE_GOAL, side_report
+
+    min_gap_um = MIN_GAP / UM if args.min_gap_um is None else args.min_gap_um
+    goal_um = SIDE_GOAL / UM if args.goal_um is None else args.goal_um
+    doc = side_report(args.ks, args.model, min_gap_um=min_gap_um, goal_um=goal_um, ratio=args.ratio,
                       plant=args.plant)
     emit(args, doc, _side_summary)
     return 0
@@ -63,15 +71,15 @@ def _fmt_poles(poles: list) -> str:
 
 def _front_summary(d: dict) -> str:
     lines = [
-        f"front push, K_c = {d['kc']:g}, delta(0) = {d['delta0_um']:g} um",
+        f"front push, K_c = {d['kc']:g}, δ(0) = {d['delta0_um']:g} µm",
         f"  G_cl(z) = {d['kc']:g} / (z - 1 + {d['kc']:g});  pole(s): {_fmt_poles(d['poles'])}",
         f"  verdict: {d['verdict']} ({d['damping']});  stable for {d['stable_gain_range'][0]:g} < K_c < "
         f"{d['stable_gain_range'][1]:g}",
     ]
     c = d.get("convergence")
     if c:
-        lines.append(f"  D_p,r ~ N({c['release_mean_um']:g}, {c['release_std_um']:g}^2) um, "
-                     f"eps_p {c['eps_p_um']:g} um: "
+        lines.append(f"  D_p,r ~ N({c['release_mean_um']:g} µm, ({c['release_std_um']:g} µm)²), "
+                     f"ε_p {c['eps_p_um']:g} µm: "
                      f"P(not converged in {c['max_attempts']}) = {c['p_not_converged_markov']:.3g} (Markov), "
                      f"{c['p_not_converged_monte_carlo']:.3g} (Monte Carlo); mean attempts "
                      f"{c['mean_attempts_if_converged']:.2f}")
@@ -82,13 +90,13 @@ def _side_summary(d: dict) -> str:
     pa, ff, op, nl = d["paper_analysis"], d["with_feedforward"], d["operating_range"], d["nonlinear_map"]
     rng = ff["stable_gain_range"]
     lines = [
-        f"side push, K_s = {d['ks']:g}, model {d['model']}, plant {d['plant']}, min gap {d['min_gap_um']:g} um",
+        f"side push, K_s = {d['ks']:g}, model {d['model']}, plant {d['plant']}, min gap {d['min_gap_um']:g} µm",
         f"  paper (eq 19-20, ratio {pa['ratio']:g}): poles {_fmt_poles(pa['poles'])}: {pa['verdict']} "
         f"({pa['damping']}), stable for {pa['stable_gain_range'][0]:g} < K_s < {pa['stable_gain_range'][1]:g}",
         f"  with feed-forward path: poles {_fmt_poles(ff['poles'])}: {ff['verdict']} ({ff['damping']})"
         + (f", stable for {rng[0]:g} < K_s < {rng[1]:g}" if rng else ", no stable K_s"),
         f"  local model ratio over the operating range: {op['local_ratio_min']:.3g} .. {op['local_ratio_max']:.3g}",
-        f"  nonlinear map from {d['goal_um']:g} um: "
+        f"  nonlinear map from {d['goal_um']:g} µm: "
         + (f"converged in {nl['attempts']} attempts" if nl["converged"] else f"not converged in {nl['max_attempts']}")
         + (f"; converges from every start for K_s in [{nl['stable_gain_range'][0]:g}, {nl['stable_gain_range'][1]:g}]"
            if nl["stable_gain_range"] else ""),

@@ -2,20 +2,30 @@
 
 from __future__ import annotations
 
-from magctl.cli.common import add_json, emit
+from magctl.cli.common import add_json, emit, nonneg_float, nonneg_int, positive_float
 
 
 def register_servo(subparsers) -> None:
     """Add ``servo`` to the ``stability`` sub-commands."""
-    from magctl.control.servo import servo_settings
+    import tomllib
 
+    from magctl.config import models_dir
+
+    # the settings' names, read without numpy or the servo block (the command checks the file itself)
+    try:
+        with open(models_dir() / "servo.toml", "rb") as fh:
+            settings = sorted(k for k in tomllib.load(fh) if k != "choice")
+    except (OSError, tomllib.TOMLDecodeError):
+        settings = None
     p = subparsers.add_parser("servo", help="PI visual-servo loop: poles, margins, overshoot (linear vs simulated)")
-    p.add_argument("--setting", default=None, choices=servo_settings(),
+    p.add_argument("--setting", default=None, choices=settings,
                    help="parameter set from models/servo.toml (default: its [choice] default)")
-    p.add_argument("--kp", type=float, default=None, help="proportional gain, 1/s (overrides the setting)")
-    p.add_argument("--ki", type=float, default=None, help="integral gain, 1/s² (overrides the setting)")
-    p.add_argument("--delay-frames", type=int, default=None, help="camera latency in frames (default: camera.toml)")
-    p.add_argument("--step-um", type=float, default=1000.0, help="target step for the overshoot, µm (default 1000)")
+    p.add_argument("--kp", type=positive_float, default=None, help="proportional gain, 1/s (overrides the setting)")
+    p.add_argument("--ki", type=nonneg_float, default=None, help="integral gain, 1/s² (overrides the setting)")
+    p.add_argument("--delay-frames", type=nonneg_int, default=None,
+                   help="camera latency in frames (default: camera.toml)")
+    p.add_argument("--step-um", type=positive_float, default=1000.0,
+                   help="target step for the overshoot, µm (default 1000)")
     add_json(p)
     p.set_defaults(func=cmd_servo)
 

@@ -1,25 +1,38 @@
-"""The block model: ports, blocks, diagrams, batched simulation, python-control export."""
+"""The block model: ports, blocks, diagrams, batched simulation, python-control export.
 
-from magctl.core.block import Block, StateVar, as_batch
-from magctl.core.diagram import Diagram
-from magctl.core.errors import (
-    AlgebraicLoopError,
-    MagctlError,
-    NonFiniteSignalError,
-    NotLinearError,
-    ParameterError,
-    RateError,
-    WiringError,
-)
-from magctl.core.linear import PI, Constant, Delay, Gain, Integrator, StateSpace, Sum
-from magctl.core.nonlinear import GaussianNoise, NormSaturation, clip_norm
-from magctl.core.ports import Port, port
-from magctl.core.random import TrialStreams, trial_seed_sequence
-from magctl.core.simulate import SimResult, simulate
+Names are imported on first use (PEP 562), so ``import magctl.core.errors`` — what the command
+line needs to start — does not pull in python-control or scipy.
+"""
 
-__all__ = [
-    "PI", "AlgebraicLoopError", "Block", "Constant", "Delay", "Diagram", "Gain", "GaussianNoise", "Integrator",
-    "MagctlError", "NonFiniteSignalError", "NormSaturation", "NotLinearError", "ParameterError", "Port",
-    "RateError", "SimResult", "StateSpace", "StateVar", "Sum", "TrialStreams", "WiringError", "as_batch", "clip_norm",
-    "port", "simulate", "trial_seed_sequence",
-]
+from __future__ import annotations
+
+import importlib
+
+_WHERE = {
+    "Block": "block", "StateVar": "block", "as_batch": "block",
+    "Diagram": "diagram",
+    "AlgebraicLoopError": "errors", "MagctlError": "errors", "NonFiniteSignalError": "errors",
+    "NotLinearError": "errors", "ParameterError": "errors", "RateError": "errors", "WiringError": "errors",
+    "PI": "linear", "Constant": "linear", "Delay": "linear", "Gain": "linear", "Integrator": "linear",
+    "StateSpace": "linear", "Sum": "linear",
+    "GaussianNoise": "nonlinear", "NormSaturation": "nonlinear", "clip_norm": "nonlinear",
+    "Port": "ports", "port": "ports",
+    "TrialStreams": "random", "trial_seed_sequence": "random",
+    "SimResult": "simulate", "simulate": "simulate",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str):
+    try:
+        module = _WHERE[name]
+    except KeyError:
+        raise AttributeError(f"module 'magctl.core' has no attribute {name!r}") from None
+    value = getattr(importlib.import_module(f"magctl.core.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return __all__

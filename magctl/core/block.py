@@ -159,6 +159,8 @@ class Block:
         True when some output depends on the current input, so the block's
         outputs must be computed after its inputs' producers.
 
+    Notes
+    -----
     Subclasses override :meth:`state_vars`, :meth:`initial_state`,
     :meth:`output` and :meth:`update` (and :meth:`step` when output and
     update share work); linear ones also :meth:`to_control`.

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import control
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
@@ -18,6 +17,13 @@ from magctl.core.block import Block, StateVar, as_batch
 from magctl.core.errors import WiringError
 from magctl.core.nonlinear import vector_norm
 from magctl.core.ports import DIMENSIONLESS, Port
+
+
+def _ss(*args, **kwargs):
+    """``control.ss``, imported on first use (python-control and scipy take a second to import)."""
+    import control
+
+    return control.ss(*args, **kwargs)
 
 
 def _size(shape) -> int:
@@ -54,7 +60,7 @@ class Constant(Block):
 
     def to_control(self):
         n = _size(self.outputs["y"].shape)
-        return control.ss(np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((n, 0)), np.zeros((n, 0)), dt=self.dt)
+        return _ss(np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((n, 0)), np.zeros((n, 0)), dt=self.dt)
 
 
 class Gain(Block):
@@ -91,7 +97,7 @@ class Gain(Block):
     def to_control(self):
         n = _size(self.inputs["u"].shape)
         D = self.k * np.eye(n) if self.k.ndim == 0 else self.k
-        return control.ss(np.zeros((0, 0)), np.zeros((0, n)), np.zeros((D.shape[0], 0)), D, dt=self.dt)
+        return _ss(np.zeros((0, 0)), np.zeros((0, n)), np.zeros((D.shape[0], 0)), D, dt=self.dt)
 
 
 class Sum(Block):
@@ -125,7 +131,7 @@ class Sum(Block):
     def to_control(self):
         n = _size(self.outputs["y"].shape)
         D = np.hstack([s * np.eye(n) for s in self.signs])
-        return control.ss(np.zeros((0, 0)), np.zeros((0, D.shape[1])), np.zeros((n, 0)), D, dt=self.dt)
+        return _ss(np.zeros((0, 0)), np.zeros((0, D.shape[1])), np.zeros((n, 0)), D, dt=self.dt)
 
 
 class Delay(Block):
@@ -173,7 +179,7 @@ class Delay(Block):
         C = np.zeros((n, d * n))
         C[:, :n] = np.eye(n)
         labels = [lbl for name in self._names for lbl in _labels(name, self.inputs["u"].shape)]
-        return control.ss(A, B, C, np.zeros((n, n)), dt=self.dt, states=labels)
+        return _ss(A, B, C, np.zeros((n, n)), dt=self.dt, states=labels)
 
 
 class Integrator(Block):
@@ -206,7 +212,7 @@ class Integrator(Block):
     def to_control(self):
         n = _size(self.inputs["u"].shape)
         eye = np.eye(n)
-        return control.ss(eye, self.gain * self.dt * eye, eye, np.zeros((n, n)), dt=self.dt,
+        return _ss(eye, self.gain * self.dt * eye, eye, np.zeros((n, n)), dt=self.dt,
                           states=_labels("x", self.outputs["y"].shape))
 
 
@@ -281,8 +287,8 @@ class PI(Block):
         n = _size(self.inputs["e"].shape)
         eye = np.eye(n)
         if self.ki == 0.0:
-            return control.ss(np.zeros((0, 0)), np.zeros((0, n)), np.zeros((n, 0)), self.kp * eye, dt=self.dt)
-        return control.ss(eye, self.dt * eye, self.ki * eye, self.kp * eye, dt=self.dt,
+            return _ss(np.zeros((0, 0)), np.zeros((0, n)), np.zeros((n, 0)), self.kp * eye, dt=self.dt)
+        return _ss(eye, self.dt * eye, self.ki * eye, self.kp * eye, dt=self.dt,
                           states=_labels("I", self.inputs["e"].shape))
 
 
@@ -305,7 +311,7 @@ class StateSpace(Block):
     @classmethod
     def from_control(cls, name: str, sys, **kw) -> StateSpace:
         """Wrap a discrete python-control system (its ``dt`` becomes the block's period)."""
-        ss = control.ss(sys)
+        ss = _ss(sys)
         if not ss.isdtime(strict=True):
             raise WiringError(f"state space {name!r}: the system must be discrete-time with a numeric dt")
         return cls(name, ss.A, ss.B, ss.C, ss.D, dt=float(ss.dt), **kw)
@@ -326,4 +332,4 @@ class StateSpace(Block):
         return {"x": rows_times(state["x"], self.A.T) + rows_times(u["u"], self.B.T)}
 
     def to_control(self):
-        return control.ss(self.A, self.B, self.C, self.D, dt=self.dt, states=_labels("x", (self.A.shape[0],)))
+        return _ss(self.A, self.B, self.C, self.D, dt=self.dt, states=_labels("x", (self.A.shape[0],)))

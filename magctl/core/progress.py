@@ -13,3 +13,24 @@ def progress(iterable: Iterable, desc: str, total: int | None = None, quiet: boo
     if quiet or not sys.stderr.isatty():
         return iterable
     return tqdm(iterable, desc=desc, total=total, file=sys.stderr, leave=False)
+
+
+class _Silent:
+    """A counter that shows nothing."""
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def trial_counter(total: int, desc: str, quiet: bool = False):
+    """A bar counting trials (``update(n)`` when a chunk of ``n`` trials is done), or a silent one.
+
+    Shown on stderr only when it is a terminal and not ``quiet``; otherwise long work reports one
+    line per study (the command line prints it), not a line per chunk.
+    """
+    if quiet or not sys.stderr.isatty():
+        return _Silent()
+    return tqdm(total=total, desc=desc, unit="trial", file=sys.stderr, leave=False)

@@ -40,16 +40,108 @@ class SimResult:
         Diagram state after the last step (continue with ``simulate(..., state=)``).
     trials : list of int
         Global trial indices of the batch rows.
+    inputs : dict of str to ndarray
+        The diagram's exported inputs as applied, each ``(B, T, *port.shape)``.
+    name : str
+        Name of the simulated diagram.
+
+    Notes
+    -----
+    magctl's arrays are trial-major, ``(B, T, …)``, so a batch slices like a numpy array of
+    trajectories. python-control orders a response the other way round, signal × trace × time;
+    :meth:`to_control` converts, and :meth:`to_xarray` labels the axes.
     """
 
     t: np.ndarray
-    signals: dict[str, np.ndarray]
-    outputs: dict[str, np.ndarray]
+    signals: dict[str, np.ndarray] = field(repr=False)
+    outputs: dict[str, np.ndarray] = field(repr=False)
     final_state: dict = field(repr=False)
-    trials: list[int] = field(default_factory=list)
+    trials: list[int] = field(default_factory=list, repr=False)
+    inputs: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    name: str = ""
+
+    def __repr__(self) -> str:
+        b = len(self.trials) if self.trials else (next(iter(self.outputs.values())).shape[0] if self.outputs else 0)
+        dt = f" of {self.t[1] - self.t[0]:.4g} s" if len(self.t) > 1 else ""
+        outs = ", ".join(f"{k} {tuple(v.shape[2:])}" for k, v in self.outputs.items())
+        return (f"<SimResult {self.name or 'diagram'}: {b} trials × {len(self.t)} steps{dt}; "
+                f"outputs: {outs or 'none'}; {len(self.signals)} recorded signals>")
 
     def __iter__(self):
         return iter((self.t, self.outputs))
+
+    @staticmethod
+    def _channels(arrays: dict[str, np.ndarray]) -> tuple[list[str], np.ndarray | None]:
+        """Real-valued signals flattened to channels: labels ``name`` / ``name[i]`` and ``(n, B, T)`` data."""
+        labels, data = [], []
+        for name, arr in arrays.items():
+            if np.dtype(arr.dtype).kind not in "fiu":
+                continue  # flags are not signals of a response
+            b, t = arr.shape[:2]
+            flat = np.asarray(arr, dtype=float).reshape(b, t, -1)
+            n = flat.shape[2]
+            labels += [f"{name}[{e}]" for e in range(n)] if arr.ndim > 2 else [name]
+            data.append(np.moveaxis(flat, 2, 0))
+        return labels, (np.concatenate(data, axis=0) if data else None)
+
+    def to_control(self, trial: int | None = None):
+        """The exported outputs (and inputs) as a python-control ``TimeResponseData``.
+
+        Parameters
+        ----------
+        trial : int, optional
+            Row of the batch to convert (a single trace); default: every trial as one trace each.
+
+        Returns
+        -------
+        control.TimeResponseData
+            python-control's axis order: ``outputs`` is ``(n_outputs, n_traces, T)`` (``(n_outputs,
+            T)`` for one trial), channels named ``name`` or ``name[i]`` for vector ports — the same
+            labels as ``Diagram.linearize`` gives its outputs. Boolean ports are left out.
+        """
+        import control
+
+        outs = self.outputs
+        ins = self.inputs
+        if trial is not None:
+            b = next(iter(outs.values())).shape[0] if outs else 0
+            if not -b <= int(trial) < b:
+                raise IndexError(f"trial {trial} out of range for a batch of {b}")
+            outs = {k: v[[int(trial)]] for k, v in outs.items()}
+            ins = {k: v[[int(trial)]] for k, v in ins.items()}
+        out_labels, y = self._channels(outs)
+        in_labels, u = self._channels(ins)
+        if y is None:
+            raise ValueError(f"simulation of {self.name!r} has no real-valued output to convert")
+        multi = trial is None
+        if not multi:
+            y = y[:, 0]
+            u = None if u is None else u[:, 0]
+        trace_labels = [f"trial {k}" for k in self.trials] if multi and self.trials else None
+        return control.TimeResponseData(
+            self.t, y, inputs=u, output_labels=out_labels, input_labels=in_labels or None, multi_trace=multi,
+            trace_labels=trace_labels, sysname=self.name or None, plot_inputs=u is not None)
+
+    def to_xarray(self, signals: bool = False):
+        """The outputs (and, with ``signals=True``, every recorded signal) as an ``xarray.Dataset``.
+
+        Dimensions ``trial`` (the global trial indices), ``time`` (s) and one per port axis
+        (``<name>_dim0`` …); needs the optional ``xarray`` extra (``pip install 'magctl[xarray]'``).
+        """
+        try:
+            import xarray as xr
+        except ImportError:
+            raise ImportError("SimResult.to_xarray needs xarray: pip install 'magctl[xarray]'") from None
+        arrays = dict(self.outputs)
+        if signals:
+            arrays |= {k: v for k, v in self.signals.items() if k not in arrays}
+        b = next(iter(arrays.values())).shape[0] if arrays else 0
+        trials = self.trials or list(range(b))
+        data = {}
+        for name, arr in arrays.items():
+            dims = ("trial", "time", *(f"{name}_dim{d}" for d in range(arr.ndim - 2)))
+            data[name] = xr.DataArray(arr, dims=dims)
+        return xr.Dataset(data, coords={"trial": trials, "time": self.t}, attrs={"diagram": self.name})
 
     def __getitem__(self, name: str) -> np.ndarray:
         if name in self.outputs:
@@ -159,14 +251,15 @@ def simulate(
             last_checked = k + 1
 
     final = {"tick": tick0 + steps, "leaves": leaf_states, "held": held}
-    return _result(diagram, buffers, steps, tick0, final, trials)
+    return _result(diagram, buffers, steps, tick0, final, trials, ext)
 
 
-def _result(diagram, buffers, steps, tick0, final, trials) -> SimResult:
+def _result(diagram, buffers, steps, tick0, final, trials, inputs=None) -> SimResult:
     sched = diagram.schedule
     t = (tick0 + np.arange(steps)) * diagram.dt
     outputs = {name: buffers[f"{sched.leaves[i].path}.{p}"] for name, (i, p) in sched.outputs.items()}
-    return SimResult(t, buffers, outputs, final, list(trials))
+    applied = {k: v[:, :steps] for k, v in (inputs or {}).items()}
+    return SimResult(t, buffers, outputs, final, list(trials), applied, diagram.name)
 
 
 def _check_finite(sched, rec_plan, k0, k1, tick0, diagram, buffers, trials, leaf_states, held):

@@ -151,6 +151,28 @@ class KinematicRobot(Block):
         # new arrays: the outputs handed out this frame stay untouched
         return {"x": state["x"] + self.dt * v, "h": np.where(steer, heading, state["h"]), "v": v}
 
+    def jacobians(self, state, u):
+        """Exact ``(A, B, C, D)`` of trial 0 for :func:`magctl.core.linearize.linearize_diagram`.
+
+        State ``(x₀, x₁, h, v₀, v₁)``, inputs ``(speed, heading)``, outputs ``(position, heading,
+        velocity)`` — the declared real state and ports in order. With ``s`` the speed and ``ψ`` the
+        commanded heading: ``∂x⁺/∂s = T (cos ψ, sin ψ)``, ``∂x⁺/∂ψ = T s (−sin ψ, cos ψ)``, ``∂v⁺``
+        the same without ``T``; the heading state follows ``ψ`` while steering and holds otherwise.
+        """
+        s, psi = float(u["speed"][0]), float(u["heading"][0])
+        steer = bool(u["steer"][0]) if "steer" in u else s > 0
+        c, si = np.cos(psi), np.sin(psi)
+        A = np.zeros((5, 5))
+        A[0, 0] = A[1, 1] = 1.0
+        A[2, 2] = 0.0 if steer else 1.0
+        B = np.zeros((5, 2))
+        B[0:2, 0] = self.dt * np.array([c, si])
+        B[0:2, 1] = self.dt * s * np.array([-si, c])
+        B[2, 1] = 1.0 if steer else 0.0
+        B[3:5, 0] = [c, si]
+        B[3:5, 1] = s * np.array([-si, c])
+        return A, B, np.eye(5), np.zeros((5, 2))
+
 
 class FieldGait(Block):
     """Delivered field → the steady speed and heading of the stick-slip robot (no dynamics).

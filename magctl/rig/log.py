@@ -265,18 +265,81 @@ class RunLog:
         last = ev[-1] if ev else None
         return {
             "path": str(self.path), "task": (self.start or {}).get("task"),
-            "options": (self.start or {}).get("options"), "events": len(ev),
+            "options": readable_options((self.start or {}).get("options")), "events": len(ev),
             "exit_status": None if self.stop is None else self.stop.get("exit_status"),
             "reason": None if self.stop is None else self.stop.get("reason"),
             "crashed": self.crashed, "torn_tail": self.torn_tail, "complete_to": self.complete_to,
             "note": self.crash_note(),
-            "duration_s": (ev[-1]["timing"]["scheduled_s"] - ev[0]["timing"]["scheduled_s"]) if len(ev) > 1 else 0.0,
-            "jitter_p99_ms": float(np.percentile(timing[:, 0], 99) * 1e3) if len(ev) else None,
-            "compute_p99_ms": float(np.percentile(timing[:, 1], 99) * 1e3) if len(ev) else None,
-            "final_robot_um": None if last is None else [x * 1e6 for x in last["obs"]["robot_est_m"]],
-            "final_spheres_um": None if last is None else [[x * 1e6 for x in s] for s in last["obs"]["spheres_est_m"]],
-            "final_outputs": None if last is None else last["outputs"],
+            "duration_s": round(ev[-1]["timing"]["scheduled_s"] - ev[0]["timing"]["scheduled_s"], 6)
+            if len(ev) > 1 else 0.0,
+            "jitter_p99_ms": round(float(np.percentile(timing[:, 0], 99) * 1e3), 4) if len(ev) else None,
+            "compute_p99_ms": round(float(np.percentile(timing[:, 1], 99) * 1e3), 4) if len(ev) else None,
+            "final_robot_um": None if last is None else [_um(x) for x in last["obs"]["robot_est_m"]],
+            "final_spheres_um": None if last is None else [[_um(x) for x in s] for s in last["obs"]["spheres_est_m"]],
+            "final_outputs": None if last is None else self._readable_outputs(last["outputs"]),
         }
+
+    def _readable_outputs(self, outputs: dict) -> dict[str, Any]:
+        """The task's last outputs in µm and µm/s with status and phase names (the descriptor gives units)."""
+        from magctl.control.status import STATUS_NAMES
+
+        fields = (self.descriptor or {}).get("fields", {})
+        phases = _task_phases((self.start or {}).get("task"))
+        out: dict[str, Any] = {}
+        for key, value in outputs.items():
+            unit = fields.get(f"outputs.{key}", {}).get("unit")
+            if key == "status":
+                out[key] = STATUS_NAMES.get(int(value), f"code {value}")
+            elif key == "phase" and phases:
+                out[key] = phases.get(int(value), f"code {value}")
+            elif unit in _READABLE:
+                suffix, factor = _READABLE[unit]
+                out[f"{key}_{suffix}"] = _scaled(value, factor)
+            elif isinstance(value, float) and value.is_integer() and unit == "1":
+                out[key] = int(value)
+            else:
+                out[key] = value
+        return out
+
+
+# SI unit of a logged field → (key suffix, factor) of the readable summary
+_READABLE = {"m": ("um", 1e6), "m/s": ("um_s", 1e6)}
+
+
+def _um(x: float) -> float:
+    """Metres → µm, rounded to the nanometre (the float noise of the SI value is not information)."""
+    return round(float(x) * 1e6, 3)
+
+
+def _scaled(value, factor: float):
+    if isinstance(value, list):
+        return [_scaled(v, factor) for v in value]
+    return round(float(value) * factor, 3)
+
+
+def _task_phases(task: str | None) -> dict[int, str]:
+    """Phase names of a push task's ``phase`` output (empty for tasks without phases)."""
+    from magctl.control.push.front import FrontPushTask
+    from magctl.control.push.side import SidePushTask
+
+    return {"front-push": FrontPushTask.PHASES, "side-push": SidePushTask.PHASES,
+            "assemble": SidePushTask.PHASES}.get(task or "", {})
+
+
+def readable_options(options: dict | None) -> dict[str, Any] | None:
+    """Resolved task options (SI, unit-suffixed keys) in µm and µm/s, rounded to the nanometre."""
+    if options is None:
+        return None
+    out = {}
+    for key, value in options.items():
+        for si, (suffix, factor) in sorted(_READABLE.items(), key=lambda kv: -len(kv[0])):
+            tail = "_" + si.replace("/", "_")
+            if key.endswith(tail) and not isinstance(value, (str, bool)):
+                out[key[: -len(tail)] + "_" + suffix] = _scaled(value, factor)
+                break
+        else:
+            out[key] = value
+    return out
 
 
 def _no_constants(name):
@@ -469,14 +532,20 @@ def export(log_path, out_path) -> Path:
     meta = {"start": log.start, "descriptor": log.descriptor, "stop": log.stop, "torn_tail": log.torn_tail}
     suffix = out.suffix.lower()
     if suffix == ".parquet":
-        import pyarrow as pa
-        import pyarrow.parquet as pq
+        try:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+        except ImportError:
+            raise LogError("Parquet export needs pyarrow: pip install 'magctl[export]'") from None
 
         table = pa.table(cols)
         table = table.replace_schema_metadata({k.encode(): json.dumps(v).encode() for k, v in meta.items()})
         pq.write_table(table, out)
     elif suffix in (".h5", ".hdf5"):
-        import h5py
+        try:
+            import h5py
+        except ImportError:
+            raise LogError("HDF5 export needs h5py: pip install 'magctl[export]'") from None
 
         with h5py.File(out, "w") as f:
             g = f.create_group("events")

@@ -544,7 +544,7 @@ def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM,
             "max_attempts": SIDE_MAX_ATTEMPTS,
             "error_um": [float(x) / UM for x in errs[np.isfinite(errs)]],
             "stable_gain_range": None if nl["range"] is None else list(nl["range"]),
-            "stable_gain_range_note": "K_s converging from every start 10-300 um within 30 attempts",
+            "stable_gain_range_note": "K_s converging from every start 10-300 µm within 30 attempts",
         },
     }
 

@@ -199,6 +199,8 @@ def servo_step_diagram(servo, *, delay_frames: int, start=(1.0e-3, 1.0e-3), trac
     tracker_mode : {"raw", "kalman"}
         ``predict=True`` makes the Kalman tracker extrapolate across the latency.
 
+    Notes
+    -----
     The camera starts primed (the robot has been at rest at ``start``), as the linear
     model's delay line starts at the initial position.
     """

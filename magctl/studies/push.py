@@ -53,7 +53,7 @@ def run_experiments(ctx, exps: dict[str, Experiment], n_trials: int) -> tuple[di
         jobs = {label: (run_push_trials, n_trials, {"exp": exp}) for label, exp in todo.items()}
         done = run_sweeps(jobs, seed=ctx.seed, chunk_size=max(1, math.ceil(n_trials / chunks_per_job)),
                           scheduler=ctx.scheduler, workers=ctx.workers, progress=not ctx.quiet,
-                          desc=f"{len(todo)} controllers")
+                          desc=f"{ctx.study}: {len(todo)} controllers × {n_trials} trials")
         for label, result in done.items():
             ctx.trial_cache.store(keys[label], ctx.study, result)
             found[label] = (ctx.study, result)

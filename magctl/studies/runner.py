@@ -23,8 +23,9 @@ Trials shared between studies go through the context's :class:`TrialCache`, one 
 entries it stored itself or that a study named in its ``REUSES`` stored; it says in its
 summary which trials it reused, and computes them itself when run alone.
 
-``analysis/`` is not installed into site-packages; it is found beside the
-package (or at ``$MAGCTL_STUDIES``).
+``analysis/`` is not a top-level package in site-packages: a checkout reads the folder at
+the top of the repository, an installed wheel the copy it carries as package data
+(``magctl/_data/analysis``); ``$MAGCTL_STUDIES`` points at another folder.
 """
 
 from __future__ import annotations
@@ -187,9 +188,11 @@ class StudyContext:
 
 
 def studies_dir() -> Path:
-    """The folder of study modules: ``$MAGCTL_STUDIES`` or ``analysis/`` beside the package."""
+    """The folder of study modules: ``$MAGCTL_STUDIES`` or the shipped ``analysis/`` (see ``config.data_dir``)."""
+    from magctl.config import data_dir
+
     env = os.environ.get("MAGCTL_STUDIES")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "analysis"
+    return Path(env) if env else data_dir("analysis")
 
 
 def _load(path: Path) -> ModuleType:

@@ -210,3 +210,28 @@ def test_linearize_errors_are_clear():
     flags = Diagram("f", [PI("pi", 1.0, 0.1, limit=1.0)], inputs={"e": "pi.e"}, outputs={"sat": "pi.saturated"})
     with pytest.raises(MagctlError, match="no real-valued output"):
         flags.linearize(flags.initial_state(1), {"e": 0.0})
+
+
+def test_a_blocks_own_exact_jacobians_are_used_and_agree_with_finite_differences(monkeypatch):
+    """KinematicRobot gives its Jacobians in closed form; linearize takes them instead of differencing."""
+    import magctl.core.linearize as lz
+    from magctl.plant.standin import KinematicRobot
+
+    robot = KinematicRobot("robot", start=(1e-3, 2e-3), heading0=0.3)
+    st = robot.initial_state(1)
+    for speed, heading in ((3e-4, 0.7), (-2e-4, -1.2)):          # steering, and driven backwards (heading held)
+        u = {"speed": np.array([speed]), "heading": np.array([heading])}
+        exact = robot.jacobians(st, u)
+        fd = lz.finite_difference_jacobians(robot, st, u)
+        for a, b in zip(exact, fd, strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-12)
+        assert exact[0][2, 2] == (0.0 if speed > 0 else 1.0)
+    d = Diagram("d", [robot], inputs={"speed": "robot.speed", "heading": "robot.heading"},
+                outputs={"position": "robot.position"})
+
+    def no_differences(*args, **kwargs):
+        raise AssertionError("finite differences used although the block has exact Jacobians")
+
+    monkeypatch.setattr(lz, "finite_difference_jacobians", no_differences)
+    lin = d.linearize(d.initial_state(1), {"speed": 3e-4, "heading": 0.7})
+    assert lin.B[0, 1] == pytest.approx(-DT * 3e-4 * np.sin(0.7))     # ∂x/∂ψ = −T s sin ψ

@@ -132,7 +132,7 @@ def test_log_commands(push_log, tmp_path, capsys):
     code, out, _ = run("export", str(push_log), "--out", str(tmp_path / "x.parquet"), "--json")
     assert code == 0 and (tmp_path / "x.parquet").exists()
     code, _, err = run("show", str(tmp_path / "missing.jsonl"))
-    assert code == 2 and "no such run log" in err
+    assert code == 2 and "missing.jsonl: no such file" in err
 
 
 def test_replay_uses_the_parameter_files_the_run_used(tmp_path, monkeypatch):
@@ -205,7 +205,7 @@ def test_malformed_logs_are_one_line_errors_on_every_command(push_log, tmp_path,
 
 def test_a_directory_is_not_a_log(tmp_path, capsys):
     assert main(["log", "show", str(tmp_path)]) == 2
-    assert "is a directory" in capsys.readouterr().err
+    assert "is a folder, not a file" in capsys.readouterr().err
 
 
 def test_a_crashed_log_says_so_and_up_to_where_it_is_complete(push_log, tmp_path, capsys):
@@ -231,3 +231,26 @@ def test_the_writer_refuses_an_invalid_document(tmp_path):
     with pytest.raises(LogError, match="refusing to write an invalid start document"):
         w.start(task="goto", options={}, seed="zero", rig={}, limits={})
     w.close()
+
+
+def test_log_show_is_in_micrometres_with_status_and_phase_names(push_log, capsys):
+    """``log show``: positions in µm, speeds in µm/s, status and phase by name, no SI float noise."""
+    from magctl.control.push.front import FrontPushTask
+    from magctl.control.status import STATUS_NAMES
+
+    assert main(["log", "show", str(push_log), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    outs = doc["final_outputs"]
+    assert outs["status"] in STATUS_NAMES.values()
+    assert outs["phase"] in FrontPushTask.PHASES.values()
+    assert "target_um" in outs and "target" not in outs
+    opts = doc["options"]
+    assert "push_speed_m_s" not in opts
+    assert all(round(v, 3) == v for v in outs["target_um"])          # rounded to the nanometre
+    raw = read_log(push_log)
+    assert outs["target_um"] == pytest.approx([x * 1e6 for x in raw.events[-1]["outputs"]["target"]], abs=1e-3)
+    assert opts["push_speed_um_s"] == pytest.approx(raw.start["options"]["push_speed_m_s"] * 1e6)
+    assert main(["log", "show", str(push_log)]) == 0
+    text = capsys.readouterr().out
+    assert f"status {outs['status']}" in text and "µm/s" in text and "final robot: [" in text
+    assert "e-0" not in text                                           # no SI floats such as 9.99e-06

@@ -260,7 +260,7 @@ def test_bad_key_options_are_one_line_errors(keys, tmp_path, capsys):
         (["rig", "serve-sim", "--bind", "tcp://127.0.0.1:1", "--plant", "standin", "--curve-secret",
           lab["server_public"], "--curve-clients", lab["clients_folder"]], "no secret key"),
         (["rig", "serve-sim", "--bind", "tcp://127.0.0.1:1", "--plant", "standin", "--curve-secret",
-          str(tmp_path / "none"), "--curve-clients", lab["clients_folder"]], "no such key file"),
+          str(tmp_path / "none"), "--curve-clients", lab["clients_folder"]], "none: no such file"),
         (["rig", "serve-sim", "--bind", "tcp://127.0.0.1:1", "--plant", "standin", "--curve-secret",
           lab["server_secret"], "--curve-clients", str(tmp_path)], "no client public keys"),
         (["rig", "run", "--rig", "tcp://127.0.0.1:1", "--task", "goto", "--target-um", "1", "1",

@@ -45,11 +45,11 @@ def test_front_convergence_matches_the_normal_release_law(computed):
         d0 = case["delta0_um"]
         first = phi((d0 + eps - mu) / sd) - phi((d0 - eps - mu) / sd)
         assert case["p_converged_by_attempt_markov"][0] == pytest.approx(first, abs=2e-3)
-    naive = front["K_c=0, delta0=0 um"]["p_converged_by_attempt_markov"]
+    naive = front["K_c=0, delta0=0 µm"]["p_converged_by_attempt_markov"]
     p = phi((eps - mu) / sd) - phi((-eps - mu) / sd)
     np.testing.assert_allclose(naive, 1 - (1 - p) ** np.arange(1, len(naive) + 1), atol=1e-4)
     # K_c = 1 learns D_p,r after one attempt; K_c = 0 never does
-    assert front["K_c=1, delta0=0 um"]["p_converged_by_attempt_markov"][-1] > 0.9 > naive[-1]
+    assert front["K_c=1, delta0=0 µm"]["p_converged_by_attempt_markov"][-1] > 0.9 > naive[-1]
 
 
 def test_front_monte_carlo_agrees_with_the_markov_chain(computed):

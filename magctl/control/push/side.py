@@ -55,6 +55,8 @@ class SidePushTask(PushTask, Block):
     pass_speed, travel_speed : float
         ``speed_cap`` along the motion line (0.4 mm/s, §IV-C) and otherwise (m/s).
 
+    Notes
+    -----
     Ports: as :class:`~magctl.control.push.front.FrontPushTask`; ``correction`` is ``Δ``.
     """
 

@@ -40,9 +40,9 @@ def star_outline(length, width, front_notch_depth, front_notch_width, side_notch
     """
     lx, wy = length / 2, width / 2
     if not 0 < front_notch_width < width:
-        raise ParameterError(f"front notch width {front_notch_width * 1e6:.0f} um must lie in (0, width)")
+        raise ParameterError(f"front notch width {front_notch_width * 1e6:.0f} µm must lie in (0, width)")
     if not 0 <= front_notch_depth < length / 2:
-        raise ParameterError(f"front notch depth {front_notch_depth * 1e6:.0f} um must lie in [0, length/2)")
+        raise ParameterError(f"front notch depth {front_notch_depth * 1e6:.0f} µm must lie in [0, length/2)")
     cw = front_notch_width / 2
     n = int(arc_points)
     parts = [
