@@ -17,9 +17,10 @@ ROOT = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 
 # import name → distribution name, where they differ
-DIST = {"zmq": "pyzmq", "PIL": "pillow"}
+DIST = {"zmq": "pyzmq", "PIL": "pillow", "skfem": "scikit-fem"}
 # optional imports, each behind its extra and a clear error when missing
-OPTIONAL = {"distributed": "dask", "pyarrow": "export", "h5py": "export", "xarray": "xarray"}
+OPTIONAL = {"distributed": "dask", "pyarrow": "export", "h5py": "export", "xarray": "xarray",
+            "skfem": "fem", "gmsh": "fem", "pyamg": "fem"}
 
 
 def _imports(folders) -> set[str]:
@@ -52,7 +53,7 @@ def test_optional_imports_are_declared_in_their_extra():
         assert name in imported, name
         assert DIST.get(name, name).lower() in {_dist(r) for r in extras[extra]}, (name, extra)
     dev = " ".join(extras["dev"])
-    assert all(e in dev for e in ("dask", "export", "xarray", "docs"))
+    assert all(e in dev for e in ("dask", "export", "xarray", "docs", "fem"))
 
 
 def test_version_is_the_newest_changelog_release_and_there_is_a_license():
