@@ -196,17 +196,34 @@ def _panel_integral(x, tri, own, acc, rule7, rule3, gl_x, gl_w):
         _adaptive(x, tri, acc, True, rule7, rule3)
 
 
+@numba.njit(cache=True, nogil=True)
+def _source(x, xr, tri, own, reflect, acc, rule7, rule3, gl_x, gl_w):
+    """One panel's integral at ``x``; a reflected copy (``reflect`` = c, not NaN) is evaluated at the mirror
+    point ``xr`` of ``x`` in the plane ``z = c`` and its z row flipped: ``P ∫ G(Px, y) dS``."""
+    acc[:] = 0.0
+    if np.isnan(reflect):
+        _panel_integral(x, tri, own, acc, rule7, rule3, gl_x, gl_w)
+    else:
+        xr[0] = x[0]
+        xr[1] = x[1]
+        xr[2] = 2.0 * reflect - x[2]
+        _panel_integral(xr, tri, False, acc, rule7, rule3, gl_x, gl_w)
+        for j in range(3):
+            acc[2, j] = -acc[2, j]
+
+
 @numba.njit(cache=True, parallel=True)
-def _assemble(targets, own, tris, unknown, sign, n_unknown, rule7, rule3, gl_x, gl_w):
-    """``A[p, i, u, j] = Σ_{s: unknown[s] = u} ∫_{tris[s]} G_ij(targets[p], y) dS sign[s, j]``."""
+def _assemble(targets, own, tris, unknown, sign, reflect, n_unknown, rule7, rule3, gl_x, gl_w):
+    """``A[p, i, u, j] = Σ_{s: unknown[s] = u} ∫_{tris[s]} G_ij(targets[p], y) dS sign[s, j]`` (reflected
+    copies as in :func:`_source`)."""
     p_count = targets.shape[0]
     out = np.zeros((p_count, 3, n_unknown, 3))
     for p in numba.prange(p_count):
         acc = np.zeros((3, 3))
+        xr = np.zeros(3)
         x = targets[p].copy()
         for s in range(tris.shape[0]):
-            acc[:] = 0.0
-            _panel_integral(x, tris[s], own[p] == s, acc, rule7, rule3, gl_x, gl_w)
+            _source(x, xr, tris[s], own[p] == s, reflect[s], acc, rule7, rule3, gl_x, gl_w)
             u = unknown[s]
             for i in range(3):
                 for j in range(3):
@@ -215,16 +232,16 @@ def _assemble(targets, own, tris, unknown, sign, n_unknown, rule7, rule3, gl_x, 
 
 
 @numba.njit(cache=True, parallel=True)
-def _evaluate(points, own, tris, density, rule7, rule3, gl_x, gl_w):
+def _evaluate(points, own, tris, density, reflect, rule7, rule3, gl_x, gl_w):
     """``u[k, p, i] = Σ_s ∫_{tris[s]} G_ij(points[p], y) dS density[k, s, j]`` (no 1/(8πμ))."""
     k_count = density.shape[0]
     out = np.zeros((k_count, points.shape[0], 3))
     for p in numba.prange(points.shape[0]):
         acc = np.zeros((3, 3))
+        xr = np.zeros(3)
         x = points[p].copy()
         for s in range(tris.shape[0]):
-            acc[:] = 0.0
-            _panel_integral(x, tris[s], own[p] == s, acc, rule7, rule3, gl_x, gl_w)
+            _source(x, xr, tris[s], own[p] == s, reflect[s], acc, rule7, rule3, gl_x, gl_w)
             for k in range(k_count):
                 for i in range(3):
                     out[k, p, i] += acc[i, 0] * density[k, s, 0] + acc[i, 1] * density[k, s, 1] \
@@ -257,14 +274,25 @@ def normals(tris: np.ndarray) -> np.ndarray:
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
+def _reflect(reflect, n: int) -> np.ndarray:
+    if reflect is None:
+        return np.full(n, np.nan)
+    out = np.ascontiguousarray(reflect, dtype=float)
+    if out.shape != (n,):
+        raise ValueError(f"reflect needs one plane height (or NaN) per panel ({n}), got shape {out.shape}")
+    return out
+
+
 def single_layer(targets: np.ndarray, tris: np.ndarray, own: np.ndarray | None = None,
                  unknown: np.ndarray | None = None, sign: np.ndarray | None = None,
-                 n_unknown: int | None = None) -> np.ndarray:
+                 n_unknown: int | None = None, reflect: np.ndarray | None = None) -> np.ndarray:
     """Integrated Blake tensor ``(P, 3, U, 3)``: ``∫_panel G_ij(x_p, y) dS_y`` summed into unknowns.
 
     ``own[p]`` is the index of the panel that contains target ``p`` (−1 if none: then the target
     must not lie on any panel); panel ``s`` adds to unknown ``unknown[s]`` with the component
-    signs ``sign[s]`` (defaults: one unknown per panel, signs +1). Divide by ``8πμ`` for velocity.
+    signs ``sign[s]`` (defaults: one unknown per panel, signs +1); ``reflect[s]`` (NaN: none) makes
+    panel ``s`` a copy seen through the mirror ``z = reflect[s]`` (see :class:`PanelSet`). Divide by
+    ``8πμ`` for velocity.
     """
     tris = _check_tris(tris, "panels")
     targets = np.ascontiguousarray(targets, dtype=float).reshape(-1, 3)
@@ -272,13 +300,14 @@ def single_layer(targets: np.ndarray, tris: np.ndarray, own: np.ndarray | None =
     unknown = np.arange(len(tris)) if unknown is None else np.asarray(unknown, np.int64)
     sign = np.ones((len(tris), 3)) if sign is None else np.ascontiguousarray(sign, dtype=float)
     n_unknown = int(unknown.max()) + 1 if n_unknown is None else int(n_unknown)
-    return _assemble(targets, own, tris, unknown, sign, n_unknown, RULE7, RULE3, _GL_X, _GL_W)
+    return _assemble(targets, own, tris, unknown, sign, _reflect(reflect, len(tris)), n_unknown, RULE7, RULE3,
+                     _GL_X, _GL_W)
 
 
 def layer_velocity(points: np.ndarray, tris: np.ndarray, density: np.ndarray, viscosity: float,
-                   own: np.ndarray | None = None, chunk: int = 4096) -> np.ndarray:
+                   own: np.ndarray | None = None, reflect: np.ndarray | None = None, chunk: int = 4096) -> np.ndarray:
     """Velocity ``(K, P, 3)`` at ``points (P, 3)`` of panels ``tris (S, 3, 3)`` with force densities
-    ``density (K, S, 3)`` [N/m²] (``own`` as in :func:`single_layer`)."""
+    ``density (K, S, 3)`` [N/m²] (``own`` and ``reflect`` as in :func:`single_layer`)."""
     tris = _check_tris(tris, "panels")
     points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
     density = np.ascontiguousarray(density, dtype=float)
@@ -287,10 +316,11 @@ def layer_velocity(points: np.ndarray, tris: np.ndarray, density: np.ndarray, vi
     if density.shape[1:] != (len(tris), 3):
         raise ValueError(f"density shape {density.shape} does not match {len(tris)} panels")
     own = np.full(len(points), -1, np.int64) if own is None else np.asarray(own, np.int64)
+    reflect = _reflect(reflect, len(tris))
     out = np.empty((density.shape[0], len(points), 3))
     for s in range(0, len(points), chunk):
-        out[:, s:s + chunk] = _evaluate(points[s:s + chunk], own[s:s + chunk], tris, density, RULE7, RULE3,
-                                        _GL_X, _GL_W)
+        out[:, s:s + chunk] = _evaluate(points[s:s + chunk], own[s:s + chunk], tris, density, reflect, RULE7,
+                                        RULE3, _GL_X, _GL_W)
     return out / (8.0 * np.pi * viscosity)
 
 
@@ -299,7 +329,10 @@ class PanelSet:
     """Panels whose force densities are tied to a set of unknowns.
 
     The first ``n_independent`` panels carry the unknowns ``0 .. n−1`` in order; every other panel
-    is a copy (a mirror image) of one of them, its density the unknown's times ``sign``.
+    is a copy (a mirror image) of one of them, its density the unknown's times ``sign``. A copy with
+    ``reflect = c`` (not NaN) adds the flow seen through the mirror plane ``z = c``:
+    ``u(x) = P ∫ G(Px, y) q dS`` with ``P`` the reflection — the image that makes ``z = c`` a plane of
+    symmetry (a free surface: zero normal velocity and zero shear stress).
 
     Attributes
     ----------
@@ -312,6 +345,8 @@ class PanelSet:
     body : ndarray (S,) int
         Closed body the panel belongs to (for the null-space deflation); −1 for an open sheet (a lid).
     n_independent : int
+    reflect : ndarray (S,), optional
+        Mirror plane height of a reflected copy, NaN for none (the default).
     """
 
     tris: np.ndarray
@@ -319,6 +354,7 @@ class PanelSet:
     sign: np.ndarray
     body: np.ndarray
     n_independent: int
+    reflect: np.ndarray | None = None
 
     def __post_init__(self):
         self.tris = _check_tris(self.tris, "panels")
@@ -326,6 +362,7 @@ class PanelSet:
         self.unknown = np.asarray(self.unknown, np.int64)
         self.sign = np.ascontiguousarray(self.sign, dtype=float)
         self.body = np.asarray(self.body, np.int64)
+        self.reflect = _reflect(self.reflect, s)
         n = int(self.n_independent)
         if self.unknown.shape != (s,) or self.sign.shape != (s, 3) or self.body.shape != (s,):
             raise ValueError(f"unknown, sign and body must describe all {s} panels")
@@ -353,7 +390,9 @@ def solve(panels: PanelSet, boundary_velocity: np.ndarray, viscosity: float, def
         raise ValueError(f"boundary velocity shape {rhs.shape} does not match {n} collocation panels")
     tris = panels.tris
     x = centroids(tris[:n])
-    a = _assemble(x, np.arange(n), tris, panels.unknown, panels.sign, n,
+    if not np.all(np.isnan(panels.reflect[:n])):
+        raise ValueError("the independent panels cannot be reflected copies")
+    a = _assemble(x, np.arange(n), tris, panels.unknown, panels.sign, panels.reflect, n,
                   RULE7, RULE3, _GL_X, _GL_W).reshape(3 * n, 3 * n)
     a /= 8.0 * np.pi * viscosity
     if deflate:
@@ -379,8 +418,9 @@ def mirrored(tris: np.ndarray, axis: int, plane: float = 0.0) -> np.ndarray:
     return out
 
 
-def y_symmetric(half: np.ndarray, body: int = 0) -> tuple[PanelSet, PanelSet]:
-    """The even and odd :class:`PanelSet` of a body mirror-symmetric about ``y = 0`` from its ``y > 0`` half.
+def y_symmetric(half: np.ndarray, body=0) -> tuple[PanelSet, PanelSet]:
+    """The even and odd :class:`PanelSet` of panels mirror-symmetric about ``y = 0`` from their ``y > 0`` half
+    (``body``: one body index for all, or one per panel, −1 for an open sheet).
 
     Even (motion along x or z): the mirror panel carries ``(q_x, −q_y, q_z)``; odd (along y):
     ``(−q_x, q_y, −q_z)``.
@@ -388,7 +428,7 @@ def y_symmetric(half: np.ndarray, body: int = 0) -> tuple[PanelSet, PanelSet]:
     n = len(half)
     tris = np.concatenate([half, mirrored(half, 1)])
     unknown = np.concatenate([np.arange(n), np.arange(n)])
-    body_ = np.full(2 * n, body)
+    body_ = np.concatenate([np.broadcast_to(np.asarray(body, np.int64), (n,))] * 2)
     out = []
     for par in ((1.0, -1.0, 1.0), (-1.0, 1.0, -1.0)):
         sign = np.concatenate([np.ones((n, 3)), np.tile(par, (n, 1))])

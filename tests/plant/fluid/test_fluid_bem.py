@@ -117,3 +117,27 @@ def test_bad_input():
     even, _ = bem.y_symmetric(sphere_half(2.0, 1.0, 1.0, 1.0))
     with pytest.raises(ValueError, match="boundary velocity"):
         bem.solve(even, np.zeros((1, 3, 3)), 1.0, deflate=True)
+
+
+def faxen_midway(lam):
+    """Faxén (1923) via Happel & Brenner (1965) eq 7-4.28: a sphere midway between two walls, λ = a/l
+    (l the distance to each wall): F/(6πμaU) = 1/(1 − 1.004λ + 0.418λ³ + 0.21λ⁴ − 0.169λ⁵)."""
+    return 1.0 / (1 - 1.004 * lam + 0.418 * lam**3 + 0.21 * lam**4 - 0.169 * lam**5)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("half_gap", [5.0, 3.0])
+def test_sphere_midway_between_glass_and_lid_matches_faxen(half_gap):
+    from magctl.plant.fluid.flow import LID_PANELS, LID_RADIUS, lid_half
+
+    top = 2 * half_gap
+    sphere = sphere_half(half_gap, 0.2, 1.0, 0.2)
+    lid = lid_half(top, LID_RADIUS * top, LID_PANELS * top, top)
+    body = np.concatenate([np.zeros(len(sphere), int), np.full(len(lid), -1)])
+    even, _ = bem.y_symmetric(np.concatenate([sphere, lid]), body)
+    rhs = np.zeros((1, even.n_independent, 3))
+    rhs[0, :len(sphere), 0] = 1.0
+    q = bem.solve(even, rhs, 1.0, deflate=True)[0]
+    on_sphere = np.concatenate([body, body]) == 0
+    force = (q * bem.areas(even.tris)[:, None])[on_sphere].sum(axis=0) / (6 * np.pi)
+    assert force[0] == pytest.approx(faxen_midway(1 / half_gap), rel=0.01)
