@@ -292,7 +292,7 @@ class RobotGeometry:
             lines = [geo.addLine(pts[k], pts[(k + 1) % len(pts)]) for k in range(len(pts))]
             loop = geo.addCurveLoop(lines)
             base = geo.addPlaneSurface([loop])
-            ext = geo.extrude([(2, base)], 0.0, 0.0, t)
+            geo.extrude([(2, base)], 0.0, 0.0, t)
             geo.synchronize()
             # curves: the rims (bottom, top) and the vertical edges, except those on the cut y = 0
             rims, verticals = [], []

@@ -105,7 +105,8 @@ def test_off_map_point_forces_continue_the_map(flow):
     assert np.abs(flow.velocity_far(pts) - flow.velocity_exact(pts)).max() < 1e-4
     # the look-up is continuous across the map's edge
     v = np.array([[1.0, 0.3]])
-    for a, b in (([lim * 0.99999, 0.2e-3], [lim * 1.00001, 0.2e-3]), ([0.3e-3, lim * 0.99999], [0.3e-3, lim * 1.00001])):
+    pairs = (([lim * 0.99999, 0.2e-3], [lim * 1.00001, 0.2e-3]), ([0.3e-3, lim * 0.99999], [0.3e-3, lim * 1.00001]))
+    for a, b in pairs:
         ua, ub = flow.lookup(np.array([a]), v), flow.lookup(np.array([b]), v)
         assert np.abs(ua - ub).max() < 2e-5
     assert flow.eps == 0.0
@@ -248,6 +249,7 @@ def test_bounded_map_edge_is_continuous(lid_flow, free_flow, which, tol):
     f = lid_flow if which == "lid" else free_flow
     lim = f.gx[-1]
     v = np.array([[1.0, 0.0]])
-    for a, b in (([lim * 0.99999, 0.2e-3], [lim * 1.00001, 0.2e-3]), ([0.3e-3, lim * 0.99999], [0.3e-3, lim * 1.00001])):
+    pairs = (([lim * 0.99999, 0.2e-3], [lim * 1.00001, 0.2e-3]), ([0.3e-3, lim * 0.99999], [0.3e-3, lim * 1.00001]))
+    for a, b in pairs:
         ua, ub = f.lookup(np.array([a]), v), f.lookup(np.array([b]), v)
         assert np.abs(ua - ub).max() < tol
