@@ -10,10 +10,10 @@ combination (paper §III: position, not velocity, sets the displacement).
 Bounded layers (:class:`Domain`):
 
 * ``lid`` — a no-slip plane at ``z = H``, discretised as panels on a disc of radius
-  :data:`LID_RADIUS` × H (the flow in a layer decays as exp(−π r/H));
+  :data:`LID_RADIUS` × H;
 * ``free_surface`` — a flat stress-free top at ``z = H`` is, by reflection, the symmetric
-  half of a channel of depth 2H: the robot mirrored about ``z = H`` (forces
-  ``(f_x, f_y, −f_z)``) and a lid at ``z = 2H``.
+  half of a channel of depth 2H: the robot and a lid at ``z = 2H``, each also seen through the
+  surface (``bem.PanelSet.reflect``), so the glass stays exact for the mirrored half too.
 
 The flow at the sphere-centre height is sampled once on a grid in the robot frame
 (both motions, three components), so a frame of a batched simulation is a table
@@ -42,10 +42,10 @@ SOLVER_VERSION = "bem-2"
 """Bumped whenever the solver's numbers change, so stale on-disk maps are never read."""
 
 LID_RADIUS = 6.0
-"""Radius of the discretised lid disc in units of the depth H (see the truncation check in docs/fluid.md)."""
+"""Radius of the discretised lid disc in units of its height (truncation check in docs/fluid.md §3)."""
 
 LID_PANELS = 0.25
-"""Lid panel edge at the centre in units of H; it grows with the distance r as (1 + r/H)."""
+"""Lid panel edge at the centre in units of its clearance over the robot; it grows with r as (1 + r/H)."""
 
 FREE_SURFACE_MAP = 6.0
 """Under a free surface the map reaches ±FREE_SURFACE_MAP × H (at least the default ±1.5 mm)."""
@@ -204,7 +204,7 @@ class RobotFlow:
             raise ValueError(f"map height {self.height!r} m must lie below the oil depth {self.domain.depth!r} m")
         if self.domain.kind == "free_surface":
             # the off-map sum cannot carry the surface's images (the compiled kernel has only the glass's):
-            # map out to where the layer's flow has decayed, exp(-pi r / 2H) < 1e-4 at r = 6H
+            # map out to 6H, where the layer's far field (a 2-D dipole, ~ (H/r)^2) is small
             self.map_half = max(self.map_half, FREE_SURFACE_MAP * self.domain.depth)
         path = self._cache_path() if self.disk_cache else None
         if path is not None and path.exists():
