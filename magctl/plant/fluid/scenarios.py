@@ -68,7 +68,8 @@ class SidePushResult:
 def sidepush_curve(gaps, speed: float = ROBOT_SPEED, travel: float = APPROACH, **block_kw) -> SidePushResult:
     """Fig 6: the robot drives along +x past a sphere at ``(0, D_g)``, from ``-travel`` to ``+travel``.
 
-    Extra keywords go to :class:`magctl.plant.sphere.Spheres` (``drag_mode``, ``roughness``…).
+    Extra keywords go to :class:`magctl.plant.sphere.Spheres` (``drag_mode``, ``roughness``, ``geometry``,
+    ``domain`` — a :class:`magctl.plant.fluid.domain.Domain` for a bounded oil layer…).
     """
     gaps = np.atleast_1d(np.asarray(gaps, float))
     if np.any(gaps <= 0):
