@@ -283,7 +283,7 @@ class RobotGeometry:
         pivot, _ = self._pivot
         was_init = gmsh.isInitialized()
         if not was_init:
-            gmsh.initialize(readConfigFiles=False)
+            gmsh.initialize(readConfigFiles=False, interruptible=False)   # leave SIGINT to the caller
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("robot")
         try:
