@@ -221,9 +221,11 @@ class RobotFlow:
 
     # --- the on-disk cache -----------------------------------------------------------------
     def cache_key(self) -> str:
-        """Hash of every input of the solution and the solver version."""
+        """Hash of every input of the solution and the solver version (with the mesher's)."""
+        import gmsh
+
         h = hashlib.sha256()
-        for part in (SOLVER_VERSION, repr(self.geometry.key()), repr(round(self.viscosity, 15)),
+        for part in (SOLVER_VERSION, gmsh.__version__, repr(self.geometry.key()), repr(round(self.viscosity, 15)),
                      repr(round(self.height, 12)), repr(self.domain.key()), repr((self.map_half, self.map_step)),
                      repr((bem.NEAR, bem.MID, bem.FAR, bem.MAX_DEPTH, LID_RADIUS, LID_PANELS, LID_FAR, FAR_CELL))):
             h.update(part.encode())
