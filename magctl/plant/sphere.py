@@ -36,6 +36,7 @@ from magctl.core.block import Block, StateVar
 from magctl.core.errors import ParameterError, WiringError
 from magctl.core.ports import Port
 from magctl.plant.fluid import params as fluid_params
+from magctl.plant.fluid.domain import Domain
 from magctl.plant.fluid.flow import RobotFlow, robot_flow
 from magctl.plant.fluid.geometry import Polygon, RobotGeometry
 from magctl.plant.fluid.params import GRAVITY, SphereParams, fluid_viscosity, sphere_params
@@ -144,6 +145,8 @@ class Spheres(Block):
         ``models/sphere.toml`` by default.
     geometry : RobotGeometry, optional
         ``models/robot_geometry.toml`` by default.
+    domain : Domain, optional
+        What bounds the oil (``models/fluid.toml [domain]`` by default).
     viscosity, fluid_density : float, optional
         From ``models/fluid.toml`` by default.
     drag_mode : {"paper", "accurate"}, optional
@@ -163,6 +166,7 @@ class Spheres(Block):
 
     def __init__(self, initial_positions: InitialPositions, name: str = "spheres", *,
                  params: SphereParams | None = None, geometry: RobotGeometry | None = None,
+                 domain: Domain | None = None,
                  viscosity: float | None = None, fluid_density: float | None = None,
                  drag_mode: str | None = None, roughness: float | None = None, dt: float = FRAME_PERIOD_S,
                  compiled: bool = True, flow: RobotFlow | None = None):
@@ -179,6 +183,7 @@ class Spheres(Block):
         if geometry is None:
             geometry = flow.geometry if flow is not None else RobotGeometry.from_params()
         self.geometry = geometry
+        self.domain = domain if domain is not None else Domain.from_params()
         self.viscosity = float(viscosity) if viscosity is not None else fluid_viscosity()
         rho_f = float(fluid_density) if fluid_density is not None else fluid_params.fluid_density()
         self.mode = drag_mode if drag_mode is not None else self.params.drag_mode
@@ -227,7 +232,7 @@ class Spheres(Block):
         if self._flow is None:
             # sampled at the nominal centre height R + ε: a calibrated ε changes the lubrication
             # mobility (eq 4), not where the flow is read
-            self._flow = robot_flow(self.geometry, self.viscosity, self.radius + self.params.roughness)
+            self._flow = robot_flow(self.geometry, self.viscosity, self.radius + self.params.roughness, self.domain)
         return self._flow
 
     def prepare(self) -> None:

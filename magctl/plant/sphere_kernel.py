@@ -8,7 +8,8 @@ with Brenner's and Goren & O'Neill's wall factors, ``Spheres._gap_rate``), non-p
 the footprint and between spheres — as one numba-compiled loop over trials, spheres
 and sub-steps, with the same operations in the same order per trial.
 
-Off the flow map it sums the robot's regularised Blake Stokeslets directly, as the
+Off the flow map it sums the flow's far-field point forces (``RobotFlow.points/forces``)
+as Blake Stokeslets — singular ones (``eps = 0``) for the boundary-element flow — as the
 array form does. Both drag modes are compiled for a sphere at any gap: the ``paper`` mode's
 eq 4–5, and the ``accurate`` mode's tabulated resistance functions
 (:func:`wall_functions`: the spline of ``models/wall_resistance.toml`` passed in as the arrays of
@@ -42,7 +43,7 @@ _TOUCH = 1.0 - 1e-9
 
 @numba.njit(cache=True, nogil=True)
 def _stokeslet_flow(px, py, pz, vbx, vby, points, forces, eps, viscosity):
-    """Flow at robot-frame ``(px, py, pz)`` summed over the robot's regularised Blake Stokeslets
+    """Flow at robot-frame ``(px, py, pz)`` summed over the flow's far-field (regularised) Blake Stokeslets
     (``magctl.plant.fluid.stokes.regularized_blake_velocity``, term by term), for body velocity
     ``(vbx, vby)`` as the combination of the two unit motions."""
     e2 = eps * eps
@@ -250,7 +251,7 @@ def sphere_frame(z, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dg
     flat, gx, gy, dgx, dgy
         The flow maps as one ``(ny·nx, 6)`` table and the grid (``RobotFlow._flat_maps``).
     points, forces, eps, viscosity, height
-        The robot's Stokeslets (``RobotFlow``), for spheres off the map.
+        The flow's far-field point forces (``RobotFlow``), for spheres off the map.
     x0, y0, dx, dy, ab2, y1
         Footprint edges (:class:`~magctl.plant.fluid.geometry.Polygon`).
     sink_rate, held_rate : float

@@ -142,8 +142,16 @@ class RobotGeometry:
         ``"front"`` or ``"rear"``: which end is lifted.
     clearance : float
         Height of the lowest edge above the glass [m].
-    spacing : float
-        Spacing of the regularised Stokeslets on the surface [m].
+    panel_size : float
+        Largest panel edge of the surface mesh [m].
+    edge_size : float
+        Panel edge at the sharp edges [m].
+    grading : float
+        Growth of the panel edge per unit distance from a sharp edge.
+    wall_ratio : float
+        Largest panel edge as a multiple of its height above the glass.
+    gap_size : float
+        Smallest panel edge near the glass [m].
     """
 
     outline: np.ndarray = field(repr=False)
@@ -151,15 +159,27 @@ class RobotGeometry:
     tilt: float
     raised_edge: str = "front"
     clearance: float = 2e-6
-    spacing: float = 30e-6
+    panel_size: float = 45e-6
+    edge_size: float = 12e-6
+    grading: float = 0.5
+    wall_ratio: float = 1.5
+    gap_size: float = 3e-6
 
     def __post_init__(self):
         if self.raised_edge not in ("front", "rear"):
             raise ParameterError(f"raised_edge must be 'front' or 'rear', got {self.raised_edge!r}")
         if not 0 <= self.tilt < np.pi / 2:
             raise ParameterError(f"tilt {self.tilt!r} rad must lie in [0, pi/2)")
-        if not 0 < self.spacing < self.thickness:
-            raise ParameterError(f"surface spacing {self.spacing!r} m must be positive and below the thickness")
+        if not 0 < self.edge_size <= self.panel_size < self.thickness:
+            raise ParameterError(f"panel sizes must satisfy 0 < edge_size ({self.edge_size!r} m) <= panel_size "
+                                 f"({self.panel_size!r} m) < thickness")
+        if not 0 < self.gap_size <= self.edge_size:
+            raise ParameterError(f"gap_size {self.gap_size!r} m must lie in (0, edge_size]")
+        if self.grading <= 0 or self.wall_ratio <= 0:
+            raise ParameterError(f"grading ({self.grading!r}) and wall_ratio ({self.wall_ratio!r}) must be positive")
+        if self.clearance <= 0:
+            raise ParameterError(f"clearance {self.clearance!r} m must be positive: the robot cannot touch the "
+                                 "no-slip glass in a Stokes model")
 
     @classmethod
     def from_params(cls, p: Params | None = None) -> RobotGeometry:
@@ -169,12 +189,20 @@ class RobotGeometry:
         outline = star_outline(o.length, o.width, o.front_notch_depth, o.front_notch_width, o.side_notch_depth,
                                o.rear_notch_depth, int(o.arc_points))
         d = p.discretisation
-        return cls(outline, o.thickness, p.pose.tilt, p.pose.raised_edge, p.pose.clearance, d.spacing)
+        return cls(outline, o.thickness, p.pose.tilt, p.pose.raised_edge, p.pose.clearance, d.panel_size,
+                   d.edge_size, d.grading, d.wall_ratio, d.gap_size)
+
+    def refined(self, factor: float) -> RobotGeometry:
+        """The same robot with every panel size multiplied by ``factor`` (mesh-convergence studies)."""
+        import dataclasses
+
+        return dataclasses.replace(self, panel_size=self.panel_size * factor, edge_size=self.edge_size * factor,
+                                   gap_size=self.gap_size * factor)
 
     def key(self) -> tuple:
         """Hashable identity of the geometry (for flow caches)."""
         return (self.outline.round(12).tobytes(), self.thickness, self.tilt, self.raised_edge, self.clearance,
-                self.spacing)
+                self.panel_size, self.edge_size, self.grading, self.wall_ratio, self.gap_size)
 
     # --- body ↔ world (robot frame, origin at the footprint centre) ----------------------------
     @cached_property
@@ -217,55 +245,126 @@ class RobotGeometry:
         body = np.column_stack([self.outline, np.zeros(len(self.outline))])
         return self.to_frame(body)[:, :2]
 
-    # --- discretisation for the flow solver --------------------------------------------------
-    def _face_grid(self, step: float, inset: float) -> np.ndarray:
-        xs, ys = self.outline[:, 0], self.outline[:, 1]
-        gx = np.arange(xs.min() + step / 2, xs.max(), step)
-        gy = np.arange(ys.min() + step / 2, ys.max(), step)
-        pts = np.stack(np.meshgrid(gx, gy), -1).reshape(-1, 2)
-        inside = points_in_polygon(pts, self.outline)
-        dist, _ = polygon_distance(pts, self.outline)
-        return pts[inside & (dist >= inset)]
+    # --- surface mesh for the boundary-element solver -----------------------------------------
+    def _half_outline(self) -> np.ndarray:
+        """The outline clipped to ``y >= 0`` (Sutherland–Hodgman against one half-plane), counter-clockwise."""
+        v = self.outline
+        out = []
+        for k in range(len(v)):
+            p, q = v[k], v[(k + 1) % len(v)]
+            if p[1] >= 0:
+                out.append(p)
+            if (p[1] >= 0) != (q[1] >= 0):
+                t = p[1] / (p[1] - q[1])
+                out.append(p + t * (q - p))
+        out = np.asarray(out)
+        out[np.abs(out[:, 1]) < 1e-15, 1] = 0.0
+        keep = np.linalg.norm(out - np.roll(out, -1, axis=0), axis=1) > 1e-12
+        return out[keep]
 
-    def _perimeter(self, step: float) -> tuple[np.ndarray, np.ndarray]:
-        """Points along the outline at ``step`` and their outward normals."""
-        a, b = self.outline, np.roll(self.outline, -1, axis=0)
-        pts, normals = [], []
-        for p, q in zip(a, b, strict=True):
-            seg = q - p
-            n = max(int(np.ceil(np.linalg.norm(seg) / step)), 1)
-            t = (np.arange(n) + 0.5) / n
-            pts.append(p + t[:, None] * seg)
-            normals.append(np.repeat([[seg[1], -seg[0]] / np.linalg.norm(seg)], n, axis=0))
-        return np.vstack(pts), np.vstack(normals)
+    def surface_mesh(self) -> np.ndarray:
+        """Flat triangles ``(T, 3, 3)`` on the ``y > 0`` half of the robot's surface (robot frame, outward
+        normals by the right-hand rule); the ``y < 0`` half is its mirror image.
 
-    def collocation_points(self) -> np.ndarray:
-        """Points on the robot's surface (robot frame) ``(P, 3)``, mirror-symmetric about ``y = 0``.
-
-        Ordered as ``[on the axis (n0), y > 0 (n1), their mirror images (n1)]`` so solvers can
-        use the symmetry (:attr:`axis_count`).
+        Meshed with gmsh (Geuzaine & Remacle 2009; frontal-Delaunay) under a size field: ``edge_size``
+        at the sharp edges (top and bottom rims, vertical edges at outline corners), growing by
+        ``grading`` per unit distance up to ``panel_size``, and no larger than ``wall_ratio`` × the
+        height above the glass (the 2 µm gap under the resting edge), but not below ``gap_size``.
         """
-        h, t = self.spacing, self.thickness
-        face = self._face_grid(h, 0.0)
-        per, _ = self._perimeter(h)
-        levels = np.linspace(0.0, t, max(int(np.ceil(t / h)), 1) + 1)
-        body = [np.column_stack([face, np.zeros(len(face))]), np.column_stack([face, np.full(len(face), t)])]
-        body += [np.column_stack([per, np.full(len(per), z)]) for z in levels]
-        pts = np.vstack(body)
-        tol = 1e-3 * h
-        axis, upper = pts[np.abs(pts[:, 1]) <= tol], pts[pts[:, 1] > tol]
-        axis = axis * [1.0, 0.0, 1.0]
-        return self.to_frame(np.vstack([axis, upper, upper * [1.0, -1.0, 1.0]]))
+        return self._surface_mesh
 
-    @property
-    def axis_count(self) -> int:
-        """Number of collocation points on the symmetry axis (the first ones)."""
-        h = self.spacing
-        face = self._face_grid(h, 0.0)
-        per, _ = self._perimeter(h)
-        levels = max(int(np.ceil(self.thickness / h)), 1) + 1
-        tol = 1e-3 * h
-        return int(2 * (np.abs(face[:, 1]) <= tol).sum() + levels * (np.abs(per[:, 1]) <= tol).sum())
+    @cached_property
+    def _surface_mesh(self) -> np.ndarray:
+        import gmsh
+
+        half = self._half_outline()
+        t = self.thickness
+        sign = 1.0 if self.raised_edge == "front" else -1.0
+        pivot, _ = self._pivot
+        was_init = gmsh.isInitialized()
+        if not was_init:
+            gmsh.initialize(readConfigFiles=False, interruptible=False)   # leave SIGINT to the caller
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("robot")
+        try:
+            geo = gmsh.model.geo
+            pts = [geo.addPoint(x, y, 0.0) for x, y in half]
+            lines = [geo.addLine(pts[k], pts[(k + 1) % len(pts)]) for k in range(len(pts))]
+            loop = geo.addCurveLoop(lines)
+            base = geo.addPlaneSurface([loop])
+            geo.extrude([(2, base)], 0.0, 0.0, t)
+            geo.synchronize()
+            # curves: the rims (bottom, top) and the vertical edges, except those on the cut y = 0
+            rims, verticals = [], []
+            for dim, tag in gmsh.model.getEntities(1):
+                lo = gmsh.model.getBoundingBox(dim, tag)
+                on_cut = abs(lo[1]) < 1e-12 and abs(lo[4]) < 1e-12
+                if on_cut:
+                    continue
+                if abs(lo[2] - lo[5]) < 1e-12:
+                    rims.append(tag)
+                else:
+                    verticals.append((tag, lo[0], lo[1]))
+            corners = []
+            for k in range(len(half)):
+                a, b, c = half[k - 1], half[k], half[(k + 1) % len(half)]
+                if abs(b[1]) < 1e-12:
+                    continue
+                u, w = b - a, c - b
+                turn = abs(np.arctan2(u[0] * w[1] - u[1] * w[0], u @ w))
+                if turn > np.radians(25):
+                    corners.append(b)
+            sharp_vertical = [tag for tag, x, y in verticals
+                              if any(np.hypot(x - cx, y - cy) < 1e-12 for cx, cy in corners)]
+            f = gmsh.model.mesh.field
+            dist = f.add("Distance")
+            f.setNumbers(dist, "CurvesList", rims + sharp_vertical)
+            f.setNumber(dist, "Sampling", 200)
+            thr = f.add("Threshold")
+            f.setNumber(thr, "InField", dist)
+            f.setNumber(thr, "SizeMin", self.edge_size)
+            f.setNumber(thr, "SizeMax", self.panel_size)
+            f.setNumber(thr, "DistMin", 0.0)
+            f.setNumber(thr, "DistMax", (self.panel_size - self.edge_size) / self.grading)
+            # height above the glass of a body point (x, y, z) (see to_frame)
+            c, sn = np.cos(self.tilt), np.sin(self.tilt)
+            a0 = self.clearance - sign * sn * pivot                         # plain decimals for gmsh's parser
+            height = f"({sign * sn:.15f}*x + {c:.15f}*z + {a0:.15f})".replace("+ -", "- ")
+            wall = f.add("MathEval")
+            f.setString(wall, "F", f"max({self.gap_size:.15f}, {self.wall_ratio:.15f}*{height})")
+            both = f.add("Min")
+            f.setNumbers(both, "FieldsList", [thr, wall])
+            f.setAsBackgroundMesh(both)
+            gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+            gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+            gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+            gmsh.option.setNumber("Mesh.Algorithm", 6)
+            gmsh.model.mesh.generate(2)
+            tris = []
+            for dim, tag in gmsh.model.getEntities(2):
+                lo = gmsh.model.getBoundingBox(dim, tag)
+                if abs(lo[1]) < 1e-12 and abs(lo[4]) < 1e-12:
+                    continue                                    # the cut plane y = 0 is not a surface
+                _, node_tags = gmsh.model.mesh.getElementsByType(2, tag)      # 3-node triangles
+                tris.append(np.asarray(node_tags, np.int64).reshape(-1, 3))
+            node_ids, coords, _ = gmsh.model.mesh.getNodes()
+            xyz = np.asarray(coords).reshape(-1, 3)
+            lookup = np.zeros(int(node_ids.max()) + 1, np.int64)
+            lookup[np.asarray(node_ids, np.int64)] = np.arange(len(node_ids))
+            tri = xyz[lookup[np.vstack(tris)]]
+        finally:
+            gmsh.model.remove()
+            if not was_init:
+                gmsh.finalize()
+        # orient outward: the normal must point away from the solid (probe just outside the centroid)
+        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        cen = tri.mean(axis=1)
+        probe = cen + 1e-3 * self.edge_size * nrm
+        inside = ((probe[:, 2] > 0) & (probe[:, 2] < t)
+                  & points_in_polygon(probe[:, :2], self.outline))
+        tri[inside] = tri[inside][:, ::-1]
+        return self.to_frame(tri)
 
     def is_symmetric(self) -> bool:
         """True when the outline is mirror-symmetric about the body x axis."""

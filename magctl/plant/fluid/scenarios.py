@@ -71,9 +71,9 @@ class SidePushResult:
 def sidepush_curve(gaps, speed: float = ROBOT_SPEED, travel: float = APPROACH, **block_kw) -> SidePushResult:
     """Fig 6: the robot drives along +x past a sphere at ``(0, D_g)``, from ``-travel`` to ``+travel``.
 
-    Extra keywords go to :class:`magctl.plant.sphere.Spheres` (``drag_mode``, ``roughness``, ``flow``…;
-    ``flow=`` replaces the robot's flow, e.g. by the box model's
-    :class:`~magctl.plant.fluid.fem_box.BoxFlow`).
+    Extra keywords go to :class:`magctl.plant.sphere.Spheres` (``drag_mode``, ``roughness``, ``geometry``,
+    ``domain`` — a :class:`magctl.plant.fluid.domain.Domain` for a bounded oil layer —, or ``flow``, which
+    replaces the robot's flow, e.g. by the box model's :class:`~magctl.plant.fluid.fem_box.BoxFlow`).
     """
     gaps = np.atleast_1d(np.asarray(gaps, float))
     if np.any(gaps <= 0):
