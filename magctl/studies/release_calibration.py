@@ -37,8 +37,8 @@ PHASE, ATTEMPT = "controller/task.phase", "controller/task.attempt"
 SPHERES, ROBOT = "plant/spheres.spheres", "plant/robot.position"
 FIRST_ATTEMPT_FRAMES = 400
 """Frames that hold the first attempt of the default front push (approach, push, retract, settle ≈ 160)."""
-GAP_GRID = tuple(float(e) for e in np.geomspace(25e-9, 20e-6, 7))
-"""ε grid of the calibration [m]: the measured 25 nm up to 20 µm."""
+GAP_GRID = tuple(float(e) for e in np.geomspace(25e-9, 80e-6, 8))
+"""ε grid of the calibration [m]: the measured 25 nm up to 80 µm."""
 
 
 @dataclass(frozen=True)
