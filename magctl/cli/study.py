@@ -88,6 +88,8 @@ def cmd_reproduce(args) -> int:
             args.parser.error(f"argument --only: no study {', '.join(map(repr, unknown))}; "
                               f"studies: {', '.join(found)}")
         found = {name: module for name, module in found.items() if name in args.only}
+    else:
+        found = studies.reproduced(found)
     contact_scheduler(args.parser, args.scheduler)
     cache = studies.TrialCache()  # one per run: studies that declare REUSES take trials from it
     results, timings = [], {}

@@ -8,6 +8,8 @@ matplotlib, and its figures redrawn without recomputing::
     ORDER = 30                       # position in the report (smaller first)
     DEFAULT_TRIALS = 100             # optional; trials when --trials is not given
     REUSES = ("front-push",)         # optional; studies whose trials this one may reuse
+    REPRODUCE = False                # optional; leave it out of ``magctl reproduce`` (minutes of
+                                     # flow solves on a cold cache); ``magctl study NAME`` runs it
 
     def compute(ctx: StudyContext) -> Computed: ...
         # every simulation and reduction; never imports matplotlib
@@ -228,6 +230,11 @@ def discover() -> dict[str, ModuleType]:
             raise MagctlError(f"study {name!r} ({path.name}) does not define {', '.join(missing)}")
         found[name] = module
     return dict(sorted(found.items(), key=lambda kv: (getattr(kv[1], "ORDER", 100), kv[0])))
+
+
+def reproduced(studies: dict[str, ModuleType]) -> dict[str, ModuleType]:
+    """The studies ``magctl reproduce`` runs by default: all but those with ``REPRODUCE = False``."""
+    return {name: m for name, m in studies.items() if getattr(m, "REPRODUCE", True)}
 
 
 def check_reuses(studies: dict[str, ModuleType]) -> None:

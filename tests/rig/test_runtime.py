@@ -190,19 +190,26 @@ def test_bad_task_options_are_named(task, n_spheres, options, words):
 
 
 def test_front_push_needs_the_learning_law_on_the_sim_rig():
-    """Paper §VI-A: with K_c = 0 and δ(0) = 0 the release D_p,r leaves the sphere short; K_c = 1 converges."""
-    runs = {}
-    for kc in (0.0, 1.0):
-        rig = SimRig(n_spheres=1)
-        runs[kc] = Runtime(rig, "front-push", {"kc": kc}, realtime=False, max_ticks=4000, quiet=True).run()
-    naive, learning = runs[0.0], runs[1.0]
-    assert naive.exit_status == "failed" and naive.final["outputs"]["attempt"] == 10
-    # still short of the goal along the push line after 10 attempts: every retreat pulls the sphere back
-    # (paper: ≈ 200 µm steady error; the stand-in's fixed 300 ± 75 µm release leaves more)
-    short = FRONT_GOAL[0] - naive.final["spheres_um"][0][0] * 1e-6
-    assert EPS_P < short < 500e-6
-    assert learning.exit_status == "done" and 1 <= learning.final["outputs"]["attempt"] < 10
-    assert np.hypot(*(np.array(learning.final["spheres_um"][0]) * 1e-6 - FRONT_GOAL)) < EPS_P
+    """Paper §VI-A: with K_c = 0 and δ(0) = 0 the release D_p,r leaves the sphere short; K_c = 1 converges.
+
+    Three plant seeds: the naive push may land within ε_p by chance (the release scatters; the
+    front-push study finds it in about a third of trials), so it must fail in most of them, and the
+    learning law must converge in every one."""
+    naive_failed = 0
+    for seed in (0, 1, 2):
+        naive = Runtime(SimRig(n_spheres=1, seed=seed), "front-push", {"kc": 0.0}, realtime=False, max_ticks=4000,
+                        quiet=True).run()
+        learning = Runtime(SimRig(n_spheres=1, seed=seed), "front-push", {"kc": 1.0}, realtime=False,
+                           max_ticks=4000, quiet=True).run()
+        if naive.exit_status == "failed":
+            naive_failed += 1
+            assert naive.final["outputs"]["attempt"] == 10
+            # still short of the goal along the push line after 10 attempts: every retreat pulls the sphere back
+            short = FRONT_GOAL[0] - naive.final["spheres_um"][0][0] * 1e-6
+            assert EPS_P < short < 500e-6
+        assert learning.exit_status == "done" and 1 <= learning.final["outputs"]["attempt"] < 10
+        assert np.hypot(*(np.array(learning.final["spheres_um"][0]) * 1e-6 - FRONT_GOAL)) < EPS_P
+    assert naive_failed >= 2
 
 
 def test_side_push_converges_on_the_sim_rig():
