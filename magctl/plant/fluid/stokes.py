@@ -1,12 +1,9 @@
-"""Stokes flow above a no-slip plane wall: Blake's image system and a rigid-body solver.
+"""Stokes flow above a no-slip plane wall: Blake's image system.
 
 The fundamental solution is the Stokeslet above a plane wall (Blake 1971), which
-satisfies no-slip on ``z = 0`` exactly. A rigid body near the wall is represented
-by Blake Stokeslets placed a little inside its surface (the method of fundamental
-solutions): their strengths are chosen by least squares so the flow equals the
-rigid-body velocity at collocation points on the surface. Everything is linear
-in the body's velocity, which is what lets :mod:`magctl.plant.fluid.flow` scale
-precomputed maps by the robot's speed.
+satisfies no-slip on ``z = 0`` exactly. It is the Green's function of the
+boundary-element robot flow (:mod:`magctl.plant.fluid.bem`) and, summed over
+point forces, the flow far from the robot (:mod:`magctl.plant.fluid.flow`).
 
 References
 ----------
@@ -16,10 +13,7 @@ boundary. Proc. Camb. Phil. Soc. 70, 303-310.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
-import scipy.linalg
 
 _M = np.array([1.0, 1.0, -1.0])  # the image reflection, diag(1, 1, -1)
 
@@ -155,120 +149,3 @@ def regularized_blake_velocity(x: np.ndarray, y: np.ndarray, forces: np.ndarray,
             u[:, 2] += (2 * h * ib3 * rrg).sum(1)
             out[k, s:s + chunk] = u
     return out / (8.0 * np.pi * viscosity)
-
-
-@dataclass
-class RigidBodySolution:
-    """Blake-Stokeslet representation of a rigid body's flow for a set of rigid motions.
-
-    Attributes
-    ----------
-    sources : ndarray, shape (M, 3)
-        Stokeslet positions inside the body [m].
-    forces : ndarray, shape (K, M, 3)
-        Stokeslet strengths for each of the K motions [N].
-    viscosity : float
-        μ [Pa·s].
-    residual : float
-        Largest relative surface-velocity error at the collocation points.
-    """
-
-    sources: np.ndarray
-    forces: np.ndarray
-    viscosity: float
-    residual: float
-
-    def velocity(self, x: np.ndarray) -> np.ndarray:
-        """Flow velocity ``(K, P, 3)`` at points ``x`` ``(P, 3)`` for each motion."""
-        return blake_velocity(x, self.sources, self.forces, self.viscosity)
-
-    def force_on_body(self) -> np.ndarray:
-        """Hydrodynamic force on the body ``(K, 3)`` [N] (minus the sum of the Stokeslets)."""
-        return -self.forces.sum(axis=1)
-
-    def torque_on_body(self, about: np.ndarray) -> np.ndarray:
-        """Hydrodynamic torque on the body about ``about`` ``(K, 3)`` [N·m]."""
-        arm = self.sources - np.asarray(about, float)
-        return -np.cross(arm[None], self.forces).sum(axis=1)
-
-
-def solve_rigid_body(collocation: np.ndarray, sources: np.ndarray, boundary_velocity: np.ndarray,
-                     viscosity: float, rcond: float = 1e-12) -> RigidBodySolution:
-    """Stokeslet strengths that make the flow equal ``boundary_velocity`` on the body's surface.
-
-    Parameters
-    ----------
-    collocation : ndarray, shape (P, 3)
-        Points on the body surface [m].
-    sources : ndarray, shape (M, 3)
-        Points inside the body [m], ``3M <= 3P``.
-    boundary_velocity : ndarray, shape (K, P, 3)
-        Required flow velocity at the collocation points for each of K motions [m/s]
-        (the rigid-body velocity minus any background flow).
-    viscosity : float
-        μ [Pa·s].
-
-    Returns
-    -------
-    RigidBodySolution
-    """
-    collocation = np.asarray(collocation, float)
-    sources = np.asarray(sources, float)
-    rhs = np.asarray(boundary_velocity, float)
-    if rhs.ndim == 2:
-        rhs = rhs[None]
-    if rhs.shape[1:] != collocation.shape:
-        raise ValueError(f"boundary velocity shape {rhs.shape} does not match collocation points {collocation.shape}")
-    if len(sources) > len(collocation):
-        raise ValueError(f"{len(sources)} sources for {len(collocation)} collocation points: need at most as many")
-    a = blake_tensor(collocation, sources).reshape(3 * len(collocation), 3 * len(sources))
-    a /= 8.0 * np.pi * viscosity
-    b = rhs.reshape(rhs.shape[0], -1).T
-    sol, *_ = scipy.linalg.lstsq(a, b, cond=rcond, lapack_driver="gelsd")
-    fit = a @ sol
-    scale = np.maximum(np.abs(b).max(axis=0), 1e-300)
-    residual = float((np.abs(fit - b).max(axis=0) / scale).max())
-    forces = sol.T.reshape(rhs.shape[0], len(sources), 3)
-    return RigidBodySolution(sources, forces, float(viscosity), residual)
-
-
-def fibonacci_sphere(n: int) -> np.ndarray:
-    """``n`` nearly uniform unit vectors (golden-angle spiral)."""
-    i = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * i / n
-    phi = np.pi * (1.0 + 5**0.5) * i
-    s = np.sqrt(1.0 - z * z)
-    return np.column_stack([s * np.cos(phi), s * np.sin(phi), z])
-
-
-def regularized_blake_tensor(x: np.ndarray, y: np.ndarray, eps: float) -> np.ndarray:
-    """Blake tensor with the direct Stokeslet regularised (Cortez, Fauci & Medovikov 2005).
-
-    ``G^ε = S^ε(r) - S(R) + 2 h m_j D_ij`` with
-    ``S^ε_ij(r) = [δ_ij (|r|² + 2ε²) + r_i r_j] / (|r|² + ε²)^{3/2}``;
-    the image terms stay singular (their poles lie below the wall). The flow on the wall
-    is zero up to ``O(ε²/h²)`` of a force at height ``h`` and tends to Blake's exactly
-    when ``|r| ≫ ε``. Shape ``(P, 3, M, 3)``.
-    """
-    x = np.asarray(x, float)
-    y = np.asarray(y, float)
-    h = y[None, :, 2]
-    r = x[:, None, :] - y[None]
-    big = x[:, None, :] - (y * _M)[None]
-    r2 = np.einsum("pmi,pmi->pm", r, r)
-    ib = 1.0 / np.sqrt(np.einsum("pmi,pmi->pm", big, big))
-    ib3 = ib**3
-    d3 = (r2 + eps * eps) ** 1.5
-    r3 = big[..., 2]
-    # G_ij = S^ε_ij(r) - S_ij(R) + m_j [2h (h - R3)/R³ δ_ij + 6h (R3 - h)/R⁵ R_i R_j + 2h (δ_i3 R_j - R_i δ_3j)/R³]
-    eye = np.eye(3)
-    img = eye * (2 * h * (h - r3) * ib3)[..., None, None]
-    img += big[..., :, None] * (big * (6 * h * (r3 - h) * ib3 * ib * ib)[..., None])[..., None, :]
-    c = (2 * h * ib3)[..., None]
-    img[..., 2, :] += c * big
-    img[..., :, 2] -= c * big
-    img *= _M
-    img += eye * ((r2 + 2 * eps * eps) / d3 - ib)[..., None, None]
-    img += r[..., :, None] * (r / d3[..., None])[..., None, :]
-    img -= big[..., :, None] * (big * ib3[..., None])[..., None, :]
-    return np.transpose(img, (0, 2, 1, 3))

@@ -371,30 +371,3 @@ def mobility(mode: str, radius, gap, roughness):
     if mode == "accurate":
         return accurate_mobility(radius, gap, roughness)
     raise ValueError(f"drag mode must be 'paper' or 'accurate', got {mode!r}")
-
-
-def tabulate_resistance(gap_ratios, n_points: int = 900, source_radius: float = 0.8):
-    """Resistance functions of a sphere near a wall from the Blake-Stokeslet solver.
-
-    Returns an array ``(len(gap_ratios), 7)``: surface residual, f_t, f_r, t_t, t_r, f_s, t_s.
-    A check of the Blake-Stokeslet solver (:mod:`magctl.plant.fluid.stokes`) against the published
-    sphere tables (``tests/plant/fluid/test_fluid_stokes.py``); the drag table itself comes from the
-    exact solutions (:func:`tabulate_exact`).
-    """
-    from magctl.plant.fluid.stokes import fibonacci_sphere, solve_rigid_body
-
-    out = []
-    for g in np.atleast_1d(gap_ratios):
-        hh = 1.0 + float(g)
-        c = np.array([0.0, 0.0, hh])
-        col = c + fibonacci_sphere(n_points)
-        src = c + source_radius * fibonacci_sphere(n_points // 3)
-        v = np.zeros((3, n_points, 3))
-        v[0, :, 0] = 1.0                                     # translation along x
-        v[1] = np.cross([0.0, 1.0, 0.0], col - c)            # rotation about y
-        v[2, :, 0] = -col[:, 2]                              # held fixed in the shear flow u = z e_x
-        s = solve_rigid_body(col, src, v, 1.0)
-        f, t = s.force_on_body(), s.torque_on_body(c)
-        out.append([s.residual, f[0, 0] / (6 * np.pi), f[1, 0] / (6 * np.pi), t[0, 1] / (8 * np.pi),
-                    t[1, 1] / (8 * np.pi), f[2, 0] / (6 * np.pi * hh), t[2, 1] / (4 * np.pi)])
-    return np.asarray(out)
