@@ -187,7 +187,7 @@ class Variability:
     release_scatter : float
         Relative (lognormal) spread of the sphere's mobility in the robot's flow; sets
         the scatter of the release displacement D_p,r. With the calibrated plant 0.1
-        gives D_p,r = 306 ± 64 µm (200 seeded trials), the measured 300 ± 75 µm (§IV-D).
+        gives D_p,r = 289 ± 90 µm in the task (200 seeded trials; measured 300 ± 75 µm, §IV-D).
     sticky_probability : float
         Probability that a sphere sits on a sticky patch (§VI-B, "stuck on dirt").
     calibrated : bool

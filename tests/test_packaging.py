@@ -20,7 +20,7 @@ PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 DIST = {"zmq": "pyzmq", "PIL": "pillow", "skfem": "scikit-fem"}
 # optional imports, each behind its extra and a clear error when missing
 OPTIONAL = {"distributed": "dask", "pyarrow": "export", "h5py": "export", "xarray": "xarray",
-            "skfem": "fem", "gmsh": "fem", "pyamg": "fem"}
+            "skfem": "fem", "pyamg": "fem"}
 
 
 def _imports(folders) -> set[str]:

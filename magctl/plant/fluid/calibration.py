@@ -40,7 +40,7 @@ def eq23_gap(ds):
 
 
 @lru_cache(maxsize=4)
-def _response(eps_grid: tuple[float, ...], drag_mode: str):
+def _response(eps_grid: tuple[float, ...], drag_mode: str | None):
     from magctl.plant.fluid.scenarios import release_displacement, sidepush_curve
 
     ds, dpr = [], []
@@ -51,8 +51,12 @@ def _response(eps_grid: tuple[float, ...], drag_mode: str):
 
 
 @lru_cache(maxsize=2)
-def calibrate(drag_mode: str = "paper") -> dict:
-    """Fit ε; returns ``{"release": ε, "joint": ε, "grid": ..., ...}`` (metres)."""
+def calibrate(drag_mode: str | None = None) -> dict:
+    """Fit ε in the paper's release set-up (``drag_mode`` None: ``models/sphere.toml``'s).
+
+    Returns ``{"release": ε, "joint": ε, "grid": ..., ...}`` (metres). The front-push studies use
+    the release calibrated in the task instead (:mod:`magctl.studies.release_calibration`).
+    """
     grid = tuple(float(e) for e in np.geomspace(25e-9, 20e-6, 6))
     ds, dpr = _response(grid, drag_mode)
     le = np.log(grid)
