@@ -159,7 +159,8 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
                  "sphere overlaps the robot footprint during the pass"),
         PaperRow("eq 22 a", "1755 µm", f"{a * UM:.0f} µm", "exponential fit of non-contact points"),
         PaperRow("eq 22 b", "0.009042 /µm", f"{b / UM:.5f} /µm",
-                 f"uncalibrated, {r['domain']}: decays more slowly (a 1 mm lid gives the paper's decay, fig6-domain)"),
+                 f"uncalibrated, {r['domain']}: decays more slowly (the paper's 4 × 4 × 1 mm box gives "
+                 "its decay: fig6-domain --fem)"),
         PaperRow("D_s at D_g = 500 µm", f"{eq22(500e-6) * UM:.1f} µm (eq 22)", f"{ours[1] * UM:.1f} µm",
                  f"uncalibrated, ε = 25 nm, {r['domain']}"),
     ]
