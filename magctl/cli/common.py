@@ -34,28 +34,26 @@ def _number(text: str, kind: type, what: str):
     return value
 
 
+def _bounded(text: str, kind: type, what: str, ok) -> int | float:
+    value = _number(text, kind, what)
+    if not ok(value):
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+    return value
+
+
 def positive_int(text: str) -> int:
     """An integer ≥ 1 (trials, ticks, workers)."""
-    value = _number(text, int, "an integer >= 1")
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return value
+    return _bounded(text, int, "an integer >= 1", lambda v: v >= 1)
 
 
 def nonneg_int(text: str) -> int:
     """An integer ≥ 0."""
-    value = _number(text, int, "an integer >= 0")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
-    return value
+    return _bounded(text, int, "an integer >= 0", lambda v: v >= 0)
 
 
 def seed(text: str) -> int:
     """A root seed: an integer ≥ 0 (what ``numpy.random.SeedSequence`` takes)."""
-    value = _number(text, int, "an integer >= 0 (a root seed)")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0 (a root seed), got {text!r}")
-    return value
+    return _bounded(text, int, "an integer >= 0 (a root seed)", lambda v: v >= 0)
 
 
 def finite_float(text: str) -> float:
@@ -65,18 +63,12 @@ def finite_float(text: str) -> float:
 
 def positive_float(text: str) -> float:
     """A finite number > 0."""
-    value = _number(text, float, "a finite number > 0")
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
+    return _bounded(text, float, "a finite number > 0", lambda v: v > 0)
 
 
 def nonneg_float(text: str) -> float:
     """A finite number ≥ 0."""
-    value = _number(text, float, "a finite number >= 0")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
-    return value
+    return _bounded(text, float, "a finite number >= 0", lambda v: v >= 0)
 
 
 def existing_file(text: str) -> Path:

@@ -217,18 +217,24 @@ def _brenner_sum(alpha: float, n_terms: int) -> float:
     return 4.0 / 3.0 * np.sinh(alpha) * float(np.sum(n * (n + 1) / ((2 * n - 1) * (2 * n + 3)) * (num / den - 1)))
 
 
-def _brenner(gap_ratio: float, rtol: float) -> tuple[float]:
+def _summed(series, gap_ratio: float, rtol: float, what: str) -> tuple[float, float]:
+    """``(α, S)``: the series ``series(α, N)`` with N doubled until two sums agree to ``rtol``
+    (starting at ⌈16/α⌉ + 16 terms, as the coefficient systems of the other problems)."""
     alpha = _alpha(gap_ratio)
     n_terms = int(np.ceil(16.0 / alpha)) + 16
-    prev = _brenner_sum(alpha, n_terms)
+    prev = series(alpha, n_terms)
     while True:
         n_terms *= 2
         if n_terms > MAX_TERMS:
-            raise RuntimeError(f"Brenner's series at delta/a = {gap_ratio} did not converge within {MAX_TERMS} terms")
-        cur = _brenner_sum(alpha, n_terms)
+            raise RuntimeError(f"{what} at delta/a = {gap_ratio} did not converge within {MAX_TERMS} terms")
+        cur = series(alpha, n_terms)
         if abs(cur - prev) <= rtol * abs(cur):
-            return (cur,)
+            return alpha, cur
         prev = cur
+
+
+def _brenner(gap_ratio: float, rtol: float) -> tuple[float]:
+    return (_summed(_brenner_sum, gap_ratio, rtol, "Brenner's series")[1],)
 
 
 def normal_translation(gap_ratio, rtol: float = 1e-10):
@@ -266,18 +272,9 @@ def _stagnation_force(alpha: float, n_terms: int) -> float:
 
 
 def _stagnation(gap_ratio: float, rtol: float) -> tuple[float]:
-    alpha = _alpha(gap_ratio)
-    n_terms = int(np.ceil(16.0 / alpha)) + 16
-    prev = _stagnation_force(alpha, n_terms)
-    while True:
-        n_terms *= 2
-        if n_terms > MAX_TERMS:
-            raise RuntimeError(f"stagnation-flow series at delta/a = {gap_ratio} did not converge")
-        cur = _stagnation_force(alpha, n_terms)
-        if abs(cur - prev) <= rtol * abs(cur):
-            # upward force over 6πμa A h² (the ambient vertical velocity at the centre)
-            return (-cur / (6 * np.pi * np.cosh(alpha) ** 2),)
-        prev = cur
+    alpha, force = _summed(_stagnation_force, gap_ratio, rtol, "stagnation-flow series")
+    # upward force over 6πμa A h² (the ambient vertical velocity at the centre)
+    return (-force / (6 * np.pi * np.cosh(alpha) ** 2),)
 
 
 def stagnation_flow(gap_ratio, rtol: float = 1e-10):

@@ -46,7 +46,7 @@ import scipy.sparse.linalg as spla
 
 from magctl.core.errors import MagctlError, ParameterError
 from magctl.plant.fluid.domain import Domain
-from magctl.plant.fluid.flow import RobotFlow
+from magctl.plant.fluid.flow import RobotFlow, flow_defaults
 from magctl.plant.fluid.geometry import RobotGeometry
 
 CACHE_VERSION = 1
@@ -712,14 +712,7 @@ class BoxFlow(RobotFlow):
         must then be a box), and the sphere-centre height R + ε of ``models/sphere.toml``. The grid has
         ``fine_step`` spacing within ±0.6 mm and covers the box with one node beyond it on every side.
         """
-        from magctl.plant.fluid.params import fluid_viscosity, sphere_params
-
-        geometry = geometry if geometry is not None else RobotGeometry.from_params()
-        viscosity = float(viscosity) if viscosity is not None else fluid_viscosity()
-        if height is None:
-            sp_ = sphere_params()
-            height = sp_.radius + sp_.roughness
-        domain = domain if domain is not None else Domain.from_params()
+        geometry, viscosity, height, domain = flow_defaults(geometry, viscosity, height, domain)
         (x0, x1), (_, w), _ = _box_bounds(domain, robot_x)
         half = max(abs(x0), abs(x1), w)
         g = map_axis(half, fine_step=fine_step)

@@ -455,6 +455,20 @@ class RobotFlow:
 _CACHE: dict[tuple, RobotFlow] = {}
 
 
+def flow_defaults(geometry: RobotGeometry | None, viscosity: float | None, height: float | None,
+                  domain: Domain | None) -> tuple[RobotGeometry, float, float, Domain]:
+    """The flow's inputs with what is not given read from ``models/``: the robot geometry, μ = ν ρ,
+    the map height R + ε (the sphere centre resting on the glass) and the oil's domain."""
+    from magctl.plant.fluid.params import fluid_viscosity, sphere_params
+
+    geometry = geometry if geometry is not None else RobotGeometry.from_params()
+    viscosity = float(viscosity) if viscosity is not None else fluid_viscosity()
+    if height is None:
+        sp = sphere_params()
+        height = sp.radius + sp.roughness
+    return geometry, viscosity, float(height), domain if domain is not None else Domain.from_params()
+
+
 def robot_flow(geometry: RobotGeometry | None = None, viscosity: float | None = None,
                height: float | None = None, domain: Domain | None = None) -> RobotFlow:
     """The cached :class:`RobotFlow` for this geometry, viscosity, map height and oil domain.
@@ -463,14 +477,7 @@ def robot_flow(geometry: RobotGeometry | None = None, viscosity: float | None = 
     ``[domain]``) and ``models/sphere.toml`` (height R + ε). A new key (any changed parameter)
     solves anew (or loads that key's solution from the disk cache).
     """
-    from magctl.plant.fluid.params import fluid_viscosity, sphere_params
-
-    geometry = geometry if geometry is not None else RobotGeometry.from_params()
-    viscosity = float(viscosity) if viscosity is not None else fluid_viscosity()
-    if height is None:
-        sp = sphere_params()
-        height = sp.radius + sp.roughness
-    domain = domain if domain is not None else Domain.from_params()
+    geometry, viscosity, height, domain = flow_defaults(geometry, viscosity, height, domain)
     key = (geometry.key(), round(viscosity, 15), round(float(height), 12), domain.key())
     flow = _CACHE.get(key)
     if flow is None:
