@@ -329,6 +329,166 @@ def front_attempts_monte_carlo(kc: float, delta0: float, trials: int = 20000, *,
     return out / trials
 
 
+# --- front pushing: the release map identified from the closed loop ------------------------------
+FRONT_GOAL = goal_distance("front")
+
+
+@dataclass(frozen=True)
+class ReleaseTable:
+    """Quantile tables of the release over push-length bins, for one attempt class (metres)."""
+
+    edges: np.ndarray
+    length_mean: np.ndarray
+    p_contact: np.ndarray
+    quantiles_contact: np.ndarray
+    quantiles_free: np.ndarray
+    quantiles_lateral: np.ndarray
+
+    def __post_init__(self):
+        nb = self.length_mean.size
+        nl = self.quantiles_contact.shape[-1] if self.quantiles_contact.ndim == 2 else -1
+        for name in ("quantiles_contact", "quantiles_free", "quantiles_lateral"):
+            if getattr(self, name).shape != (nb, nl):
+                raise MagctlError(f"release table {name} has shape {getattr(self, name).shape}, expected {(nb, nl)}")
+        if nb < 2 or self.p_contact.shape != (nb,) or self.edges.shape != (nb - 1,) \
+                or np.any(np.diff(self.length_mean) <= 0):
+            raise MagctlError("release table: needs at least 2 bins, p_contact one entry per bin, edges one fewer, "
+                              "increasing bin means")
+
+    @classmethod
+    def from_params(cls, t) -> ReleaseTable:
+        nb = len(t.length_mean)
+        rows = [[getattr(getattr(t, k), f"bin{j}") for j in range(nb)]
+                for k in ("quantiles_contact", "quantiles_free", "quantiles_lateral")]
+        return cls(np.asarray(t.edges, float), np.asarray(t.length_mean, float), np.asarray(t.p_contact, float),
+                   *(np.asarray(r, float) for r in rows))
+
+    def position(self, length) -> tuple[np.ndarray, np.ndarray]:
+        """Lower bin and weight of the upper one: linear in ``L`` between the bins' mean push lengths (clamped)."""
+        f = np.interp(np.asarray(length, float), self.length_mean, np.arange(self.length_mean.size, dtype=float))
+        j = np.minimum(np.floor(f).astype(int), self.length_mean.size - 2)
+        return j, f - j
+
+
+@dataclass(frozen=True)
+class ReleaseMap:
+    """The front push's release ``R`` as a function of the push length ``L`` (metres).
+
+    Identified from closed-loop trials by :mod:`magctl.studies.front_release` and stored in
+    ``models/front_release.toml``: ``L = e_before + δ`` is how far the sphere has to go to
+    ``P_o`` (eq 10), ``R = e_after + δ`` how far short of ``P_o`` it is measured. Two attempt
+    classes (``first``, ``later``), each with per-``L``-bin contact probability, quantiles of ``R``
+    with and without contact, and quantiles of the distance off the pushing line;
+    ``trial_correlation`` couples a trial's releases (Gaussian copula). The paper's eq 14 plant
+    is the special case of one bin with ``R ~ N(300, 75²) µm``, no lateral error, no coupling.
+    """
+
+    levels: np.ndarray
+    first: ReleaseTable
+    later: ReleaseTable
+    trial_correlation: float = 0.0
+    source: str = ""
+
+    @classmethod
+    def load(cls, name: str = "front_release") -> ReleaseMap:
+        """Read ``models/<name>.toml`` (written by ``magctl.studies.front_release.write_model``)."""
+        p = load_model(name)
+        m = p.map
+        return cls(np.asarray(m.levels, float), ReleaseTable.from_params(m.first), ReleaseTable.from_params(m.later),
+                   float(m.trial_correlation), p.provenance.sources["trials"])
+
+    def __post_init__(self):
+        nl = self.levels.size
+        if nl < 2 or np.any(np.diff(self.levels) <= 0) or self.levels[0] != 0 or self.levels[-1] != 1:
+            raise MagctlError("release map: quantile levels must increase from 0 to 1")
+        for t in (self.first, self.later):
+            if t.quantiles_contact.shape[1] != nl:
+                raise MagctlError(f"release map: quantile tables need {nl} columns, one per level")
+        if not 0.0 <= self.trial_correlation < 1.0:
+            raise MagctlError(f"release map trial_correlation {self.trial_correlation!r} must be in [0, 1)")
+
+    def _quantile(self, table: np.ndarray, j: np.ndarray, w: np.ndarray, u: np.ndarray) -> np.ndarray:
+        k = np.clip(np.searchsorted(self.levels, u, side="right") - 1, 0, self.levels.size - 2)
+        t = (u - self.levels[k]) / (self.levels[k + 1] - self.levels[k])
+        lo = table[j, k] * (1 - t) + table[j, k + 1] * t
+        hi = table[j + 1, k] * (1 - t) + table[j + 1, k + 1] * t
+        return lo * (1 - w) + hi * w
+
+    def sample(self, length, first, rng: np.random.Generator,
+               trial_score: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Draw ``(R, lateral, contact)`` for each push length (``first``: bool, per draw or one for all).
+
+        Inverse CDF of the quantile tables, linear between quantile levels and between the two
+        bins around ``L``. ``trial_score`` (standard normal, one per trial, held over its
+        attempts) enters the release's normal score with weight ``√trial_correlation``.
+        """
+        length = np.atleast_1d(np.asarray(length, float))
+        n = length.size
+        first = np.broadcast_to(np.asarray(first, bool), (n,))
+        contact_u, z, lat_u = rng.random(n), rng.standard_normal(n), rng.random(n)
+        if trial_score is not None and self.trial_correlation > 0:
+            c = self.trial_correlation
+            z = np.sqrt(c) * trial_score + np.sqrt(1 - c) * z
+        u = ndtr(z)
+        release, lateral, contact = np.zeros(n), np.zeros(n), np.zeros(n, bool)
+        for tab, m in ((self.first, first), (self.later, ~first)):
+            if not m.any():
+                continue
+            j, w = tab.position(length[m])
+            on = contact_u[m] < tab.p_contact[j] * (1 - w) + tab.p_contact[j + 1] * w
+            contact[m] = on
+            release[m] = np.where(on, self._quantile(tab.quantiles_contact, j, w, u[m]),
+                                  self._quantile(tab.quantiles_free, j, w, u[m]))
+            lateral[m] = self._quantile(tab.quantiles_lateral, j, w, lat_u[m])
+        return release, lateral, contact
+
+
+def front_identified_map(kc, delta0, trials: int = 20000, *, release_map: ReleaseMap | None = None,
+                         eps: float = FRONT_EPS, max_attempts: int = FRONT_MAX_ATTEMPTS, goal: float = FRONT_GOAL,
+                         seed: int = 0, law: LearningLaw | None = None) -> dict[str, np.ndarray]:
+    """Front pushing (eq 10–13) with the release map identified from the closed loop, vectorised over trials.
+
+    Attempt ``i`` starts ``d`` from the goal (``d(0)`` = ``goal``) and aims along the line to it;
+    the push length is ``L = d + δ(i)``; ``(R, lateral)`` are drawn from ``release_map`` at ``L``;
+    the error along the line is ``e = R − δ(i)`` (fed to eq 13) and the distance to the goal
+    ``d = √(e² + lateral²)`` (eq 12 tests ``d < ε_p``, as the task does).
+
+    Returns ``attempts`` (B,) (−1 = not converged), ``error`` (B, N) signed along-line error,
+    ``distance`` (B, N) and ``contact`` (B, N) (NaN / False after convergence).
+    """
+    rmap = release_map or ReleaseMap.load()
+    rng = np.random.default_rng(seed)
+    law = law or front_push_law(kc, delta0)
+    st = law.initial_state(trials)
+    d = np.full(trials, float(goal))
+    done = np.zeros(trials, dtype=bool)
+    attempts = np.full(trials, -1)
+    err, dist = np.full((trials, max_attempts), np.nan), np.full((trials, max_attempts), np.nan)
+    touched = np.zeros((trials, max_attempts), dtype=bool)
+    score = rng.standard_normal(trials)
+    for i in range(max_attempts):
+        delta = law.output(st, {})["y"]
+        release, lateral, contact = rmap.sample(d + delta, i == 0, rng, score)
+        e = release - delta
+        d = np.where(done, d, np.hypot(e, lateral))
+        err[:, i] = np.where(done, np.nan, e)
+        dist[:, i] = np.where(done, np.nan, d)
+        touched[:, i] = ~done & contact
+        hit = ~done & (d < eps)
+        attempts[hit] = i + 1
+        done |= hit
+        st = law.update_where(st, {"e": e}, ~done)
+    return {"attempts": attempts, "error": err, "distance": dist, "contact": touched}
+
+
+def front_attempts_identified(kc: float, delta0: float, trials: int = 20000, *, release_map: ReleaseMap | None = None,
+                              max_attempts: int = FRONT_MAX_ATTEMPTS, seed: int = 0) -> np.ndarray:
+    """P(converged at attempt i), i = 1…N, and P(not converged) last, from :func:`front_identified_map`."""
+    att = front_identified_map(kc, delta0, trials, release_map=release_map, max_attempts=max_attempts,
+                               seed=seed)["attempts"]
+    return np.bincount(np.where(att > 0, att - 1, max_attempts), minlength=max_attempts + 1) / trials
+
+
 # --- side pushing: nonlinear attempt map ---------------------------------------------------------
 def side_attempt_map(ks, e0, *, model="lin", plant=None, min_gap: float = MIN_GAP, eps: float = SIDE_EPS,
                      max_attempts: int = SIDE_MAX_ATTEMPTS, printed_sign: bool = False, noise_rel: float = 0.0,
