@@ -620,8 +620,17 @@ def _poles_doc(poles) -> list:
     return [{"re": float(p.real), "im": float(p.imag), "abs": float(abs(p))} for p in np.asarray(poles)]
 
 
-def front_report(kc: float, delta0_um: float = 0.0, trials: int = 20000, seed: int = 0) -> dict:
-    """Everything ``magctl stability front`` prints (µm in keys)."""
+def front_report(kc: float, delta0_um: float = 0.0, trials: int = 20000, seed: int = 0,
+                 model: str = "paper") -> dict:
+    """Everything ``magctl stability front`` prints (µm in keys).
+
+    ``model="paper"``: the eq 14 0th-order plant, ``D_p,r ~ N(300, 75²) µm`` i.i.d. (Markov chain and
+    Monte Carlo); ``model="identified"``: the release map identified from the closed loop
+    (``models/front_release.toml``, :func:`front_identified_map`, Monte Carlo).
+    """
+    if model not in ("paper", "identified"):
+        raise MagctlError(f"--model {model!r} is not known; use 'paper' (eq 14, D_p,r i.i.d.) or 'identified' "
+                          "(the release map identified from the closed loop)")
     kc = check_finite("--kc", kc)
     delta0 = check_finite("--delta0-um", delta0_um) * UM
     loop = front_loop(kc)
@@ -631,12 +640,23 @@ def front_report(kc: float, delta0_um: float = 0.0, trials: int = 20000, seed: i
         "verdict": loop.verdict, "damping": loop.damping,
         "stable_gain_range": list(loop.stable_gain_range), "critically_damped_gain": 1.0,
     }
-    if loop.verdict == "stable" or kc == 0:
+    n = np.arange(1, FRONT_MAX_ATTEMPTS + 1)
+    if model == "identified" and (loop.verdict == "stable" or kc == 0):
+        rmap = ReleaseMap.load()
+        p = front_attempts_identified(kc, delta0, trials, release_map=rmap, seed=seed)
+        doc["convergence"] = {
+            "model": "identified", "source": rmap.source, "eps_p_um": FRONT_EPS / UM,
+            "max_attempts": FRONT_MAX_ATTEMPTS, "trial_correlation": rmap.trial_correlation,
+            "p_attempt_monte_carlo": p[:-1], "p_not_converged_monte_carlo": p[-1],
+            "p_converged_by_attempt": np.cumsum(p[:-1]),
+            "mean_attempts": float((n * p[:-1]).sum() + FRONT_MAX_ATTEMPTS * p[-1]),
+            "mean_attempts_if_converged": float((n * p[:-1]).sum() / max(p[:-1].sum(), 1e-300)),
+        }
+    elif loop.verdict == "stable" or kc == 0:
         markov = front_attempts_markov(kc, delta0)
         mc = front_attempts_monte_carlo(kc, delta0, trials=trials, seed=seed)
-        n = np.arange(1, FRONT_MAX_ATTEMPTS + 1)
         doc["convergence"] = {
-            "release_mean_um": RELEASE_MEAN / UM, "release_std_um": RELEASE_STD / UM,
+            "model": "paper", "release_mean_um": RELEASE_MEAN / UM, "release_std_um": RELEASE_STD / UM,
             "eps_p_um": FRONT_EPS / UM, "max_attempts": FRONT_MAX_ATTEMPTS,
             "p_attempt_markov": markov[:-1], "p_not_converged_markov": markov[-1],
             "p_attempt_monte_carlo": mc[:-1], "p_not_converged_monte_carlo": mc[-1],
@@ -710,7 +730,8 @@ def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM,
 
 
 __all__ = [
-    "LinSideModel", "LoopAnalysis", "fluid_side_plant", "classify", "front_attempt_map", "front_attempts_markov",
+    "LinSideModel", "LoopAnalysis", "ReleaseMap", "ReleaseTable", "fluid_side_plant", "front_attempts_identified",
+    "front_identified_map", "classify", "front_attempt_map", "front_attempts_markov",
     "front_attempts_monte_carlo", "front_iteration_diagram", "front_loop", "front_report", "local_ratio",
     "side_attempt_map", "side_full_poles", "side_full_stable_range", "side_iteration_diagram", "side_loop",
     "side_nonlinear_gain_range", "side_report", "sweep",

@@ -51,7 +51,7 @@ QUANTILES = tuple(np.round(np.linspace(0.0, 1.0, 21), 4))
 """Probability levels of the stored release quantiles (every 5 %)."""
 MIN_CELL = 8
 """Fewest attempts for a (bin, contact) cell to get its own quantiles; sparser cells use the bin's pooled ones."""
-N_BINS = 10
+N_BINS = 20
 """Push-length bins of the later attempts (equal-count)."""
 N_BINS_FIRST = 2
 """Push-length bins of the first attempt (its push length is the goal distance plus δ(0): one per δ(0))."""
@@ -227,8 +227,9 @@ def identify_from_loop(trials: int = IDENTIFICATION_TRIALS, seed: int = IDENTIFI
     logs = [attempt_log(exp, range(trials), seed) for exp in exps.values()]
     log = merge_logs(logs)
     model = identify(log)
+    plant = next(iter(exps.values())).variability.describe()
     model["provenance"] = {"controllers": list(exps), "trials": int(trials), "seed": int(seed),
-                           "attempts": int(log["release"].size), "plant": next(iter(exps.values())).variability.describe()}
+                           "attempts": int(log["release"].size), "plant": plant}
     return model, log
 
 
