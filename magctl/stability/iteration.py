@@ -335,7 +335,12 @@ FRONT_GOAL = goal_distance("front")
 
 @dataclass(frozen=True)
 class ReleaseTable:
-    """Quantile tables of the release over push-length bins, for one attempt class (metres)."""
+    """Quantile tables of the release over push-length bins, for one attempt class (metres).
+
+    ``quantiles_free`` and ``quantiles_lateral`` have one row per push-length bin (means
+    ``length_mean``); ``quantiles_contact`` too, unless ``contact_mean`` is given: then its rows
+    are bins of the trial's last contact release ``R_c`` with those means.
+    """
 
     edges: np.ndarray
     length_mean: np.ndarray
@@ -343,31 +348,46 @@ class ReleaseTable:
     quantiles_contact: np.ndarray
     quantiles_free: np.ndarray
     quantiles_lateral: np.ndarray
+    contact_mean: np.ndarray | None = None
 
     def __post_init__(self):
         nb = self.length_mean.size
-        nl = self.quantiles_contact.shape[-1] if self.quantiles_contact.ndim == 2 else -1
-        for name in ("quantiles_contact", "quantiles_free", "quantiles_lateral"):
-            if getattr(self, name).shape != (nb, nl):
-                raise MagctlError(f"release table {name} has shape {getattr(self, name).shape}, expected {(nb, nl)}")
-        if nb < 2 or self.p_contact.shape != (nb,) or self.edges.shape != (nb - 1,) \
-                or np.any(np.diff(self.length_mean) <= 0):
+        nl = self.quantiles_free.shape[-1] if self.quantiles_free.ndim == 2 else -1
+        nc = nb if self.contact_mean is None else self.contact_mean.size
+        for name, rows in (("quantiles_contact", nc), ("quantiles_free", nb), ("quantiles_lateral", nb)):
+            if getattr(self, name).shape != (rows, nl):
+                raise MagctlError(f"release table {name} has shape {getattr(self, name).shape}, expected {(rows, nl)}")
+        if nb < 2 or nc < 2 or self.p_contact.shape != (nb,) or self.edges.shape != (nb - 1,) \
+                or np.any(np.diff(self.length_mean) <= 0) \
+                or (self.contact_mean is not None and np.any(np.diff(self.contact_mean) <= 0)):
             raise MagctlError("release table: needs at least 2 bins, p_contact one entry per bin, edges one fewer, "
                               "increasing bin means")
 
     @classmethod
     def from_params(cls, t) -> ReleaseTable:
         nb = len(t.length_mean)
-        rows = [[getattr(getattr(t, k), f"bin{j}") for j in range(nb)]
-                for k in ("quantiles_contact", "quantiles_free", "quantiles_lateral")]
+        cm = np.asarray(t.contact_mean, float) if "contact_mean" in t else None
+        counts = {"quantiles_contact": nb if cm is None else cm.size, "quantiles_free": nb, "quantiles_lateral": nb}
+        rows = [[getattr(getattr(t, k), f"bin{j}") for j in range(n)] for k, n in counts.items()]
         return cls(np.asarray(t.edges, float), np.asarray(t.length_mean, float), np.asarray(t.p_contact, float),
-                   *(np.asarray(r, float) for r in rows))
+                   *(np.asarray(r, float) for r in rows), cm)
+
+    @staticmethod
+    def _position(x, means) -> tuple[np.ndarray, np.ndarray]:
+        f = np.interp(np.asarray(x, float), means, np.arange(means.size, dtype=float))
+        j = np.minimum(np.floor(f).astype(int), means.size - 2)
+        return j, f - j
 
     def position(self, length) -> tuple[np.ndarray, np.ndarray]:
         """Lower bin and weight of the upper one: linear in ``L`` between the bins' mean push lengths (clamped)."""
-        f = np.interp(np.asarray(length, float), self.length_mean, np.arange(self.length_mean.size, dtype=float))
-        j = np.minimum(np.floor(f).astype(int), self.length_mean.size - 2)
-        return j, f - j
+        return self._position(length, self.length_mean)
+
+    def contact_position(self, length, last_contact) -> tuple[np.ndarray, np.ndarray]:
+        """Row and weight in ``quantiles_contact``: by ``L``, or by ``R_c`` when the rows are ``R_c`` bins."""
+        if self.contact_mean is None:
+            return self.position(length)
+        rc = np.where(np.isfinite(last_contact), last_contact, np.median(self.contact_mean))
+        return self._position(rc, self.contact_mean)
 
 
 @dataclass(frozen=True)
@@ -378,15 +398,15 @@ class ReleaseMap:
     ``models/front_release.toml``: ``L = e_before + δ`` is how far the sphere has to go to
     ``P_o`` (eq 10), ``R = e_after + δ`` how far short of ``P_o`` it is measured. Two attempt
     classes (``first``, ``later``), each with per-``L``-bin contact probability, quantiles of ``R``
-    with and without contact, and quantiles of the distance off the pushing line;
-    ``trial_correlation`` couples a trial's releases (Gaussian copula). The paper's eq 14 plant
-    is the special case of one bin with ``R ~ N(300, 75²) µm``, no lateral error, no coupling.
+    without contact, of ``R`` with contact — over ``L`` bins on the first attempt, over bins of
+    the trial's last contact release ``R_c`` on later ones (the same sphere repeats its release)
+    — and of the distance off the pushing line. The paper's eq 14 plant is the special case of
+    ``R ~ N(300, 75²) µm`` in every bin, whatever ``L`` and ``R_c``, and no lateral error.
     """
 
     levels: np.ndarray
     first: ReleaseTable
     later: ReleaseTable
-    trial_correlation: float = 0.0
     source: str = ""
 
     @classmethod
@@ -395,7 +415,7 @@ class ReleaseMap:
         p = load_model(name)
         m = p.map
         return cls(np.asarray(m.levels, float), ReleaseTable.from_params(m.first), ReleaseTable.from_params(m.later),
-                   float(m.trial_correlation), p.provenance.sources["trials"])
+                   p.provenance.sources["trials"])
 
     def __post_init__(self):
         nl = self.levels.size
@@ -404,8 +424,6 @@ class ReleaseMap:
         for t in (self.first, self.later):
             if t.quantiles_contact.shape[1] != nl:
                 raise MagctlError(f"release map: quantile tables need {nl} columns, one per level")
-        if not 0.0 <= self.trial_correlation < 1.0:
-            raise MagctlError(f"release map trial_correlation {self.trial_correlation!r} must be in [0, 1)")
 
     def _quantile(self, table: np.ndarray, j: np.ndarray, w: np.ndarray, u: np.ndarray) -> np.ndarray:
         k = np.clip(np.searchsorted(self.levels, u, side="right") - 1, 0, self.levels.size - 2)
@@ -414,22 +432,19 @@ class ReleaseMap:
         hi = table[j + 1, k] * (1 - t) + table[j + 1, k + 1] * t
         return lo * (1 - w) + hi * w
 
-    def sample(self, length, first, rng: np.random.Generator,
-               trial_score: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def sample(self, length, first, rng: np.random.Generator, last_contact=None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Draw ``(R, lateral, contact)`` for each push length (``first``: bool, per draw or one for all).
 
         Inverse CDF of the quantile tables, linear between quantile levels and between the two
-        bins around ``L``. ``trial_score`` (standard normal, one per trial, held over its
-        attempts) enters the release's normal score with weight ``√trial_correlation``.
+        bins around ``L`` (or around ``last_contact``, the trial's last contact release ``R_c``, for
+        a table whose contact rows are ``R_c`` bins; NaN: no contact yet, the middle bin).
         """
         length = np.atleast_1d(np.asarray(length, float))
         n = length.size
         first = np.broadcast_to(np.asarray(first, bool), (n,))
-        contact_u, z, lat_u = rng.random(n), rng.standard_normal(n), rng.random(n)
-        if trial_score is not None and self.trial_correlation > 0:
-            c = self.trial_correlation
-            z = np.sqrt(c) * trial_score + np.sqrt(1 - c) * z
-        u = ndtr(z)
+        last = np.full(n, np.nan) if last_contact is None else np.broadcast_to(np.asarray(last_contact, float), (n,))
+        contact_u, u, ul = rng.random(n), rng.random(n), rng.random(n)
         release, lateral, contact = np.zeros(n), np.zeros(n), np.zeros(n, bool)
         for tab, m in ((self.first, first), (self.later, ~first)):
             if not m.any():
@@ -437,9 +452,10 @@ class ReleaseMap:
             j, w = tab.position(length[m])
             on = contact_u[m] < tab.p_contact[j] * (1 - w) + tab.p_contact[j + 1] * w
             contact[m] = on
-            release[m] = np.where(on, self._quantile(tab.quantiles_contact, j, w, u[m]),
+            jc, wc = tab.contact_position(length[m], last[m])
+            release[m] = np.where(on, self._quantile(tab.quantiles_contact, jc, wc, u[m]),
                                   self._quantile(tab.quantiles_free, j, w, u[m]))
-            lateral[m] = self._quantile(tab.quantiles_lateral, j, w, lat_u[m])
+            lateral[m] = self._quantile(tab.quantiles_lateral, j, w, ul[m])
         return release, lateral, contact
 
 
@@ -465,10 +481,11 @@ def front_identified_map(kc, delta0, trials: int = 20000, *, release_map: Releas
     attempts = np.full(trials, -1)
     err, dist = np.full((trials, max_attempts), np.nan), np.full((trials, max_attempts), np.nan)
     touched = np.zeros((trials, max_attempts), dtype=bool)
-    score = rng.standard_normal(trials)
+    last = np.full(trials, np.nan)
     for i in range(max_attempts):
         delta = law.output(st, {})["y"]
-        release, lateral, contact = rmap.sample(d + delta, i == 0, rng, score)
+        release, lateral, contact = rmap.sample(d + delta, i == 0, rng, last)
+        last = np.where(contact & ~done, release, last)
         e = release - delta
         d = np.where(done, d, np.hypot(e, lateral))
         err[:, i] = np.where(done, np.nan, e)
@@ -646,7 +663,7 @@ def front_report(kc: float, delta0_um: float = 0.0, trials: int = 20000, seed: i
         p = front_attempts_identified(kc, delta0, trials, release_map=rmap, seed=seed)
         doc["convergence"] = {
             "model": "identified", "source": rmap.source, "eps_p_um": FRONT_EPS / UM,
-            "max_attempts": FRONT_MAX_ATTEMPTS, "trial_correlation": rmap.trial_correlation,
+            "max_attempts": FRONT_MAX_ATTEMPTS,
             "p_attempt_monte_carlo": p[:-1], "p_not_converged_monte_carlo": p[-1],
             "p_converged_by_attempt": np.cumsum(p[:-1]),
             "mean_attempts": float((n * p[:-1]).sum() + FRONT_MAX_ATTEMPTS * p[-1]),

@@ -32,9 +32,11 @@ def test_release_map_rejects_bad_tables():
     good = np.zeros((2, 5))
     with pytest.raises(MagctlError, match="shape"):
         S.ReleaseTable(np.array([1.0]), np.array([0.0, 2.0]), np.ones(2), np.zeros((2, 4)), good, good)
+    with pytest.raises(MagctlError, match="increasing"):
+        S.ReleaseTable(np.array([1.0]), np.array([2.0, 0.0]), np.ones(2), good, good, good)
     tab = S.ReleaseTable(np.array([1.0]), np.array([0.0, 2.0]), np.ones(2), good, good, good)
-    with pytest.raises(MagctlError, match="trial_correlation"):
-        S.ReleaseMap(levels, tab, tab, trial_correlation=1.5)
+    with pytest.raises(MagctlError, match="levels"):
+        S.ReleaseMap(levels[::-1], tab, tab)
 
 
 def test_stored_map_loads_with_its_provenance():
