@@ -393,3 +393,34 @@ def agreement(trials: int = 200, seed: int = 0, *, model_trials: int = 40000, ex
             "mean_se": float(counted.std() / np.sqrt(trials)),
         }
     return out
+
+
+def target_power(trials: int = 200, *, repeats: int = 500, mean_tol: float = 0.3, bin_tol: float = 0.05,
+                 exps=None, seed: int = 2) -> dict[str, dict[str, float]]:
+    """How often a *perfect* model would meet the agreement targets against ``trials`` loop trials.
+
+    The identified map is taken as the truth: ``repeats`` samples of ``trials`` trials are drawn
+    from it and compared with its own 40000-draw distribution. Returns, per controller, the
+    share of samples with every converged-by-attempt bin within ``bin_tol`` (``p_bins``), with
+    the mean attempts within ``mean_tol`` (``p_mean``) and both (``p_both``). This is the ceiling
+    the sampling noise of a ``trials``-trial study puts on the targets.
+    """
+    from magctl.stability.iteration import ReleaseMap, front_identified_map
+
+    exps = identification_experiments() if exps is None else exps
+    rmap = ReleaseMap.load()
+    out = {}
+    for label, exp in exps.items():
+        kc, d0 = float(exp.task["kc"]), float(exp.task["delta0"])
+        ref = front_identified_map(kc, d0, 40000, release_map=rmap, seed=seed - 1)["attempts"]
+        n_max = int(task_defaults("front")["max_attempts"])
+        by = np.array([np.mean((ref > 0) & (ref <= a)) for a in range(1, n_max + 1)])
+        mean = np.where(ref > 0, ref, n_max).mean()
+        s = front_identified_map(kc, d0, trials * repeats, release_map=rmap, seed=seed)["attempts"]
+        s = s.reshape(repeats, trials)
+        sby = np.stack([np.mean((s > 0) & (s <= a), axis=1) for a in range(1, n_max + 1)], axis=1)
+        ok_b = np.max(np.abs(sby - by), axis=1) <= bin_tol
+        ok_m = np.abs(np.where(s > 0, s, n_max).mean(axis=1) - mean) <= mean_tol
+        out[label] = {"p_bins": float(ok_b.mean()), "p_mean": float(ok_m.mean()),
+                      "p_both": float((ok_b & ok_m).mean())}
+    return out
