@@ -21,6 +21,7 @@ Lengths are metres inside; reports carry µm in unit-suffixed keys.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import control
 import numpy as np
@@ -334,79 +335,32 @@ FRONT_GOAL = goal_distance("front")
 
 
 @dataclass(frozen=True)
-class ReleaseTable:
-    """Quantile tables of the release over push-length bins, for one attempt class (metres).
-
-    ``quantiles_free`` and ``quantiles_lateral`` have one row per push-length bin (means
-    ``length_mean``); ``quantiles_contact`` too, unless ``contact_mean`` is given: then its rows
-    are bins of the trial's last contact release ``R_c`` with those means.
-    """
-
-    edges: np.ndarray
-    length_mean: np.ndarray
-    p_contact: np.ndarray
-    quantiles_contact: np.ndarray
-    quantiles_free: np.ndarray
-    quantiles_lateral: np.ndarray
-    contact_mean: np.ndarray | None = None
-
-    def __post_init__(self):
-        nb = self.length_mean.size
-        nl = self.quantiles_free.shape[-1] if self.quantiles_free.ndim == 2 else -1
-        nc = nb if self.contact_mean is None else self.contact_mean.size
-        for name, rows in (("quantiles_contact", nc), ("quantiles_free", nb), ("quantiles_lateral", nb)):
-            if getattr(self, name).shape != (rows, nl):
-                raise MagctlError(f"release table {name} has shape {getattr(self, name).shape}, expected {(rows, nl)}")
-        if nb < 2 or nc < 2 or self.p_contact.shape != (nb,) or self.edges.shape != (nb - 1,) \
-                or np.any(np.diff(self.length_mean) <= 0) \
-                or (self.contact_mean is not None and np.any(np.diff(self.contact_mean) <= 0)):
-            raise MagctlError("release table: needs at least 2 bins, p_contact one entry per bin, edges one fewer, "
-                              "increasing bin means")
-
-    @classmethod
-    def from_params(cls, t) -> ReleaseTable:
-        nb = len(t.length_mean)
-        cm = np.asarray(t.contact_mean, float) if "contact_mean" in t else None
-        counts = {"quantiles_contact": nb if cm is None else cm.size, "quantiles_free": nb, "quantiles_lateral": nb}
-        rows = [[getattr(getattr(t, k), f"bin{j}") for j in range(n)] for k, n in counts.items()]
-        return cls(np.asarray(t.edges, float), np.asarray(t.length_mean, float), np.asarray(t.p_contact, float),
-                   *(np.asarray(r, float) for r in rows), cm)
-
-    @staticmethod
-    def _position(x, means) -> tuple[np.ndarray, np.ndarray]:
-        f = np.interp(np.asarray(x, float), means, np.arange(means.size, dtype=float))
-        j = np.minimum(np.floor(f).astype(int), means.size - 2)
-        return j, f - j
-
-    def position(self, length) -> tuple[np.ndarray, np.ndarray]:
-        """Lower bin and weight of the upper one: linear in ``L`` between the bins' mean push lengths (clamped)."""
-        return self._position(length, self.length_mean)
-
-    def contact_position(self, length, last_contact) -> tuple[np.ndarray, np.ndarray]:
-        """Row and weight in ``quantiles_contact``: by ``L``, or by ``R_c`` when the rows are ``R_c`` bins."""
-        if self.contact_mean is None:
-            return self.position(length)
-        rc = np.where(np.isfinite(last_contact), last_contact, np.median(self.contact_mean))
-        return self._position(rc, self.contact_mean)
-
-
-@dataclass(frozen=True)
 class ReleaseMap:
-    """The front push's release ``R`` as a function of the push length ``L`` (metres).
+    """The front push's release map identified from the closed loop: a conditional distribution (metres).
 
-    Identified from closed-loop trials by :mod:`magctl.studies.front_release` and stored in
-    ``models/front_release.toml``: ``L = e_before + δ`` is how far the sphere has to go to
-    ``P_o`` (eq 10), ``R = e_after + δ`` how far short of ``P_o`` it is measured. Two attempt
-    classes (``first``, ``later``), each with per-``L``-bin contact probability, quantiles of ``R``
-    without contact, of ``R`` with contact — over ``L`` bins on the first attempt, over bins of
-    the trial's last contact release ``R_c`` on later ones (the same sphere repeats its release)
-    — and of the distance off the pushing line. The paper's eq 14 plant is the special case of
-    ``R ~ N(300, 75²) µm`` in every bin, whatever ``L`` and ``R_c``, and no lateral error.
+    Stored in ``models/front_release.toml`` by :mod:`magctl.studies.front_release`: every logged
+    attempt of the identification trials with its predictors — the push length ``L = e_before + δ``
+    (how far the sphere has to go to ``P_o``, eq 10) and the previous attempt's release ``R_prev``
+    — and its outcome: the release ``R = e_after + δ`` (how far short of ``P_o`` the sphere is
+    measured), its distance off the pushing line and whether the robot touched it.
+
+    :meth:`sample` draws the outcome of a logged attempt near the query (k-nearest-neighbour
+    conditional resampling): a first attempt from the logged first attempts at the nearest logged
+    push length (the first push starts from rest; its ``L`` is the goal distance plus ``δ(0)``),
+    a later one uniformly from the ``k`` logged later attempts nearest in ``(L, R_prev)`` (both
+    scaled by ``scale``). The outcome is drawn jointly: ``R``, the lateral distance and contact
+    keep their dependence. The paper's eq 14 plant is the special case of outcomes
+    ``R ~ N(300, 75²) µm`` independent of ``(L, R_prev)``, no lateral distance.
     """
 
-    levels: np.ndarray
-    first: ReleaseTable
-    later: ReleaseTable
+    first: np.ndarray
+    length: np.ndarray
+    previous: np.ndarray
+    release: np.ndarray
+    lateral: np.ndarray
+    contact: np.ndarray
+    k: int = 15
+    scale: float = 100 * UM
     source: str = ""
 
     @classmethod
@@ -414,49 +368,62 @@ class ReleaseMap:
         """Read ``models/<name>.toml`` (written by ``magctl.studies.front_release.write_model``)."""
         p = load_model(name)
         m = p.map
-        return cls(np.asarray(m.levels, float), ReleaseTable.from_params(m.first), ReleaseTable.from_params(m.later),
-                   p.provenance.sources["trials"])
+        return cls(np.asarray(m.first, float) > 0.5, np.asarray(m.length, float), np.asarray(m.previous, float),
+                   np.asarray(m.release, float), np.asarray(m.lateral, float), np.asarray(m.contact, float) > 0.5,
+                   int(m.neighbours), float(m.scale), p.provenance.sources["trials"])
 
     def __post_init__(self):
-        nl = self.levels.size
-        if nl < 2 or np.any(np.diff(self.levels) <= 0) or self.levels[0] != 0 or self.levels[-1] != 1:
-            raise MagctlError("release map: quantile levels must increase from 0 to 1")
-        for t in (self.first, self.later):
-            if t.quantiles_contact.shape[1] != nl:
-                raise MagctlError(f"release map: quantile tables need {nl} columns, one per level")
+        n = self.first.size
+        for name in ("length", "previous", "release", "lateral", "contact"):
+            a = getattr(self, name)
+            if a.shape != (n,) or (a.dtype.kind == "f" and not np.all(np.isfinite(a))):
+                raise MagctlError(f"release map {name} needs {n} finite entries, got shape {a.shape}")
+        n_later = int((~self.first).sum())
+        if not self.first.any() or n_later < self.k or self.k < 1:
+            raise MagctlError(f"release map needs first attempts and at least k = {self.k} later ones "
+                              f"(has {int(self.first.sum())} and {n_later})")
+        if not self.scale > 0:
+            raise MagctlError(f"release map scale {self.scale!r} must be positive")
 
-    def _quantile(self, table: np.ndarray, j: np.ndarray, w: np.ndarray, u: np.ndarray) -> np.ndarray:
-        k = np.clip(np.searchsorted(self.levels, u, side="right") - 1, 0, self.levels.size - 2)
-        t = (u - self.levels[k]) / (self.levels[k + 1] - self.levels[k])
-        lo = table[j, k] * (1 - t) + table[j, k + 1] * t
-        hi = table[j + 1, k] * (1 - t) + table[j + 1, k + 1] * t
-        return lo * (1 - w) + hi * w
+    @cached_property
+    def _later(self):
+        from scipy.spatial import cKDTree
 
-    def sample(self, length, first, rng: np.random.Generator, last_contact=None
+        idx = np.flatnonzero(~self.first)
+        return cKDTree(np.c_[self.length[idx], self.previous[idx]] / self.scale), idx
+
+    @cached_property
+    def _first(self):
+        idx = np.flatnonzero(self.first)
+        values, group = np.unique(self.length[idx], return_inverse=True)
+        return values, [idx[group == g] for g in range(values.size)]
+
+    def sample(self, length, first, rng: np.random.Generator, previous=None
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Draw ``(R, lateral, contact)`` for each push length (``first``: bool, per draw or one for all).
 
-        Inverse CDF of the quantile tables, linear between quantile levels and between the two
-        bins around ``L`` (or around ``last_contact``, the trial's last contact release ``R_c``, for
-        a table whose contact rows are ``R_c`` bins; NaN: no contact yet, the middle bin).
+        ``previous`` is each trial's previous release (required for later attempts).
         """
         length = np.atleast_1d(np.asarray(length, float))
         n = length.size
         first = np.broadcast_to(np.asarray(first, bool), (n,))
-        last = np.full(n, np.nan) if last_contact is None else np.broadcast_to(np.asarray(last_contact, float), (n,))
-        contact_u, u, ul = rng.random(n), rng.random(n), rng.random(n)
-        release, lateral, contact = np.zeros(n), np.zeros(n), np.zeros(n, bool)
-        for tab, m in ((self.first, first), (self.later, ~first)):
-            if not m.any():
-                continue
-            j, w = tab.position(length[m])
-            on = contact_u[m] < tab.p_contact[j] * (1 - w) + tab.p_contact[j + 1] * w
-            contact[m] = on
-            jc, wc = tab.contact_position(length[m], last[m])
-            release[m] = np.where(on, self._quantile(tab.quantiles_contact, jc, wc, u[m]),
-                                  self._quantile(tab.quantiles_free, j, w, u[m]))
-            lateral[m] = self._quantile(tab.quantiles_lateral, j, w, ul[m])
-        return release, lateral, contact
+        pick = np.zeros(n, dtype=int)
+        if first.any():
+            values, groups = self._first
+            g = np.abs(length[first, None] - values[None, :]).argmin(axis=1)
+            rows = np.flatnonzero(first)
+            for gi in np.unique(g):
+                sel = rows[g == gi]
+                pick[sel] = groups[gi][rng.integers(0, groups[gi].size, sel.size)]
+        if not first.all():
+            if previous is None:
+                raise MagctlError("release map: later attempts need the previous release")
+            prev = np.broadcast_to(np.asarray(previous, float), (n,))[~first]
+            tree, idx = self._later
+            _, nb = tree.query(np.c_[length[~first], prev] / self.scale, k=self.k)
+            nb = nb.reshape(-1, self.k)
+            pick[~first] = idx[nb[np.arange(nb.shape[0]), rng.integers(0, self.k, nb.shape[0])]]
+        return self.release[pick], self.lateral[pick], self.contact[pick]
 
 
 def front_identified_map(kc, delta0, trials: int = 20000, *, release_map: ReleaseMap | None = None,
@@ -465,9 +432,10 @@ def front_identified_map(kc, delta0, trials: int = 20000, *, release_map: Releas
     """Front pushing (eq 10–13) with the release map identified from the closed loop, vectorised over trials.
 
     Attempt ``i`` starts ``d`` from the goal (``d(0)`` = ``goal``) and aims along the line to it;
-    the push length is ``L = d + δ(i)``; ``(R, lateral)`` are drawn from ``release_map`` at ``L``;
-    the error along the line is ``e = R − δ(i)`` (fed to eq 13) and the distance to the goal
-    ``d = √(e² + lateral²)`` (eq 12 tests ``d < ε_p``, as the task does).
+    the push length is ``L = d + δ(i)``; ``(R, lateral, contact)`` are drawn from ``release_map`` at
+    ``L`` and the trial's previous release; the error along the line is ``e = R − δ(i)`` (fed to
+    eq 13) and the distance to the goal ``d = √(e² + lateral²)`` (eq 12 tests ``d < ε_p``, as the
+    task does).
 
     Returns ``attempts`` (B,) (−1 = not converged), ``error`` (B, N) signed along-line error,
     ``distance`` (B, N) and ``contact`` (B, N) (NaN / False after convergence).
@@ -481,11 +449,11 @@ def front_identified_map(kc, delta0, trials: int = 20000, *, release_map: Releas
     attempts = np.full(trials, -1)
     err, dist = np.full((trials, max_attempts), np.nan), np.full((trials, max_attempts), np.nan)
     touched = np.zeros((trials, max_attempts), dtype=bool)
-    last = np.full(trials, np.nan)
+    last = np.zeros(trials)
     for i in range(max_attempts):
         delta = law.output(st, {})["y"]
         release, lateral, contact = rmap.sample(d + delta, i == 0, rng, last)
-        last = np.where(contact & ~done, release, last)
+        last = np.where(done, last, release)
         e = release - delta
         d = np.where(done, d, np.hypot(e, lateral))
         err[:, i] = np.where(done, np.nan, e)
@@ -747,7 +715,7 @@ def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM,
 
 
 __all__ = [
-    "LinSideModel", "LoopAnalysis", "ReleaseMap", "ReleaseTable", "fluid_side_plant", "front_attempts_identified",
+    "LinSideModel", "LoopAnalysis", "ReleaseMap", "fluid_side_plant", "front_attempts_identified",
     "front_identified_map", "classify", "front_attempt_map", "front_attempts_markov",
     "front_attempts_monte_carlo", "front_iteration_diagram", "front_loop", "front_report", "local_ratio",
     "side_attempt_map", "side_full_poles", "side_full_stable_range", "side_iteration_diagram", "side_loop",

@@ -16,14 +16,15 @@ start, ``P_o = P_g + δ(i)u`` of eq 10):
   (end of ``SETTLE``): the attempt map is ``e_after = R(L) − δ(i)``, the paper's eq 14 plant being
   ``R ≡ D_p,r`` (constant);
 * contact: whether the robot came within ``contact + CONTACT_MARGIN`` of the sphere during ``PUSH``;
-* the trial's last contact release ``R_c``: the same sphere in the notch repeats its release.
+* the trial's previous release ``R_prev``: the same sphere in the notch repeats its release.
 
 :func:`attempt_log` records these from a batch of closed-loop trials (the same chunked
 ``simulate`` calls as :func:`magctl.studies.trials.run_push_trials`, so trial ``k`` of seed ``s``
-is the trial the studies run). :func:`identify` bins ``L`` and stores, per bin, the contact
-probability and the empirical quantiles of ``R`` (later attempts with contact: per bin of
-``R_c``) — a conditional distribution per bin: it keeps the bimodal overshoot of the first
-attempt and the heteroscedastic scatter. :func:`write_model` writes it with its provenance (controllers, trials,
+is the trial the studies run). :func:`identify` keeps every logged attempt with its predictors
+(first or not, ``L``, the previous release) and outcomes (``R``, lateral distance, contact); the
+iteration-domain model resamples them by nearest neighbours — a conditional distribution that
+keeps the bimodal overshoot of the first attempt, the heteroscedastic scatter and the joint
+dependence of the outcomes. :func:`write_model` writes it with its provenance (controllers, trials,
 seed) to ``models/front_release.toml``; ``magctl.stability.iteration`` samples it
 (``magctl stability front --model identified``).
 """
@@ -33,8 +34,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy.special import ndtri
-from scipy.stats import rankdata
 
 from magctl.control.push.common import task_defaults
 from magctl.control.push.front import PUSH
@@ -48,14 +47,10 @@ CORRECTION, SPHERES, ROBOT = "controller/task.correction", "plant/spheres.sphere
 RECORD = [STATUS, ATTEMPT, PHASE, CORRECTION, SPHERES, ROBOT]
 CONTACT_MARGIN = 10 * UM
 """Robot–sphere centre distance above the notch contact (models/push.toml ``contact``) still counted as touching."""
-QUANTILES = tuple(np.round(np.linspace(0.0, 1.0, 21), 4))
-"""Probability levels of the stored release quantiles (every 5 %)."""
-MIN_CELL = 8
-"""Fewest attempts for a (bin, contact) cell to get its own quantiles; sparser cells use the bin's pooled ones."""
-N_BINS = 20
-"""Push-length bins of the later attempts (equal-count)."""
-N_BINS_FIRST = 2
-"""Push-length bins of the first attempt (its push length is the goal distance plus δ(0): one per δ(0))."""
+NEIGHBOURS = 15
+"""Logged later attempts a draw chooses among (k of the k-nearest-neighbour resampling)."""
+SCALE = 100 * UM
+"""Length that scales both predictors (push length, previous release) of the neighbour search."""
 
 
 def attempt_log(exp: Experiment, trials, seed: int, *, chunk_frames: int = 150) -> dict[str, np.ndarray]:
@@ -149,100 +144,39 @@ def merge_logs(logs) -> dict[str, np.ndarray]:
     return {k: np.concatenate([lg[k] for lg in logs]) for k in keys}
 
 
-def _scores(x: np.ndarray) -> np.ndarray:
-    """Normal scores of ``x`` (ranks mapped through Φ⁻¹)."""
-    return ndtri((rankdata(x) - 0.5) / x.size)
-
-
-def _table(length, release, contact, lateral, n_bins, levels, min_cell, last_contact=None,
-           n_contact_bins: int = 0) -> dict:
-    """Quantile tables of one attempt class over ``n_bins`` equal-count push-length bins.
-
-    With ``last_contact`` the contact quantiles are over ``n_contact_bins`` equal-count bins of
-    it instead (adds ``contact_edges``, ``contact_mean``, ``contact_count``).
-    """
-    length, release, contact, lateral = (np.asarray(x) for x in (length, release, contact, lateral))
-    if length.size < n_bins * min_cell:
-        raise ValueError(f"{length.size} attempts are too few to identify {n_bins} bins of at least {min_cell}")
-    edges = np.quantile(length, np.arange(1, n_bins) / n_bins)
-    idx = np.searchsorted(edges, length, side="right")
-    count, lmean, pc = np.zeros(n_bins, int), np.zeros(n_bins), np.zeros(n_bins)
-    q_on, q_off, q_lat = (np.zeros((n_bins, levels.size)) for _ in range(3))
-    for j in range(n_bins):
-        m = idx == j
-        if not m.any():
-            raise ValueError(f"push-length bin {j} is empty: the attempts have too few distinct lengths")
-        count[j], lmean[j], pc[j] = m.sum(), length[m].mean(), contact[m].mean()
-        q_lat[j] = np.quantile(lateral[m], levels)
-        on, off = m & contact, m & ~contact
-        q_on[j] = np.quantile(release[on if on.sum() >= min_cell else m], levels)
-        q_off[j] = np.quantile(release[off if off.sum() >= min_cell else m], levels)
-    out = {"edges": edges, "count": count, "length_mean": lmean, "p_contact": pc, "quantiles_contact": q_on,
-           "quantiles_free": q_off, "quantiles_lateral": q_lat}
-    if last_contact is not None:
-        sel = contact & np.isfinite(last_contact)
-        rc, r = np.asarray(last_contact)[sel], release[sel]
-        if rc.size < n_contact_bins * min_cell:
-            raise ValueError(f"{rc.size} contact attempts are too few for {n_contact_bins} bins of {min_cell}")
-        c_edges = np.quantile(rc, np.arange(1, n_contact_bins) / n_contact_bins)
-        cidx = np.searchsorted(c_edges, rc, side="right")
-        out.update(contact_edges=c_edges, contact_count=np.bincount(cidx, minlength=n_contact_bins),
-                   contact_mean=np.array([rc[cidx == j].mean() for j in range(n_contact_bins)]),
-                   quantiles_contact=np.array([np.quantile(r[cidx == j], levels) for j in range(n_contact_bins)]))
-    return out
-
-
-def last_contact_release(log: dict[str, np.ndarray]) -> np.ndarray:
-    """Per attempt: the release of the trial's most recent earlier attempt that touched the sphere (NaN before any)."""
-    attempt, release, contact = (np.asarray(log[k]) for k in ("attempt", "release", "contact"))
-    if np.any(attempt[1:][attempt[1:] > 1] != attempt[:-1][attempt[1:] > 1] + 1):
+def previous_release(log: dict[str, np.ndarray]) -> np.ndarray:
+    """Per attempt: the release of the same trial's previous attempt (0 for first attempts)."""
+    attempt, release = np.asarray(log["attempt"]), np.asarray(log["release"])
+    later = attempt > 1
+    if np.any(attempt[1:][later[1:]] != attempt[:-1][later[1:]] + 1) or (attempt.size and later[0]):
         raise ValueError("the log must list each trial's attempts in order (attempt_log's layout)")
-    out = np.full(attempt.size, np.nan)
-    mem = np.nan
-    for i in range(attempt.size):
-        if attempt[i] == 1:
-            mem = np.nan
-        out[i] = mem
-        if contact[i]:
-            mem = release[i]
+    out = np.zeros(attempt.size)
+    out[1:][later[1:]] = release[:-1][later[1:]]
     return out
 
 
-def identify(log: dict[str, np.ndarray], *, n_bins: int = N_BINS, n_bins_first: int = N_BINS_FIRST,
-             quantiles=QUANTILES, min_cell: int = MIN_CELL) -> dict:
-    """The release map from a per-attempt log (metres).
+def identify(log: dict[str, np.ndarray]) -> dict:
+    """The release map from a per-attempt log (metres): the logged attempts with predictors and outcomes.
 
-    Two attempt classes: the first attempt (the robot starts from rest behind the sphere, the
-    sphere has not been pushed yet) and the later ones (the robot comes back from its retraction).
-    In each, ``L`` is split into equal-count bins (``n_bins_first``, ``n_bins``) and each bin
-    stores its attempt count, the mean ``L``, the contact probability, and quantiles at
-    ``quantiles`` (a cell with fewer than ``min_cell`` attempts takes the bin's pooled attempts):
+    Predictors: first attempt or not, push length ``L`` and the previous attempt's release ``R_prev``
+    — the attempt-map state besides ``e`` and ``δ``: the same sphere pushed by the same robot
+    repeats its release (``K_c = 1``: ``R(2) − R(1)`` has an interquartile range of 57 µm where ``R``
+    has 127 µm), and the previous pull-back sets where the robot starts its next approach, so how far
+    its flow carries the sphere before contact. Outcomes: ``R``, the distance off the line
+    (eq 12 tests the 2-D distance) and contact, kept jointly.
+    ``magctl.stability.iteration.ReleaseMap`` resamples them by nearest neighbours.
 
-    * contact, first attempt: of ``R``;
-    * contact, later attempts: of ``R`` over ``n_bins`` equal-count bins of ``R_c``, the trial's
-      last contact release, instead of ``L``. The same sphere pushed into the notch by the same
-      robot repeats its release (in the loop ``R(2) ≈ R(1)`` for most trials, whatever the push
-      length), which i.i.d. draws of ``R`` would miss: the release is a state of the attempt map;
-    * no contact (the flow moved the sphere into eq 11's band first): of ``R``;
-    * of ``lateral``, the sphere's distance off the attempt's line (eq 12 tests the 2-D distance,
-      and the next attempt re-aims).
-
-    Returns ``levels``, ``first`` and ``later`` (dicts with ``edges``, ``count``, ``length_mean``,
-    ``p_contact``, ``quantiles_contact``, ``quantiles_free``, ``quantiles_lateral``) and the
-    pooled ``release_mean``, ``release_std``.
+    Returns ``first``, ``length``, ``previous``, ``release``, ``lateral``, ``contact`` (arrays),
+    ``neighbours``, ``scale`` and the pooled ``release_mean``, ``release_std``, ``p_contact_later``.
     """
-    length, release, contact, lateral, attempt = (np.asarray(log[k]) for k in (
-        "push_length", "release", "contact", "lateral_after", "attempt"))
-    levels = np.asarray(quantiles, dtype=float)
+    release, attempt = np.asarray(log["release"]), np.asarray(log["attempt"])
     first = attempt == 1
-    rc = last_contact_release(log)
-    tables = {
-        "first": _table(length[first], release[first], contact[first], lateral[first], n_bins_first, levels,
-                        min_cell),
-        "later": _table(length[~first], release[~first], contact[~first], lateral[~first], n_bins, levels,
-                        min_cell, rc[~first], n_bins),
-    }
-    return {"levels": levels, **tables, "release_mean": float(release.mean()), "release_std": float(release.std())}
+    if not first.any() or (~first).sum() < NEIGHBOURS:
+        raise ValueError(f"the log needs first attempts and at least {NEIGHBOURS} later ones")
+    return {"first": first, "length": np.asarray(log["push_length"]), "previous": previous_release(log),
+            "release": release, "lateral": np.asarray(log["lateral_after"]), "contact": np.asarray(log["contact"]),
+            "neighbours": NEIGHBOURS, "scale": SCALE, "release_mean": float(release.mean()),
+            "release_std": float(release.std()), "p_contact_later": float(np.asarray(log["contact"])[~first].mean())}
 
 
 # --- the stored model -----------------------------------------------------------------------------
@@ -272,20 +206,12 @@ def identify_from_loop(trials: int = IDENTIFICATION_TRIALS, seed: int = IDENTIFI
     return model, log
 
 
-def _num(x) -> str:
-    return f"{x:.2f}" if np.isfinite(x) else ("inf" if x > 0 else "-inf")
-
-
-def _list(a) -> str:
-    return "[" + ", ".join(_num(float(x)) for x in np.ravel(a)) + "]"
-
-
-def _list4(a) -> str:
-    return "[" + ", ".join(f"{float(x):.4f}" for x in np.ravel(a)) + "]"
+def _list(a, fmt: str = "{:.1f}") -> str:
+    return "[" + ", ".join(fmt.format(float(x)) for x in np.ravel(a)) + "]"
 
 
 def model_toml(model: dict) -> str:
-    """TOML text of an identified model (lengths in µm, two decimals) with its provenance."""
+    """TOML text of an identified model (lengths in µm, 0.1 µm) with its provenance."""
     p = model["provenance"]
     src = (f"fit: magctl.studies.front_release.identify_from_loop(trials={p['trials']}, seed={p['seed']}) — "
            f"{p['attempts']} attempts of the closed-loop front push ({', '.join(p['controllers'])}; plant: "
@@ -295,8 +221,9 @@ def model_toml(model: dict) -> str:
         "# The front push's release map identified from the closed loop (docs/push-control.md §2).",
         "# Generated by magctl.studies.front_release.write_model(); do not edit by hand:",
         "# tests/studies/test_front_release.py regenerates it and compares.",
-        "# R = (P_o - P_s')·u after an attempt, L = (P_o - P_s)·u before it (P_o = P_g + delta·u, eq 10);",
-        "# later attempts with contact: R over bins of R_c, the trial's last contact release.",
+        "# One entry per logged attempt: predictors (first, length = push length L = (P_o - P_s)·u, previous =",
+        "# the trial's previous release) and outcomes (release R = (P_o - P_s')·u, lateral = distance off the",
+        "# line, contact); magctl.stability.iteration.ReleaseMap resamples them by nearest neighbours.",
         "",
         "[provenance]",
         f'controllers = {{ value = "{"; ".join(p["controllers"])}", source = "analysis/front_push.py controllers()" }}',
@@ -304,38 +231,26 @@ def model_toml(model: dict) -> str:
         f'seed_count = {{ value = {p["seed"]}, source = "root seed of the identification trials" }}',
         f'attempts_count = {{ value = {p["attempts"]}, source = "attempts recorded over all trials" }}',
         f'eps_um = {{ value = {eps / UM:.2f}, source = "models/push.toml front.eps_um at identification" }}',
-        "",
-        "[map]",
-        f'levels_1 = {{ value = {_list(model["levels"])}, source = "probability levels of the quantiles" }}',
         f'release_mean_um = {{ value = {model["release_mean"] / UM:.2f}, source = "mean release over all attempts" }}',
         f'release_std_um = {{ value = {model["release_std"] / UM:.2f}, source = "release std over all attempts" }}',
+        f'p_contact_later_1 = {{ value = {model["p_contact_later"]:.4f}, source = "share of attempts after the first '
+        f'whose robot touched the sphere during PUSH" }}',
+        "",
+        "[map]",
+        f'neighbours_count = {{ value = {model["neighbours"]}, source = "assumed: a later attempt draws among its '
+        f'{model["neighbours"]} nearest logged attempts in (L, R_prev)" }}',
+        f'scale_um = {{ value = {model["scale"] / UM:.1f}, source = "assumed: both predictors in units of this length '
+        f'for the neighbour search" }}',
+        f'first_1 = {{ value = {_list(model["first"].astype(int), "{:.0f}")}, source = "{src}: 1 = first attempt" }}',
+        f'length_um = {{ value = {_list(model["length"] / UM)}, source = "push length L before the attempt" }}',
+        f'previous_um = {{ value = {_list(model["previous"] / UM)}, source = "the trial\'s previous release '
+        f'(0 on a first attempt)" }}',
+        f'release_um = {{ value = {_list(model["release"] / UM)}, source = "release R after the attempt" }}',
+        f'lateral_um = {{ value = {_list(model["lateral"] / UM)}, source = "distance off the pushing line after the '
+        f'attempt" }}',
+        f'contact_1 = {{ value = {_list(model["contact"].astype(int), "{:.0f}")}, source = "1 = the robot came within '
+        f'contact + {CONTACT_MARGIN / UM:.0f} µm of the sphere during PUSH" }}',
     ]
-    for name, what in (("first", "first attempt"), ("later", "attempts 2 on")):
-        t = model[name]
-        lines += [
-            "", f"[map.{name}]",
-            f'edges_um = {{ value = {_list(t["edges"] / UM)}, source = "{src}: {what}, inner edges of the '
-            f'push-length bins (equal-count)" }}',
-            f'count_1 = {{ value = {_list(t["count"])}, source = "attempts per bin" }}',
-            f'length_mean_um = {{ value = {_list(t["length_mean"] / UM)}, source = "mean push length per bin" }}',
-            f'p_contact_1 = {{ value = {_list(t["p_contact"])}, source = "share of attempts per bin whose robot '
-            f'touched the sphere during PUSH" }}',
-        ]
-        if "contact_mean" in t:
-            lines += [
-                f'contact_edges_um = {{ value = {_list(t["contact_edges"] / UM)}, source = "{src}: contact rows are '
-                f'bins of the trial\'s last contact release R_c (equal-count)" }}',
-                f'contact_count_1 = {{ value = {_list(t["contact_count"])}, source = "contact attempts per R_c bin" }}',
-                f'contact_mean_um = {{ value = {_list(t["contact_mean"] / UM)}, source = "mean R_c per bin" }}',
-            ]
-        on = "release quantiles, contact" if name == "first" else \
-            "release quantiles, contact, per bin of the trial's last contact release R_c"
-        for key, label in (("quantiles_contact", on),
-                           ("quantiles_free", "release quantiles, no contact"),
-                           ("quantiles_lateral", "quantiles of the distance off the line")):
-            lines += ["", f"[map.{name}.{key}]"]
-            for j, row in enumerate(t[key]):
-                lines.append(f'bin{j}_um = {{ value = {_list(row / UM)}, source = "{label}" }}')
     return "\n".join(lines) + "\n"
 
 
