@@ -14,6 +14,9 @@ transfer functions below are built from.
   the minimum-gap bound and the bounded ``D_s,des`` (§V-B step 1).
 * Stochastic convergence of front pushing with a random release ``D_p,r``: a Markov
   chain on the compensation ``δ`` and the matching Monte Carlo of the attempt map.
+* Front pushing with the release map identified from the closed loop
+  (``models/front_release.toml``, :class:`ReleaseMap`): the release depends on the push length
+  and the previous release, with the sphere's distance off the line and contact drawn with it.
 
 Lengths are metres inside; reports carry µm in unit-suffixed keys.
 """
