@@ -24,6 +24,9 @@ def _register_front(subparsers) -> None:
     p = subparsers.add_parser("front", help="front-push learning loop (eq 13-15): poles, verdict, convergence")
     p.add_argument("--kc", type=finite_float, required=True, help="learning gain K_c of eq 13")
     p.add_argument("--delta0-um", type=finite_float, default=0.0, help="initial compensation δ(0) in µm (default 0)")
+    p.add_argument("--model", choices=["paper", "identified"], default="paper",
+                   help="release model: the paper's eq 14 0th-order plant, D_p,r ~ N(300, 75²) µm (paper), or the "
+                        "release map identified from the closed loop, models/front_release.toml (identified)")
     add_json(p)
     p.set_defaults(func=cmd_front)
 
@@ -48,7 +51,7 @@ def _register_side(subparsers) -> None:
 def cmd_front(args) -> int:
     from magctl.stability.iteration import front_report
 
-    doc = front_report(args.kc, args.delta0_um)
+    doc = front_report(args.kc, args.delta0_um, model=args.model)
     emit(args, doc, _front_summary)
     return 0
 
@@ -77,7 +80,13 @@ def _front_summary(d: dict) -> str:
         f"{d['stable_gain_range'][1]:g}",
     ]
     c = d.get("convergence")
-    if c:
+    if c and c["model"] == "identified":
+        by = ", ".join(f"{x:.2f}" for x in c["p_converged_by_attempt"])
+        lines.append(f"  release map identified from the closed loop (models/front_release.toml), ε_p "
+                     f"{c['eps_p_um']:g} µm: mean attempts {c['mean_attempts']:.2f} (failures at "
+                     f"{c['max_attempts']}); P(not converged) = {c['p_not_converged_monte_carlo']:.3g}; "
+                     f"converged by attempt 1..{c['max_attempts']}: {by}")
+    elif c:
         lines.append(f"  D_p,r ~ N({c['release_mean_um']:g} µm, ({c['release_std_um']:g} µm)²), "
                      f"ε_p {c['eps_p_um']:g} µm: "
                      f"P(not converged in {c['max_attempts']}) = {c['p_not_converged_markov']:.3g} (Markov), "

@@ -14,6 +14,9 @@ transfer functions below are built from.
   the minimum-gap bound and the bounded ``D_s,des`` (§V-B step 1).
 * Stochastic convergence of front pushing with a random release ``D_p,r``: a Markov
   chain on the compensation ``δ`` and the matching Monte Carlo of the attempt map.
+* Front pushing with the release map identified from the closed loop
+  (``models/front_release.toml``, :class:`ReleaseMap`): the release depends on the push length
+  and the previous release, with the sphere's distance off the line and contact drawn with it.
 
 Lengths are metres inside; reports carry µm in unit-suffixed keys.
 """
@@ -21,6 +24,7 @@ Lengths are metres inside; reports carry µm in unit-suffixed keys.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import control
 import numpy as np
@@ -329,6 +333,150 @@ def front_attempts_monte_carlo(kc: float, delta0: float, trials: int = 20000, *,
     return out / trials
 
 
+# --- front pushing: the release map identified from the closed loop ------------------------------
+FRONT_GOAL = goal_distance("front")
+
+
+@dataclass(frozen=True)
+class ReleaseMap:
+    """The front push's release map identified from the closed loop: a conditional distribution (metres).
+
+    Stored in ``models/front_release.toml`` by :mod:`magctl.studies.front_release`: every logged
+    attempt of the identification trials with its predictors — the push length ``L = e_before + δ``
+    (how far the sphere has to go to ``P_o``, eq 10) and the previous attempt's release ``R_prev``
+    — and its outcome: the release ``R = e_after + δ`` (how far short of ``P_o`` the sphere is
+    measured), its distance off the pushing line and whether the robot touched it.
+
+    :meth:`sample` draws the outcome of a logged attempt near the query (k-nearest-neighbour
+    conditional resampling): a first attempt from the logged first attempts at the nearest logged
+    push length (the first push starts from rest; its ``L`` is the goal distance plus ``δ(0)``),
+    a later one uniformly from the ``k`` logged later attempts nearest in ``(L, R_prev)`` (both
+    scaled by ``scale``). The outcome is drawn jointly: ``R``, the lateral distance and contact
+    keep their dependence. The paper's eq 14 plant is the special case of outcomes
+    ``R ~ N(300, 75²) µm`` independent of ``(L, R_prev)``, no lateral distance.
+    """
+
+    first: np.ndarray
+    length: np.ndarray
+    previous: np.ndarray
+    release: np.ndarray
+    lateral: np.ndarray
+    contact: np.ndarray
+    k: int = 15
+    scale: float = 100 * UM
+    source: str = ""
+
+    @classmethod
+    def load(cls, name: str = "front_release") -> ReleaseMap:
+        """Read ``models/<name>.toml`` (written by ``magctl.studies.front_release.write_model``)."""
+        p = load_model(name)
+        m = p.map
+        return cls(np.asarray(m.first, float) > 0.5, np.asarray(m.length, float), np.asarray(m.previous, float),
+                   np.asarray(m.release, float), np.asarray(m.lateral, float), np.asarray(m.contact, float) > 0.5,
+                   int(m.neighbours), float(m.scale), p.provenance.sources["trials"])
+
+    def __post_init__(self):
+        n = self.first.size
+        for name in ("length", "previous", "release", "lateral", "contact"):
+            a = getattr(self, name)
+            if a.shape != (n,) or (a.dtype.kind == "f" and not np.all(np.isfinite(a))):
+                raise MagctlError(f"release map {name} needs {n} finite entries, got shape {a.shape}")
+        n_later = int((~self.first).sum())
+        if not self.first.any() or n_later < self.k or self.k < 1:
+            raise MagctlError(f"release map needs first attempts and at least k = {self.k} later ones "
+                              f"(has {int(self.first.sum())} and {n_later})")
+        if not self.scale > 0:
+            raise MagctlError(f"release map scale {self.scale!r} must be positive")
+
+    @cached_property
+    def _later(self):
+        from scipy.spatial import cKDTree
+
+        idx = np.flatnonzero(~self.first)
+        return cKDTree(np.c_[self.length[idx], self.previous[idx]] / self.scale), idx
+
+    @cached_property
+    def _first(self):
+        idx = np.flatnonzero(self.first)
+        values, group = np.unique(self.length[idx], return_inverse=True)
+        return values, [idx[group == g] for g in range(values.size)]
+
+    def sample(self, length, first, rng: np.random.Generator, previous=None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Draw ``(R, lateral, contact)`` for each push length (``first``: bool, per draw or one for all).
+
+        ``previous`` is each trial's previous release (required for later attempts).
+        """
+        length = np.atleast_1d(np.asarray(length, float))
+        n = length.size
+        first = np.broadcast_to(np.asarray(first, bool), (n,))
+        pick = np.zeros(n, dtype=int)
+        if first.any():
+            values, groups = self._first
+            g = np.abs(length[first, None] - values[None, :]).argmin(axis=1)
+            rows = np.flatnonzero(first)
+            for gi in np.unique(g):
+                sel = rows[g == gi]
+                pick[sel] = groups[gi][rng.integers(0, groups[gi].size, sel.size)]
+        if not first.all():
+            if previous is None:
+                raise MagctlError("release map: later attempts need the previous release")
+            prev = np.broadcast_to(np.asarray(previous, float), (n,))[~first]
+            tree, idx = self._later
+            _, nb = tree.query(np.c_[length[~first], prev] / self.scale, k=self.k)
+            nb = nb.reshape(-1, self.k)
+            pick[~first] = idx[nb[np.arange(nb.shape[0]), rng.integers(0, self.k, nb.shape[0])]]
+        return self.release[pick], self.lateral[pick], self.contact[pick]
+
+
+def front_identified_map(kc, delta0, trials: int = 20000, *, release_map: ReleaseMap | None = None,
+                         eps: float = FRONT_EPS, max_attempts: int = FRONT_MAX_ATTEMPTS, goal: float = FRONT_GOAL,
+                         seed: int = 0, law: LearningLaw | None = None) -> dict[str, np.ndarray]:
+    """Front pushing (eq 10–13) with the release map identified from the closed loop, vectorised over trials.
+
+    Attempt ``i`` starts ``d`` from the goal (``d(0)`` = ``goal``) and aims along the line to it;
+    the push length is ``L = d + δ(i)``; ``(R, lateral, contact)`` are drawn from ``release_map`` at
+    ``L`` and the trial's previous release; the error along the line is ``e = R − δ(i)`` (fed to
+    eq 13) and the distance to the goal ``d = √(e² + lateral²)`` (eq 12 tests ``d < ε_p``, as the
+    task does).
+
+    Returns ``attempts`` (B,) (−1 = not converged), ``error`` (B, N) signed along-line error,
+    ``distance`` (B, N) and ``contact`` (B, N) (NaN / False after convergence).
+    """
+    rmap = release_map or ReleaseMap.load()
+    rng = np.random.default_rng(seed)
+    law = law or front_push_law(kc, delta0)
+    st = law.initial_state(trials)
+    d = np.full(trials, float(goal))
+    done = np.zeros(trials, dtype=bool)
+    attempts = np.full(trials, -1)
+    err, dist = np.full((trials, max_attempts), np.nan), np.full((trials, max_attempts), np.nan)
+    touched = np.zeros((trials, max_attempts), dtype=bool)
+    last = np.zeros(trials)
+    for i in range(max_attempts):
+        delta = law.output(st, {})["y"]
+        release, lateral, contact = rmap.sample(d + delta, i == 0, rng, last)
+        last = np.where(done, last, release)
+        e = release - delta
+        d = np.where(done, d, np.hypot(e, lateral))
+        err[:, i] = np.where(done, np.nan, e)
+        dist[:, i] = np.where(done, np.nan, d)
+        touched[:, i] = ~done & contact
+        hit = ~done & (d < eps)
+        attempts[hit] = i + 1
+        done |= hit
+        st = law.update_where(st, {"e": e}, ~done)
+    return {"attempts": attempts, "error": err, "distance": dist, "contact": touched}
+
+
+def front_attempts_identified(kc: float, delta0: float, trials: int = 20000, *, release_map: ReleaseMap | None = None,
+                              max_attempts: int = FRONT_MAX_ATTEMPTS, seed: int = 0) -> np.ndarray:
+    """P(converged at attempt i), i = 1…N, and P(not converged) last, from :func:`front_identified_map`."""
+    att = front_identified_map(kc, delta0, trials, release_map=release_map, max_attempts=max_attempts,
+                               seed=seed)["attempts"]
+    return np.bincount(np.where(att > 0, att - 1, max_attempts), minlength=max_attempts + 1) / trials
+
+
 # --- side pushing: nonlinear attempt map ---------------------------------------------------------
 def side_attempt_map(ks, e0, *, model="lin", plant=None, min_gap: float = MIN_GAP, eps: float = SIDE_EPS,
                      max_attempts: int = SIDE_MAX_ATTEMPTS, printed_sign: bool = False, noise_rel: float = 0.0,
@@ -460,8 +608,17 @@ def _poles_doc(poles) -> list:
     return [{"re": float(p.real), "im": float(p.imag), "abs": float(abs(p))} for p in np.asarray(poles)]
 
 
-def front_report(kc: float, delta0_um: float = 0.0, trials: int = 20000, seed: int = 0) -> dict:
-    """Everything ``magctl stability front`` prints (µm in keys)."""
+def front_report(kc: float, delta0_um: float = 0.0, trials: int = 20000, seed: int = 0,
+                 model: str = "paper") -> dict:
+    """Everything ``magctl stability front`` prints (µm in keys).
+
+    ``model="paper"``: the eq 14 0th-order plant, ``D_p,r ~ N(300, 75²) µm`` i.i.d. (Markov chain and
+    Monte Carlo); ``model="identified"``: the release map identified from the closed loop
+    (``models/front_release.toml``, :func:`front_identified_map`, Monte Carlo).
+    """
+    if model not in ("paper", "identified"):
+        raise MagctlError(f"--model {model!r} is not known; use 'paper' (eq 14, D_p,r i.i.d.) or 'identified' "
+                          "(the release map identified from the closed loop)")
     kc = check_finite("--kc", kc)
     delta0 = check_finite("--delta0-um", delta0_um) * UM
     loop = front_loop(kc)
@@ -471,12 +628,23 @@ def front_report(kc: float, delta0_um: float = 0.0, trials: int = 20000, seed: i
         "verdict": loop.verdict, "damping": loop.damping,
         "stable_gain_range": list(loop.stable_gain_range), "critically_damped_gain": 1.0,
     }
-    if loop.verdict == "stable" or kc == 0:
+    n = np.arange(1, FRONT_MAX_ATTEMPTS + 1)
+    if model == "identified" and (loop.verdict == "stable" or kc == 0):
+        rmap = ReleaseMap.load()
+        p = front_attempts_identified(kc, delta0, trials, release_map=rmap, seed=seed)
+        doc["convergence"] = {
+            "model": "identified", "source": rmap.source, "eps_p_um": FRONT_EPS / UM,
+            "max_attempts": FRONT_MAX_ATTEMPTS,
+            "p_attempt_monte_carlo": p[:-1], "p_not_converged_monte_carlo": p[-1],
+            "p_converged_by_attempt": np.cumsum(p[:-1]),
+            "mean_attempts": float((n * p[:-1]).sum() + FRONT_MAX_ATTEMPTS * p[-1]),
+            "mean_attempts_if_converged": float((n * p[:-1]).sum() / max(p[:-1].sum(), 1e-300)),
+        }
+    elif loop.verdict == "stable" or kc == 0:
         markov = front_attempts_markov(kc, delta0)
         mc = front_attempts_monte_carlo(kc, delta0, trials=trials, seed=seed)
-        n = np.arange(1, FRONT_MAX_ATTEMPTS + 1)
         doc["convergence"] = {
-            "release_mean_um": RELEASE_MEAN / UM, "release_std_um": RELEASE_STD / UM,
+            "model": "paper", "release_mean_um": RELEASE_MEAN / UM, "release_std_um": RELEASE_STD / UM,
             "eps_p_um": FRONT_EPS / UM, "max_attempts": FRONT_MAX_ATTEMPTS,
             "p_attempt_markov": markov[:-1], "p_not_converged_markov": markov[-1],
             "p_attempt_monte_carlo": mc[:-1], "p_not_converged_monte_carlo": mc[-1],
@@ -550,7 +718,8 @@ def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM,
 
 
 __all__ = [
-    "LinSideModel", "LoopAnalysis", "fluid_side_plant", "classify", "front_attempt_map", "front_attempts_markov",
+    "LinSideModel", "LoopAnalysis", "ReleaseMap", "fluid_side_plant", "front_attempts_identified",
+    "front_identified_map", "classify", "front_attempt_map", "front_attempts_markov",
     "front_attempts_monte_carlo", "front_iteration_diagram", "front_loop", "front_report", "local_ratio",
     "side_attempt_map", "side_full_poles", "side_full_stable_range", "side_iteration_diagram", "side_loop",
     "side_nonlinear_gain_range", "side_report", "sweep",
