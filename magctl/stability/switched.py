@@ -1,0 +1,315 @@
+"""Side pushing as the algorithm runs it: a switched piecewise-linear attempt map (paper §V-B, eq 16–18).
+
+Eq 16 is a *distance*, ``D_s,des = |P_g − P_s|``, and every pass pushes the sphere towards
+the goal from whichever side it now lies, so an over-push reverses the next pass. With a
+linear plant ``D_s,act = ρ·(D_s,des + Δ)`` (``ρ`` = the model ratio of eq 19–20) and the
+corrected eq 18, ``Δ(i+1) = Δ(i) − K_s(D_s,act − D_s,des)``, the state
+``x = (|e|, Δ)`` (``|e| ≥ 0`` the distance to the goal) moves by one of three linear maps:
+
+* **under-push** (the sphere stays on its side, ``(1 − ρ)|e| − ρΔ ≥ 0``)::
+
+      A_u = [[1 − ρ, −ρ], [K_s(1 − ρ), 1 − K_s ρ]]    λ² − (2 − ρ(1 + K_s))λ + (1 − ρ)
+
+  — the signed 1-D model's matrix (``magctl.stability.iteration.sweep(..., "full")``);
+* **over-push** (the sphere crosses the goal; the next pass comes from the other side)::
+
+      A_o = diag(−1, 1)·A_u = [[ρ − 1, ρ], [K_s(1 − ρ), 1 − K_s ρ]]    λ² − ρ(1 − K_s)λ + (ρ − 1)
+
+* **no push** (``D_s,des + Δ ≤ 0``: eq 22 asks for an infinite gap, nothing moves)::
+
+      A_0 = [[1, 0], [K_s, 1]]
+
+The map ``F`` is continuous and positively homogeneous (``F(ax) = aF(x)``, ``a ≥ 0``), so
+local and global stability coincide (without the bounds of §V-B step 1, which only limit
+large errors) and convergence is exponential when it happens.
+
+Verdicts, three ways:
+
+* :func:`jsr_bounds` — joint spectral radius of ``{A_u, A_o, A_0}``: an upper bound below 1
+  proves stability under *any* switching (sufficient, conservative: the state decides the branch);
+* :func:`switched_verdict` — the state-dependent switching from the task's start ``Δ(0) = 0``:
+  the growth factor of ``|e|`` per attempt of the homogeneous map (below 1: stable), with an
+  exact witness when a ray that the ``N``-attempt map returns to itself scaled by ``μ ≥ 1``
+  exists (some start does not converge). A common quadratic Lyapunov function cannot certify
+  the map: the no-push branch fixes the ray ``(0, Δ < 0)`` (at the goal, nothing moves), so no
+  ``V`` decreases strictly there;
+* :func:`switched_growth_rate` — the asymptotic growth factor per attempt of the map iterated
+  from many directions (vectorised over gain and ratio grids, for the stable regions);
+  :func:`map_growth_rate` measures the same number on the nonlinear attempt map
+  :func:`magctl.stability.iteration.side_attempt_map` with a linear plant (eq 22 model against
+  eq 22 scaled: ``D_s,act = ρ·(D_s,des + Δ)`` exactly).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from magctl.control.push.common import ExpSideModel
+from magctl.core.checks import check_positive
+from magctl.core.errors import MagctlError
+from magctl.core.units import UM
+
+_T = np.diag([-1.0, 1.0])
+UNDER, OVER, NO_PUSH = 0, 1, 2
+BRANCH_NAMES = {UNDER: "under-push", OVER: "over-push", NO_PUSH: "no push"}
+
+
+# --- the plant eq 22 scaled -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ScaledSideModel:
+    """A side-push curve scaled from a base one: ``D_s(D_g) = scale·D_s,base(D_g / gap_scale)``.
+
+    ``scale`` multiplies every displacement (eq 22 against itself scaled by ``s`` gives the
+    linear plant ``D_s,act = s·(D_s,des + Δ)``: model ratio ``ρ = s``); ``gap_scale`` stretches
+    the gap axis (a curve that decays ``gap_scale`` times more slowly, as a mismatched plant).
+    """
+
+    base: object = ExpSideModel()
+    scale: float = 1.0
+    gap_scale: float = 1.0
+    name: str = "scaled"
+
+    def __post_init__(self):
+        check_positive("plant scale", self.scale)
+        check_positive("plant gap scale", self.gap_scale)
+
+    def displacement(self, dg):
+        return self.scale * self.base.displacement(np.asarray(dg, dtype=float) / self.gap_scale)
+
+    def gap(self, ds):
+        return self.gap_scale * self.base.gap(np.asarray(ds, dtype=float) / self.scale)
+
+    def slope(self, ds):
+        return self.gap_scale * self.base.slope(np.asarray(ds, dtype=float) / self.scale) / self.scale
+
+
+# --- the branches -----------------------------------------------------------------------------------
+def branch_matrices(ks: float, ratio: float) -> dict[int, np.ndarray]:
+    """``A_u``, ``A_o``, ``A_0`` of the module docstring (keys ``UNDER``, ``OVER``, ``NO_PUSH``)."""
+    k, r = float(ks), float(ratio)
+    a_u = np.array([[1.0 - r, -r], [k * (1.0 - r), 1.0 - k * r]])
+    return {UNDER: a_u, OVER: _T @ a_u, NO_PUSH: np.array([[1.0, 0.0], [k, 1.0]])}
+
+
+def switched_step(x, ks, ratio):
+    """One attempt of the switched map, vectorised: ``x`` (..., 2) = ``(|e|, Δ)``; ``ks``, ``ratio`` broadcast.
+
+    Returns the next state and the branch taken (``UNDER``, ``OVER``, ``NO_PUSH``).
+    """
+    x = np.asarray(x, dtype=float)
+    k, r = np.asarray(ks, dtype=float), np.asarray(ratio, dtype=float)
+    e, d = x[..., 0], x[..., 1]
+    cmd = e + d  # D_s,des + Δ
+    push = cmd > 0
+    act = np.where(push, r * cmd, 0.0)  # D_s,act
+    e_new = e - act
+    d_new = d - k * (act - e)
+    branch = np.where(~push, NO_PUSH, np.where(e_new >= 0, UNDER, OVER))
+    return np.stack([np.abs(e_new), d_new], axis=-1), branch
+
+
+def _unit(theta):
+    return np.stack([np.cos(theta), np.sin(theta)], axis=-1)
+
+
+# --- joint spectral radius (arbitrary switching) -----------------------------------------------------
+def jsr_bounds(mats, depth: int = 8) -> tuple[float, float]:
+    """Bounds on the joint spectral radius of ``mats`` from all products of length 1..``depth``.
+
+    Lower: ``max ρ(Π)^{1/k}``; upper: ``min_k max ‖Π‖₂^{1/k}`` (Rota–Strang). An upper bound
+    below 1 proves stability for every switching sequence.
+    """
+    mats = [np.asarray(m, dtype=float) for m in mats]
+    lo, hi = 0.0, np.inf
+    prods = [np.eye(mats[0].shape[0])]
+    for k in range(1, depth + 1):
+        prods = [m @ p for p in prods for m in mats]
+        stack = np.array(prods)
+        lo = max(lo, float(np.max(np.abs(np.linalg.eigvals(stack)))) ** (1.0 / k))
+        hi = min(hi, float(np.max(np.linalg.norm(stack, 2, axis=(1, 2)))) ** (1.0 / k))
+    return lo, hi
+
+
+# --- cones of the N-attempt map --------------------------------------------------------------------
+def _pattern(theta, ks, ratio, n):
+    x = _unit(theta)
+    code = np.zeros(np.shape(theta), dtype=np.int64)
+    for _ in range(n):
+        x, b = switched_step(x, ks, ratio)
+        code = code * 3 + b
+    return code
+
+
+def _cones(ks, ratio, n, samples=4001):
+    """Maximal angle intervals of ``(|e|, Δ)`` directions in ``[−π/2, π/2]`` on which the ``n``-attempt branch
+    sequence is constant, with the product matrix; boundaries refined by bisection."""
+    th = np.linspace(-np.pi / 2, np.pi / 2, samples)
+    code = _pattern(th, ks, ratio, n)
+    cuts = np.flatnonzero(np.diff(code) != 0)
+    edges = [th[0]]
+    for i in cuts:
+        a, b = th[i], th[i + 1]
+        ca = code[i]
+        for _ in range(50):
+            m = 0.5 * (a + b)
+            if _pattern(np.array([m]), ks, ratio, n)[0] == ca:
+                a = m
+            else:
+                b = m
+        edges.append(0.5 * (a + b))
+    edges.append(th[-1])
+    mats = branch_matrices(ks, ratio)
+    cones = []
+    for (a, b), c in zip(itertools.pairwise(edges), [code[0], *code[cuts + 1]], strict=True):
+        seq, prod = [], np.eye(2)
+        for _ in range(n):
+            seq.append(int(c % 3))
+            c //= 3
+        for br in reversed(seq):
+            prod = mats[br] @ prod
+        cones.append((float(a), float(b), prod, tuple(reversed(seq))))
+    return cones
+
+
+def _growing_ray(cones, ks, ratio, n, tol):
+    """A ray mapped to itself by the ``n``-attempt map with multiplier ``μ ≥ 1 − tol``, checked by iterating it."""
+    best = None
+    for _a, _b, m, seq in cones:
+        w, v = np.linalg.eig(m)
+        for mu, vec in zip(w, v.T, strict=True):
+            if abs(mu.imag) > 1e-12 or mu.real < 1 - tol:
+                continue
+            vec = np.real(vec)
+            vec = vec if vec[0] >= 0 else -vec
+            if vec[0] < 1e-9:  # |e| = 0: the goal is reached, not a divergence
+                continue
+            x = vec.copy()
+            for _ in range(n):
+                x, _b2 = switched_step(x, ks, ratio)
+            if np.linalg.norm(x - mu.real * vec) < 1e-9 * max(1.0, mu.real) and (best is None or mu.real > best[0]):
+                best = (float(mu.real), vec, tuple(BRANCH_NAMES[s] for s in seq))
+    return best
+
+
+@dataclass
+class SwitchedVerdict:
+    """Verdict of the switched side-push map at one ``(K_s, ρ)`` from the task's start ``Δ(0) = 0``.
+
+    Attributes
+    ----------
+    verdict : {"stable", "unstable"}
+        From the growth factor of ``|e|`` per attempt (:func:`switched_growth_rate`, start ``(|e|, Δ) = (1, 0)``;
+        the map is homogeneous, so the size of the start does not matter): below ``1 − margin`` stable.
+    growth_rate : float
+    growing_ray : dict or None
+        A ray with ``|e| > 0`` that the ``N``-attempt map returns to itself scaled by ``μ ≥ 1`` (an exact
+        witness that some start does not converge): ``multiplier_per_attempt``, ``direction``, ``branches``.
+    branch_poles : dict
+        Eigenvalues of each branch matrix.
+    jsr : (float, float)
+        Joint-spectral-radius bounds of the three branches (arbitrary switching; conservative).
+    """
+
+    ks: float
+    ratio: float
+    verdict: str
+    growth_rate: float
+    growing_ray: dict | None
+    branch_poles: dict
+    jsr: tuple[float, float]
+
+
+def switched_verdict(ks: float, ratio: float, *, ray_attempts: int = 8, margin: float = 1e-3) -> SwitchedVerdict:
+    """Stability of the switched side-push map (module docstring) at one ``(K_s, ρ)``."""
+    ks, ratio = float(ks), float(ratio)
+    if not (np.isfinite(ks) and np.isfinite(ratio) and ratio > 0):
+        raise MagctlError(f"switched side map: K_s={ks!r} must be finite and the ratio {ratio!r} positive")
+    mats = branch_matrices(ks, ratio)
+    poles = {BRANCH_NAMES[b]: np.roots(np.poly(m)) for b, m in mats.items()}
+    jsr = jsr_bounds(list(mats.values()), depth=6)
+    rate = float(switched_growth_rate(ks, ratio))
+    ray = None
+    for n in range(1, ray_attempts + 1):
+        found = _growing_ray(_cones(ks, ratio, n), ks, ratio, n, 1e-9)
+        if found is not None:
+            ray = {"multiplier_per_attempt": found[0] ** (1.0 / n), "direction": found[1].tolist(),
+                   "branches": found[2]}
+            break
+    return SwitchedVerdict(ks, ratio, "stable" if rate < 1 - margin else "unstable", rate, ray, poles, jsr)
+
+
+# --- growth rates ----------------------------------------------------------------------------------
+def switched_growth_rate(ks, ratio, *, directions: int = 1, attempts: int = 400) -> np.ndarray:
+    """Growth factor per attempt of the goal distance ``|e|`` under the switched map, max over starts (vectorised).
+
+    ``ks`` and ``ratio`` broadcast to a grid; the starts are the task's ``(|e|, Δ) = (1, 0)``
+    (``directions = 1``) or ``directions`` rays with ``|e| > 0`` (then a start with ``Δ ≤ −|e|`` and
+    ``K_s = 0`` never moves: rate 1), renormalised every attempt (the map is homogeneous); the rate is
+    ``(|e_N|/|e_{N/2}|)^{2/N}``. Below 1: the sphere converges to the goal from every start.
+    The rays with ``|e| = 0`` are left out: there the goal is reached (and with ``Δ < 0`` nothing
+    moves again, a fixed ray of the no-push branch).
+    """
+    k, r = np.broadcast_arrays(np.asarray(ks, dtype=float), np.asarray(ratio, dtype=float))
+    th = np.array([0.0]) if directions == 1 else np.linspace(-np.pi / 2, np.pi / 2, directions + 2)[1:-1]
+    x = np.broadcast_to(_unit(th), (*k.shape, th.size, 2)).copy()
+    kk, rr = k[..., None], r[..., None]
+    logscale = np.zeros((*k.shape, directions))
+    arrived = np.zeros(logscale.shape, dtype=bool)
+    h = attempts // 2
+    with np.errstate(divide="ignore"):
+        for i in range(attempts):
+            x, _ = switched_step(x, kk, rr)
+            arrived |= x[..., 0] <= 1e-9 * np.linalg.norm(x, axis=-1)  # at the goal: the task stops (eq 12)
+            x[..., 0] = np.where(arrived, 0.0, x[..., 0])
+            n = np.linalg.norm(x, axis=-1)
+            n = np.where(n > 0, n, 1e-300)
+            logscale += np.log(n)
+            x = x / n[..., None]
+            if i == h - 1:
+                log_mid = np.log(np.maximum(x[..., 0], 1e-300)) + logscale
+        log_end = np.log(np.maximum(x[..., 0], 1e-300)) + logscale
+    rate = np.where(arrived, 0.0, np.exp((log_end - log_mid) / (attempts - h)))
+    return np.max(rate, axis=-1)
+
+
+def map_growth_rate(ks, ratio, *, e0: float = 1e-9 * UM, attempts: int = 120, window: int = 12) -> np.ndarray:
+    """The growth factor of ``|e|`` measured on :func:`~magctl.stability.iteration.side_attempt_map` (vectorised).
+
+    The map runs the eq 22 model against eq 22 scaled by ``ratio`` (``D_s,act = ρ(D_s,des + Δ)``
+    exactly), no tolerance stop and the §V-B bounds off (they only limit errors far larger than
+    the ones the rate is measured on), from ``e0`` with ``Δ(0) = 0``, the task's start. Rate:
+    ``(max|e| over the last window / max|e| over the window ending at N/2)^{1/(N/2)}``; 0 once ``|e|``
+    falls below ``10⁻⁹·|Δ|`` (at the goal for any tolerance).
+    """
+    from magctl.stability.iteration import side_attempt_map
+
+    k, r = np.broadcast_arrays(np.asarray(ks, dtype=float), np.asarray(ratio, dtype=float))
+    flat_k, flat_r = k.ravel(), r.ravel()
+    res = np.empty(flat_k.size)
+    h = attempts // 2
+    for rho in np.unique(flat_r):
+        sel = flat_r == rho
+        with np.errstate(over="ignore"):
+            run = side_attempt_map(flat_k[sel], e0, model="exp", plant=ScaledSideModel(scale=float(rho)), eps=0.0,
+                                   max_attempts=attempts, min_gap=-np.inf)
+        e = np.abs(run["error"])
+        arrived = np.any(e <= 1e-9 * np.maximum(e, np.abs(np.c_[run["correction"], run["correction"][:, -1:]])), axis=1)
+        mid, end = e[:, h - window + 1:h + 1].max(axis=1), e[:, -window:].max(axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            res[sel] = np.where(arrived | (end <= 0), 0.0, (end / np.maximum(mid, 1e-300)) ** (1.0 / (attempts - h)))
+    return res.reshape(k.shape)
+
+
+def boundary(ratios, stable) -> float | None:
+    """The first ratio of an increasing grid at which ``stable`` turns False (None if it never does)."""
+    stable = np.asarray(stable, dtype=bool)
+    bad = np.flatnonzero(~stable)
+    return None if bad.size == 0 else float(np.asarray(ratios)[bad[0]])
+
+
+__all__ = ["BRANCH_NAMES", "NO_PUSH", "OVER", "UNDER", "ScaledSideModel", "SwitchedVerdict", "boundary",
+           "branch_matrices", "jsr_bounds", "map_growth_rate", "switched_growth_rate", "switched_step",
+           "switched_verdict"]
