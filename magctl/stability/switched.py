@@ -222,15 +222,27 @@ class SwitchedVerdict:
     jsr: tuple[float, float]
 
 
-def switched_verdict(ks: float, ratio: float, *, ray_attempts: int = 8, margin: float = 1e-3) -> SwitchedVerdict:
-    """Stability of the switched side-push map (module docstring) at one ``(K_s, ρ)``."""
+def switched_verdict(ks: float, ratio: float, *, ray_attempts: int = 6, margin: float = 1e-3) -> SwitchedVerdict:
+    """Stability of the switched side-push map (module docstring) at one ``(K_s, ρ)``.
+
+    ``stable`` when the growth factor of ``|e|`` is below ``1 − margin`` from every start direction and no
+    ray with ``|e| > 0`` is returned by the ``N``-attempt map (``N ≤ ray_attempts``) with ``μ ≥ 1``;
+    ``marginal`` when the only obstruction is a ray with ``μ = 1`` (for ``K_s ρ ≥ 2`` a no-push attempt
+    followed by an over-push lands the sphere exactly as far past the goal: a neutral 2-cycle, eq 20's
+    bound showing through); ``unstable`` otherwise. With ``K_s = 0`` the law is idle and ``Δ ≡ Δ(0) = 0``,
+    so only the start ``Δ = 0`` exists: ``|e(i+1)| = |1 − ρ||e(i)|``.
+    """
     ks, ratio = float(ks), float(ratio)
     if not (np.isfinite(ks) and np.isfinite(ratio) and ratio > 0):
         raise MagctlError(f"switched side map: K_s={ks!r} must be finite and the ratio {ratio!r} positive")
     mats = branch_matrices(ks, ratio)
     poles = {BRANCH_NAMES[b]: np.roots(np.poly(m)) for b, m in mats.items()}
     jsr = jsr_bounds(list(mats.values()), depth=6)
-    rate = float(switched_growth_rate(ks, ratio))
+    if ks == 0:
+        rate = abs(1.0 - ratio)
+        verdict = "stable" if rate < 1 - margin else ("marginal" if rate <= 1 + margin else "unstable")
+        return SwitchedVerdict(ks, ratio, verdict, rate, None, poles, jsr)
+    rate = float(switched_growth_rate(ks, ratio, directions=33))
     ray = None
     for n in range(1, ray_attempts + 1):
         found = _growing_ray(_cones(ks, ratio, n), ks, ratio, n, 1e-9)
@@ -238,68 +250,78 @@ def switched_verdict(ks: float, ratio: float, *, ray_attempts: int = 8, margin: 
             ray = {"multiplier_per_attempt": found[0] ** (1.0 / n), "direction": found[1].tolist(),
                    "branches": found[2]}
             break
-    return SwitchedVerdict(ks, ratio, "stable" if rate < 1 - margin else "unstable", rate, ray, poles, jsr)
+    if rate > 1 + margin or (ray is not None and ray["multiplier_per_attempt"] > 1 + 1e-9):
+        verdict = "unstable"
+    elif ray is not None or rate >= 1 - margin:
+        verdict = "marginal"
+    else:
+        verdict = "stable"
+    return SwitchedVerdict(ks, ratio, verdict, rate, ray, poles, jsr)
 
 
 # --- growth rates ----------------------------------------------------------------------------------
-def switched_growth_rate(ks, ratio, *, directions: int = 1, attempts: int = 400) -> np.ndarray:
-    """Growth factor per attempt of the goal distance ``|e|`` under the switched map, max over starts (vectorised).
+def switched_growth_rate(ks, ratio, *, directions: int = 1, attempts: int = 400, window: int = 40) -> np.ndarray:
+    """Growth factor per attempt of the goal distance ``|e|`` under the switched map (vectorised).
 
-    ``ks`` and ``ratio`` broadcast to a grid; the starts are the task's ``(|e|, Δ) = (1, 0)``
-    (``directions = 1``) or ``directions`` rays with ``|e| > 0`` (then a start with ``Δ ≤ −|e|`` and
-    ``K_s = 0`` never moves: rate 1), renormalised every attempt (the map is homogeneous); the rate is
-    ``(|e_N|/|e_{N/2}|)^{2/N}``. Below 1: the sphere converges to the goal from every start.
-    The rays with ``|e| = 0`` are left out: there the goal is reached (and with ``Δ < 0`` nothing
-    moves again, a fixed ray of the no-push branch).
+    ``ks`` and ``ratio`` broadcast to a grid. The starts are the task's ``(|e|, Δ) = (1, 0)``
+    (``directions = 1``) or ``directions`` rays with ``|e| > 0`` (then the largest rate; a start
+    with ``Δ ≤ −|e|`` and ``K_s = 0`` never moves: rate 1). The state is renormalised every attempt
+    (the map is homogeneous) and the rate is the smaller of ``(max |e| over the last window / |e(0)|)^{1/(N − w)}``
+    (a transient growth inflates it by only its factor to the power ``1/(N − w)``) and
+    ``(max |e| over the last window / max |e| over the window ending at N/2)^{1/(N/2)}`` (a pause in the
+    no-push branch with ``|e|`` already far below ``ε_p`` would hold this one at 1). Below 1: the sphere
+    converges; 1: a neutral cycle.
     """
     k, r = np.broadcast_arrays(np.asarray(ks, dtype=float), np.asarray(ratio, dtype=float))
     th = np.array([0.0]) if directions == 1 else np.linspace(-np.pi / 2, np.pi / 2, directions + 2)[1:-1]
     x = np.broadcast_to(_unit(th), (*k.shape, th.size, 2)).copy()
     kk, rr = k[..., None], r[..., None]
-    logscale = np.zeros((*k.shape, directions))
-    arrived = np.zeros(logscale.shape, dtype=bool)
+    log_e0 = np.log(x[..., 0])
+    logscale = np.zeros(log_e0.shape)
+    top = np.full(log_e0.shape, -np.inf)
+    mid = np.full(log_e0.shape, -np.inf)
     h = attempts // 2
+    arrived = np.zeros(log_e0.shape, dtype=bool)
     with np.errstate(divide="ignore"):
         for i in range(attempts):
             x, _ = switched_step(x, kk, rr)
-            arrived |= x[..., 0] <= 1e-9 * np.linalg.norm(x, axis=-1)  # at the goal: the task stops (eq 12)
-            x[..., 0] = np.where(arrived, 0.0, x[..., 0])
+            arrived |= x[..., 0] <= 1e-12 * np.linalg.norm(x, axis=-1)  # exactly at the goal: the task stops
             n = np.linalg.norm(x, axis=-1)
             n = np.where(n > 0, n, 1e-300)
             logscale += np.log(n)
             x = x / n[..., None]
-            if i == h - 1:
-                log_mid = np.log(np.maximum(x[..., 0], 1e-300)) + logscale
-        log_end = np.log(np.maximum(x[..., 0], 1e-300)) + logscale
-    rate = np.where(arrived, 0.0, np.exp((log_end - log_mid) / (attempts - h)))
+            log_e = np.log(np.maximum(x[..., 0], 1e-300)) + logscale
+            if h - window <= i < h:
+                mid = np.maximum(mid, log_e)
+            if i >= attempts - window:
+                top = np.maximum(top, log_e)
+    # the envelope from the start (a transient growth inflates it by its factor^(1/N)) and between the two
+    # windows (a pause with |e| already far below ε_p inflates that one): the smaller
+    rate = np.exp(np.minimum(top - log_e0, (top - mid) * (attempts - window) / (attempts - h)) / (attempts - window))
+    rate = np.where(arrived, 0.0, rate)
     return np.max(rate, axis=-1)
 
 
-def map_growth_rate(ks, ratio, *, e0: float = 1e-9 * UM, attempts: int = 120, window: int = 12) -> np.ndarray:
+def map_growth_rate(ks, ratio, *, e0: float = 1e-9 * UM, attempts: int = 400, window: int = 40) -> np.ndarray:
     """The growth factor of ``|e|`` measured on :func:`~magctl.stability.iteration.side_attempt_map` (vectorised).
 
     The map runs the eq 22 model against eq 22 scaled by ``ratio`` (``D_s,act = ρ(D_s,des + Δ)``
     exactly), no tolerance stop and the §V-B bounds off (they only limit errors far larger than
     the ones the rate is measured on), from ``e0`` with ``Δ(0) = 0``, the task's start. Rate:
-    ``(max|e| over the last window / max|e| over the window ending at N/2)^{1/(N/2)}``; 0 once ``|e|``
-    falls below ``10⁻⁹·|Δ|`` (at the goal for any tolerance).
+    ``(max |e| over the last window / e0)^{1/(N − window)}``, as :func:`switched_growth_rate`.
     """
     from magctl.stability.iteration import side_attempt_map
 
     k, r = np.broadcast_arrays(np.asarray(ks, dtype=float), np.asarray(ratio, dtype=float))
     flat_k, flat_r = k.ravel(), r.ravel()
     res = np.empty(flat_k.size)
-    h = attempts // 2
     for rho in np.unique(flat_r):
         sel = flat_r == rho
         with np.errstate(over="ignore"):
             run = side_attempt_map(flat_k[sel], e0, model="exp", plant=ScaledSideModel(scale=float(rho)), eps=0.0,
                                    max_attempts=attempts, min_gap=-np.inf)
-        e = np.abs(run["error"])
-        arrived = np.any(e <= 1e-9 * np.maximum(e, np.abs(np.c_[run["correction"], run["correction"][:, -1:]])), axis=1)
-        mid, end = e[:, h - window + 1:h + 1].max(axis=1), e[:, -window:].max(axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            res[sel] = np.where(arrived | (end <= 0), 0.0, (end / np.maximum(mid, 1e-300)) ** (1.0 / (attempts - h)))
+        top = np.abs(run["error"][:, -window:]).max(axis=1)
+        res[sel] = (top / e0) ** (1.0 / (attempts - window))
     return res.reshape(k.shape)
 
 
