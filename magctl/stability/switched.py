@@ -149,18 +149,12 @@ def _cones(ks, ratio, n, samples=4001):
     th = np.linspace(-np.pi / 2, np.pi / 2, samples)
     code = _pattern(th, ks, ratio, n)
     cuts = np.flatnonzero(np.diff(code) != 0)
-    edges = [th[0]]
-    for i in cuts:
-        a, b = th[i], th[i + 1]
-        ca = code[i]
-        for _ in range(50):
-            m = 0.5 * (a + b)
-            if _pattern(np.array([m]), ks, ratio, n)[0] == ca:
-                a = m
-            else:
-                b = m
-        edges.append(0.5 * (a + b))
-    edges.append(th[-1])
+    a, b, ca = th[cuts], th[cuts + 1], code[cuts]
+    for _ in range(48):  # bisection of every boundary at once
+        m = 0.5 * (a + b)
+        same = _pattern(m, ks, ratio, n) == ca
+        a, b = np.where(same, m, a), np.where(same, b, m)
+    edges = [th[0], *(0.5 * (a + b)), th[-1]]
     mats = branch_matrices(ks, ratio)
     cones = []
     for (a, b), c in zip(itertools.pairwise(edges), [code[0], *code[cuts + 1]], strict=True):
@@ -302,26 +296,47 @@ def switched_growth_rate(ks, ratio, *, directions: int = 1, attempts: int = 400,
     return np.max(rate, axis=-1)
 
 
-def map_growth_rate(ks, ratio, *, e0: float = 1e-9 * UM, attempts: int = 400, window: int = 40) -> np.ndarray:
+def map_growth_rate(ks, ratio, *, directions: int = 33, e0: float = 1e-9 * UM, attempts: int = 400,
+                    window: int = 40) -> np.ndarray:
     """The growth factor of ``|e|`` measured on :func:`~magctl.stability.iteration.side_attempt_map` (vectorised).
 
-    The map runs the eq 22 model against eq 22 scaled by ``ratio`` (``D_s,act = ρ(D_s,des + Δ)``
-    exactly), no tolerance stop and the §V-B bounds off (they only limit errors far larger than
-    the ones the rate is measured on), from ``e0`` with ``Δ(0) = 0``, the task's start. Rate:
-    ``(max |e| over the last window / e0)^{1/(N − window)}``, as :func:`switched_growth_rate`.
+    The map runs the algorithm itself — eq 16 distance, eq 17 gap from the eq 22 model, the plant's
+    displacement towards the goal from whichever side, the corrected eq 18 law — with the plant eq 22
+    scaled by ``ratio`` (``D_s,act = ρ(D_s,des + Δ)`` exactly), no tolerance stop and the §V-B bounds
+    off (they only limit errors far larger than the ones the rate is measured on). Starts: ``|e| = e0
+    cos θ``, ``Δ(0) = e0 sin θ`` for ``directions`` angles in ``(−π/2, π/2)`` (the law block's initial
+    value), only ``Δ(0) = 0`` when ``K_s = 0`` (the law is idle). Rate as :func:`switched_growth_rate`,
+    the largest over the starts; 0 for a start that lands exactly on the goal.
     """
+    from magctl.control.learning import LearningLaw
     from magctl.stability.iteration import side_attempt_map
 
     k, r = np.broadcast_arrays(np.asarray(ks, dtype=float), np.asarray(ratio, dtype=float))
+    th = np.linspace(-np.pi / 2, np.pi / 2, directions + 2)[1:-1]
     flat_k, flat_r = k.ravel(), r.ravel()
     res = np.empty(flat_k.size)
+    h = attempts // 2
     for rho in np.unique(flat_r):
-        sel = flat_r == rho
-        with np.errstate(over="ignore"):
-            run = side_attempt_map(flat_k[sel], e0, model="exp", plant=ScaledSideModel(scale=float(rho)), eps=0.0,
-                                   max_attempts=attempts, min_gap=-np.inf)
-        top = np.abs(run["error"][:, -window:]).max(axis=1)
-        res[sel] = (top / e0) ** (1.0 / (attempts - window))
+        sel = np.flatnonzero(flat_r == rho)
+        kk = np.repeat(flat_k[sel], th.size)
+        tt = np.tile(th, sel.size)
+        tt = np.where(kk == 0, 0.0, tt)
+        law = LearningLaw("side_law", -kk, initial=e0 * np.sin(tt))
+        with np.errstate(over="ignore", invalid="ignore"):
+            run = side_attempt_map(kk, e0 * np.cos(tt), model="exp", plant=ScaledSideModel(scale=float(rho)),
+                                   eps=0.0, max_attempts=attempts, min_gap=-np.inf, law=law)
+        e = np.abs(run["error"])
+        d = np.abs(np.c_[run["correction"], run["correction"][:, -1:]])
+        with np.errstate(invalid="ignore"):
+            arrived = np.any((e <= 1e-12 * np.hypot(e, d)) & np.isfinite(d), axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_e = np.log(np.maximum(e, 1e-300))
+        top = log_e[:, -window:].max(axis=1)
+        mid = log_e[:, h - window + 1:h + 1].max(axis=1)
+        rate = np.exp(np.minimum(top - log_e[:, 0], (top - mid) * (attempts - window) / (attempts - h))
+                      / (attempts - window))
+        rate = np.where(arrived, 0.0, np.where(np.all(np.isfinite(e), axis=1), rate, np.inf))
+        res[sel] = rate.reshape(sel.size, th.size).max(axis=1)
     return res.reshape(k.shape)
 
 
