@@ -190,13 +190,13 @@ def _growing_ray(cones, ks, ratio, n, tol):
 
 @dataclass
 class SwitchedVerdict:
-    """Verdict of the switched side-push map at one ``(K_s, ρ)`` from the task's start ``Δ(0) = 0``.
+    """Verdict of the switched side-push map at one ``(K_s, ρ)``.
 
     Attributes
     ----------
-    verdict : {"stable", "unstable"}
-        From the growth factor of ``|e|`` per attempt (:func:`switched_growth_rate`, start ``(|e|, Δ) = (1, 0)``;
-        the map is homogeneous, so the size of the start does not matter): below ``1 − margin`` stable.
+    verdict : {"stable", "marginal", "unstable"}
+        From the growth factor of ``|e|`` per attempt (:func:`switched_growth_rate`, 33 start directions;
+        the map is homogeneous, so the size of the start does not matter).
     growth_rate : float
     growing_ray : dict or None
         A ray with ``|e| > 0`` that the ``N``-attempt map returns to itself scaled by ``μ ≥ 1`` (an exact
@@ -219,11 +219,15 @@ class SwitchedVerdict:
 def switched_verdict(ks: float, ratio: float, *, ray_attempts: int = 6, margin: float = 1e-3) -> SwitchedVerdict:
     """Stability of the switched side-push map (module docstring) at one ``(K_s, ρ)``.
 
-    ``stable`` when the growth factor of ``|e|`` is below ``1 − margin`` from every start direction and no
-    ray with ``|e| > 0`` is returned by the ``N``-attempt map (``N ≤ ray_attempts``) with ``μ ≥ 1``;
-    ``marginal`` when the only obstruction is a ray with ``μ = 1`` (for ``K_s ρ ≥ 2`` a no-push attempt
-    followed by an over-push lands the sphere exactly as far past the goal: a neutral 2-cycle, eq 20's
-    bound showing through); ``unstable`` otherwise. With ``K_s = 0`` the law is idle and ``Δ ≡ Δ(0) = 0``,
+    From the growth factor of ``|e|`` per attempt, the largest over 33 start directions
+    (:func:`switched_growth_rate`): ``stable`` below ``1 − margin``, ``unstable`` above ``1 + margin``,
+    ``marginal`` between — e.g. for ``K_s ρ ≥ 2`` a no-push attempt followed by an over-push lands the
+    sphere exactly as far past the goal, a neutral 2-cycle that attracts (eq 20's bound showing through).
+    ``growing_ray`` reports a ray with ``|e| > 0`` that the ``N``-attempt map (``N ≤ ray_attempts``) returns
+    scaled by ``μ ≥ 1``: an exact witness that *that* start does not converge. Where the verdict is
+    ``stable`` such a ray is repelling (e.g. ``K_s = 0.7, ρ = 2.9``: a 2-cycle with ``μ = 1.007`` per
+    attempt that no start on the 33-direction grid follows): almost every start converges.
+    With ``K_s = 0`` the law is idle and ``Δ ≡ Δ(0) = 0``,
     so only the start ``Δ = 0`` exists: ``|e(i+1)| = |1 − ρ||e(i)|``.
     """
     ks, ratio = float(ks), float(ratio)
@@ -244,12 +248,7 @@ def switched_verdict(ks: float, ratio: float, *, ray_attempts: int = 6, margin: 
             ray = {"multiplier_per_attempt": found[0] ** (1.0 / n), "direction": found[1].tolist(),
                    "branches": found[2]}
             break
-    if rate > 1 + margin or (ray is not None and ray["multiplier_per_attempt"] > 1 + 1e-9):
-        verdict = "unstable"
-    elif ray is not None or rate >= 1 - margin:
-        verdict = "marginal"
-    else:
-        verdict = "stable"
+    verdict = "unstable" if rate > 1 + margin else ("stable" if rate < 1 - margin else "marginal")
     return SwitchedVerdict(ks, ratio, verdict, rate, ray, poles, jsr)
 
 
@@ -340,6 +339,37 @@ def map_growth_rate(ks, ratio, *, directions: int = 33, e0: float = 1e-9 * UM, a
     return res.reshape(k.shape)
 
 
+def switched_stable(ks, ratio, *, margin: float = 1e-3, directions: int = 33) -> np.ndarray:
+    """Vectorised stable/not-stable of the switched map on a ``(K_s, ρ)`` grid (broadcast).
+
+    Stable when the growth factor of ``|e|`` from ``directions`` starts is below ``1 − margin``
+    (a neutral 2-cycle gives 1); for ``K_s = 0`` only ``Δ = 0`` exists: ``|1 − ρ| < 1 − margin``.
+    Agrees with :func:`switched_verdict` (which also looks for an invariant ray) on the grids of the tests.
+    """
+    k, r = np.broadcast_arrays(np.asarray(ks, dtype=float), np.asarray(ratio, dtype=float))
+    rate = switched_growth_rate(k, r, directions=directions)
+    rate = np.where(k == 0, np.abs(1.0 - r), rate)
+    return rate < 1 - margin
+
+
+def switched_gain_ranges(ratio: float, gains=None) -> list[tuple[float, float]]:
+    """Runs of stable ``K_s`` (grid ends) at ``ratio``; ``gains`` default 0..4 by 0.02.
+
+    ``K_s = 0`` is its own case (the law is idle): very small ``K_s`` leave ``Δ`` nearly frozen after a
+    no-push attempt and count as marginal, so it often forms a run of one.
+    """
+    gains = np.round(np.arange(0.0, 4.0001, 0.02), 10) if gains is None else np.asarray(gains, dtype=float)
+    ok = switched_stable(gains, float(ratio))
+    runs, start = [], None
+    for i, flag in enumerate([*ok.tolist(), False]):
+        if flag and start is None:
+            start = i
+        elif not flag and start is not None:
+            runs.append((float(gains[start]), float(gains[i - 1])))
+            start = None
+    return runs
+
+
 def boundary(ratios, stable) -> float | None:
     """The first ratio of an increasing grid at which ``stable`` turns False (None if it never does)."""
     stable = np.asarray(stable, dtype=bool)
@@ -347,6 +377,8 @@ def boundary(ratios, stable) -> float | None:
     return None if bad.size == 0 else float(np.asarray(ratios)[bad[0]])
 
 
-__all__ = ["BRANCH_NAMES", "NO_PUSH", "OVER", "UNDER", "ScaledSideModel", "SwitchedVerdict", "boundary",
-           "branch_matrices", "jsr_bounds", "map_growth_rate", "switched_growth_rate", "switched_step",
-           "switched_verdict"]
+__all__ = [
+    "BRANCH_NAMES", "NO_PUSH", "OVER", "UNDER", "ScaledSideModel", "SwitchedVerdict", "boundary", "branch_matrices",
+    "jsr_bounds", "map_growth_rate", "switched_gain_ranges", "switched_growth_rate", "switched_stable",
+    "switched_step", "switched_verdict",
+]
