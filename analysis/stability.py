@@ -20,6 +20,8 @@ UM = 1e-6
 FRONT_CASES = [(0.0, 0.0), (0.0, 127 * UM), (0.5, 0.0), (1.0, 0.0), (1.0, 127 * UM), (1.0, 300 * UM)]
 """(K_c, δ(0) [m]) of the front-push convergence comparison."""
 SIDE_RATIOS = (0.5, 1.0, 1.5, 2.5)
+_RATIO_GRID = np.round(np.arange(0.05, 3.5001, 0.05), 10)
+"""ρ grid (step 0.05) of the switched map's stability boundary."""
 """Model ratios of the side-push pole paths."""
 
 
@@ -103,6 +105,8 @@ def compute(ctx: StudyContext) -> Computed:
         "side_paper_test_gain_max_over_range": 2.0 / r_hi,
         "side_full_loop_gain_max_at_ratio_1": S.side_full_stable_range(1.0)[1],
         "side_nonlinear_stable_gain_range": None if nl["range"] is None else list(nl["range"]),
+        "side_switched_boundary": {f"{k:g}": W.boundary(_RATIO_GRID, W.switched_stable(k, _RATIO_GRID))
+                                   for k in (0.5, 0.9, 1.5)},
         "side_maps": side,
         "eq23_tangent_at_ds500um": {"slope": tangent_slope, "intercept_um": tangent_icpt},
         "eq23_printed": {"slope": float(lin.slope_), "intercept_um": float(lin.intercept / UM)},
@@ -259,7 +263,11 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
                  f"{best_front['p_converged_by_attempt_markov'][3]:.2f} (K_c=1, delta0=127 µm)",
                  "Markov chain, D_p,r ~ N(300, 75^2) µm"),
         PaperRow("side stability condition", "0 < K_s ratio < 2",
-                 "0 < ratio < 2 and 0 < K_s < 4/ratio - 2", "feed-forward path adds a state"),
+                 f"switched map as run: stable to ratio {r['side_switched_boundary']['0.9']} at K_s = 0.9, "
+                 f"{r['side_switched_boundary']['1.5']} at K_s = 1.5 (first unstable/marginal grid ratio, step 0.05); "
+                 "signed 1-D model: 0 < ratio < 2 and K_s < 4/ratio - 2",
+                 "analysis: magctl.stability.switched (over-push reverses the next pass); the signed model has no "
+                 "branches"),
         PaperRow("side local model ratio (eq 23 vs eq 22)", "~1 (K_s=0.9 for critical damping)",
                  f"{r_lo:.2f} .. {r_hi:.2f} over the operating range", "slope ratio at the actual displacement"),
         PaperRow("side best: attempts from 300 µm", "<= 10 (Fig 14)",
