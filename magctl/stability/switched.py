@@ -25,12 +25,14 @@ large errors) and convergence is exponential when it happens.
 
 Verdicts, three ways:
 
-* :func:`jsr_bounds` — joint spectral radius of ``{A_u, A_o, A_0}``: an upper bound below 1
-  proves stability under *any* switching (sufficient, conservative: the state decides the branch);
-* :func:`switched_verdict` — the state-dependent switching from the task's start ``Δ(0) = 0``:
-  the growth factor of ``|e|`` per attempt of the homogeneous map (below 1: stable), with an
+* :func:`jsr_bounds` — joint spectral radius of the branches: an upper bound below 1 would prove
+  stability under *any* switching. Here it never can: ``A_0`` has the double eigenvalue 1, and
+  ``A_u`` alone is unstable wherever the signed model is (1.49 at ``K_s = 0.9, ρ = 1.4``). The
+  bounds are reported to show how far arbitrary switching is from the state-dependent one;
+* :func:`switched_verdict` — the state-dependent switching: the growth factor of ``|e|`` per
+  attempt of the homogeneous map from 33 start directions (below 1: stable, 1: marginal), with an
   exact witness when a ray that the ``N``-attempt map returns to itself scaled by ``μ ≥ 1``
-  exists (some start does not converge). A common quadratic Lyapunov function cannot certify
+  exists (that start does not converge). A common quadratic Lyapunov function cannot certify
   the map: the no-push branch fixes the ray ``(0, Δ < 0)`` (at the goal, nothing moves), so no
   ``V`` decreases strictly there;
 * :func:`switched_growth_rate` — the asymptotic growth factor per attempt of the map iterated
