@@ -133,7 +133,7 @@ def _draw_pole_paths(pp: dict, ctx: StudyContext):
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(15, 5))
     th = np.linspace(0, 2 * np.pi, 400)
-    for ax in axes[:2]:
+    for ax in axes:
         ax.plot(np.cos(th), np.sin(th), "k-", lw=0.8, label="unit circle")
         ax.axhline(0, color="0.8", lw=0.5)
         ax.axvline(0, color="0.8", lw=0.5)
@@ -159,7 +159,7 @@ def _draw_pole_paths(pp: dict, ctx: StudyContext):
     axes[1].set_ylim(-1.4, 1.4)
     # python-control's pole-zero map of the signed model's closed loop (goal → error) at K_s = 0.9
     systems = [S.side_iteration_diagram(side_push_law(0.9), rho).to_control()[1, 0] for rho in (0.5, 1.0, 1.4)]
-    control.pole_zero_plot(systems, ax=axes[2], grid=False, xlim=(-1.4, 1.4), ylim=(-1.4, 1.4),
+    control.pole_zero_plot(systems, ax=axes[2], xlim=(-1.4, 1.4), ylim=(-1.4, 1.4),
                            label=[f"K_s = 0.9, ρ = {r:g}" for r in (0.5, 1.0, 1.4)])
     axes[2].set_aspect("equal")
     axes[2].set_xlabel("Re z (z: one push attempt)")
