@@ -9,6 +9,7 @@ import numpy as np
 
 from magctl.control.push.common import ExpSideModel, LinSideModel
 from magctl.stability import iteration as S
+from magctl.stability import switched as W
 from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "stability"
@@ -19,6 +20,8 @@ UM = 1e-6
 FRONT_CASES = [(0.0, 0.0), (0.0, 127 * UM), (0.5, 0.0), (1.0, 0.0), (1.0, 127 * UM), (1.0, 300 * UM)]
 """(K_c, δ(0) [m]) of the front-push convergence comparison."""
 SIDE_RATIOS = (0.5, 1.0, 1.5, 2.5)
+_RATIO_GRID = np.round(np.arange(0.05, 3.5001, 0.05), 10)
+"""ρ grid (step 0.05) of the switched map's stability boundary."""
 """Model ratios of the side-push pole paths."""
 
 
@@ -31,9 +34,15 @@ def _pole_paths() -> dict:
 
 def _regions() -> dict:
     gains = np.linspace(0, 4, 400)
-    ratios = np.linspace(0.01, 3, 300)
-    return {"gains": gains, "ratios": ratios,
-            "stable": {loop: S.sweep(gains, ratios, loop)["stable"] for loop in ("paper", "full")}}
+    ratios = np.linspace(0.01, 3.5, 350)
+    out = {"gains": gains, "ratios": ratios,
+           "stable": {loop: S.sweep(gains, ratios, loop)["stable"] for loop in ("paper", "full")}}
+    # the switched map (as the task runs it) on a coarser grid: growth factor of |e| from 33 starts
+    sg, sr = np.round(np.arange(0.0, 4.0001, 0.05), 10), np.round(np.arange(0.05, 3.5001, 0.05), 10)
+    rate = W.switched_growth_rate(sg[:, None], sr[None, :], directions=33, attempts=300)
+    rate = np.where(sg[:, None] == 0, np.abs(1 - sr[None, :]), rate)
+    out["switched"] = {"gains": sg, "ratios": sr, "rate": rate}
+    return out
 
 
 def _front_convergence(trials: int, seed: int) -> tuple[dict, dict]:
@@ -96,6 +105,8 @@ def compute(ctx: StudyContext) -> Computed:
         "side_paper_test_gain_max_over_range": 2.0 / r_hi,
         "side_full_loop_gain_max_at_ratio_1": S.side_full_stable_range(1.0)[1],
         "side_nonlinear_stable_gain_range": None if nl["range"] is None else list(nl["range"]),
+        "side_switched_boundary": {f"{k:g}": W.boundary(_RATIO_GRID, W.switched_stable(k, _RATIO_GRID))
+                                   for k in (0.5, 0.9, 1.5)},
         "side_maps": side,
         "eq23_tangent_at_ds500um": {"slope": tangent_slope, "intercept_um": tangent_icpt},
         "eq23_printed": {"slope": float(lin.slope_), "intercept_um": float(lin.intercept / UM)},
@@ -114,51 +125,92 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
 
 
 def _draw_pole_paths(pp: dict, ctx: StudyContext):
+    import control
+
+    from magctl.control.learning import side_push_law
     from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5))
     th = np.linspace(0, 2 * np.pi, 400)
     for ax in axes:
-        ax.plot(np.cos(th), np.sin(th), "k-", lw=0.8)
+        ax.plot(np.cos(th), np.sin(th), "k-", lw=0.8, label="unit circle")
         ax.axhline(0, color="0.8", lw=0.5)
         ax.axvline(0, color="0.8", lw=0.5)
         ax.set_aspect("equal")
-        ax.set_xlabel("Re z")
+        ax.set_xlabel("Re z (z: one push attempt)")
         ax.set_ylabel("Im z")
     p = pp["front"]
-    sc = axes[0].scatter(p.real, p.imag, c=pp["kc"], cmap="viridis", s=14)
+    sc = axes[0].scatter(p.real, p.imag, c=pp["kc"], cmap="viridis", s=14, label="pole 1 − K_c")
     for k in (0.5, 1.0, 2.0):
-        axes[0].annotate(f"K_c={k:g}", (1 - k, 0), textcoords="offset points", xytext=(0, 10 + 10 * (k == 1)),
+        axes[0].annotate(f"K_c = {k:g}", (1 - k, 0), textcoords="offset points", xytext=(0, 10 + 10 * (k == 1)),
                          ha="center", fontsize=8)
-    fig.colorbar(sc, ax=axes[0], label="K_c", shrink=0.7)
-    axes[0].set_title("front push, eq 15: pole 1 - K_c")
+    fig.colorbar(sc, ax=axes[0], label="learning gain K_c", shrink=0.7)
+    axes[0].set_title("front push, eq 15: G_cl = K_c/(z − 1 + K_c)", fontsize=10)
+    axes[0].legend(fontsize=8, loc="lower left")
     for (rho, poles), mk in zip(pp["side"].items(), ("o", "s", "^", "x"), strict=True):
-        axes[1].scatter(poles.real.ravel(), poles.imag.ravel(), c=np.repeat(pp["ks"], 2), cmap="plasma", s=10,
-                        marker=mk, label=f"ratio {rho:g}")
-    axes[1].legend(fontsize=8, loc="lower left")
-    axes[1].set_title("side push with feed-forward path: K_s = 0..3")
+        sc = axes[1].scatter(poles.real.ravel(), poles.imag.ravel(), c=np.repeat(pp["ks"], 2), cmap="plasma", s=12,
+                             marker=mk, vmin=0, vmax=float(pp["ks"][-1]), label=f"ρ = {rho:g}")
+    fig.colorbar(sc, ax=axes[1], label="learning gain K_s", shrink=0.7)
+    axes[1].legend(fontsize=8, loc="lower left", title="model ratio", title_fontsize=8)
+    axes[1].set_title("side push, signed 1-D model (under-push branch):\n"
+                      "z² − (2 − ρ(1 + K_s))z + (1 − ρ), K_s = 0..3", fontsize=10)
     axes[1].set_xlim(-2.2, 1.3)
     axes[1].set_ylim(-1.4, 1.4)
+    # python-control's pole-zero map of the signed model's closed loop (goal → error) at K_s = 0.9
+    systems = [S.side_iteration_diagram(side_push_law(0.9), rho).to_control()[1, 0] for rho in (0.5, 1.0, 1.4)]
+    control.pole_zero_plot(systems, ax=axes[2], xlim=(-1.4, 1.4), ylim=(-1.4, 1.4),
+                           label=[f"K_s = 0.9, ρ = {r:g}" for r in (0.5, 1.0, 1.4)])
+    axes[2].set_aspect("equal")
+    axes[2].set_xlabel("Re z (z: one push attempt)")
+    axes[2].set_ylabel("Im z")
+    axes[2].legend(fontsize=8, loc="lower left")
+    axes[2].set_title("signed model, goal → error (pole_zero_plot):\n"
+                      "at ρ = 1.4 a pole is at −1.04; the switched map converges", fontsize=10)
     return save_figure(fig, ctx.figure_path("stability_pole_paths"), dpi=110)
 
 
 def _draw_regions(reg: dict, r_lo: float, r_hi: float, ctx: StudyContext):
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
     from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5), sharey=True)
-    for ax, loop, title in ((axes[0], "paper", "eq 20: |1 - K_s ratio| < 1"),
-                            (axes[1], "full", "with feed-forward path (2 states)")):
-        ax.contourf(reg["ratios"], reg["gains"], reg["stable"][loop].astype(float), levels=[-0.5, 0.5, 1.5],
-                    colors=["#f4c7c3", "#c8e6c9"])
-        ax.axvspan(r_lo, r_hi, color="0.5", alpha=0.15, label="local ratio, eq 23 vs eq 22")
-        for k in (0.5, 0.9):
-            ax.axhline(k, color="k", ls="--", lw=0.8)
-        ax.set_xlabel("model ratio F_lin / F_act (local slope ratio)")
+    fig, grid = plt.subplots(2, 3, figsize=(15, 5.6), gridspec_kw={"height_ratios": [1, 0.13]})
+    axes, legend_axes = grid[0], grid[1]
+    for ax in legend_axes:
+        ax.axis("off")
+    green, red, amber = "#c8e6c9", "#f4c7c3", "#ffe0a3"
+    rr = reg["ratios"]
+    for ax, loop, title in ((axes[0], "paper", "eq 20 as printed: 0 < K_s ρ < 2"),
+                            (axes[1], "full", "signed 1-D model: 0 < ρ < 2, K_s < 4/ρ − 2")):
+        ax.contourf(rr, reg["gains"], reg["stable"][loop].astype(float), levels=[-0.5, 0.5, 1.5],
+                    colors=[red, green])
         ax.set_title(title, fontsize=10)
-    axes[0].set_ylabel("gain K_s")
-    axes[1].legend(fontsize=8)
+    sw = reg["switched"]
+    cls = np.where(sw["rate"] < 1 - 1e-3, 2, np.where(sw["rate"] <= 1 + 1e-3, 1, 0))
+    axes[2].pcolormesh(sw["ratios"], sw["gains"], cls, cmap=ListedColormap([red, amber, green]), vmin=0, vmax=2,
+                       shading="nearest")
+    axes[2].set_title("switched map, as the task runs it (growth of |e|)", fontsize=10)
+    curve = np.linspace(0.55, 3.5, 200)
+    for ax in axes:
+        ax.plot(curve, 2 / curve, "k--", lw=1.0, label="eq 20: K_s = 2/ρ")
+        ax.plot(curve[curve < 2], 4 / curve[curve < 2] - 2, "b:", lw=1.2, label="signed: K_s = 4/ρ − 2")
+        ax.axvspan(r_lo, r_hi, color="0.5", alpha=0.12)
+        ax.axhline(0.9, color="0.3", ls="-.", lw=0.8)
+        ax.set_xlim(0, 3.5)
+        ax.set_ylim(0, 4)
+        ax.set_xlabel("model ratio ρ = F_model slope / F_act slope")
+    axes[0].set_ylabel("learning gain K_s")
+    for ax in axes[1:]:
+        ax.set_yticklabels([])
+    handles = [Patch(color=green, label="stable"), Patch(color=amber, label="marginal (neutral cycle)"),
+               Patch(color=red, label="unstable"), *axes[2].get_lines()[:2],
+               Patch(color="0.5", alpha=0.3, label=f"local ratio of eq 23 vs eq 22 ({r_lo:.2f}..{r_hi:.2f})"),
+               axes[2].get_lines()[-1]]
+    axes[2].get_lines()[-1].set_label("K_s = 0.9 (paper)")
+    legend_axes[1].legend(handles=handles, loc="center", ncol=4, fontsize=8, frameon=False)
     return save_figure(fig, ctx.figure_path("stability_regions"), dpi=110)
 
 
@@ -172,7 +224,7 @@ def _draw_front_convergence(curves: dict, ctx: StudyContext):
         line, = ax.plot(n, markov, "-", label=label)
         ax.plot(n, monte_carlo, "o", color=line.get_color(), ms=3)
     ax.set_xlabel("pushing attempts")
-    ax.set_ylabel("fraction converged (eps_p = 75 µm)")
+    ax.set_ylabel("fraction converged (ε_p = 75 µm)")
     ax.set_title("front push, D_p,r ~ N(300, 75^2) µm: Markov (lines), Monte Carlo (dots)", fontsize=9)
     ax.legend(fontsize=7)
     return save_figure(fig, ctx.figure_path("stability_front_convergence"), dpi=110)
@@ -211,7 +263,11 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
                  f"{best_front['p_converged_by_attempt_markov'][3]:.2f} (K_c=1, delta0=127 µm)",
                  "Markov chain, D_p,r ~ N(300, 75^2) µm"),
         PaperRow("side stability condition", "0 < K_s ratio < 2",
-                 "0 < ratio < 2 and 0 < K_s < 4/ratio - 2", "feed-forward path adds a state"),
+                 f"switched map as run: stable to ratio {r['side_switched_boundary']['0.9']} at K_s = 0.9, "
+                 f"{r['side_switched_boundary']['1.5']} at K_s = 1.5 (first unstable/marginal grid ratio, step 0.05); "
+                 "signed 1-D model: 0 < ratio < 2 and K_s < 4/ratio - 2",
+                 "analysis: magctl.stability.switched (over-push reverses the next pass); the signed model has no "
+                 "branches"),
         PaperRow("side local model ratio (eq 23 vs eq 22)", "~1 (K_s=0.9 for critical damping)",
                  f"{r_lo:.2f} .. {r_hi:.2f} over the operating range", "slope ratio at the actual displacement"),
         PaperRow("side best: attempts from 300 µm", "<= 10 (Fig 14)",

@@ -32,18 +32,23 @@ def _register_front(subparsers) -> None:
 
 
 def _register_side(subparsers) -> None:
-    """Add ``side --ks K [--model lin|exp] [--json]`` to the ``magctl stability`` subparsers."""
+    """Add ``side --ks K [--model lin|exp] [--ratio R] [--plant-scale S] [--plant-gap-scale G] [--json]``."""
     p = subparsers.add_parser("side", help="side-push learning loop (eq 16-20, 22-23): poles, verdicts, ranges")
     p.add_argument("--ks", type=finite_float, required=True, help="learning gain K_s of eq 18")
     p.add_argument("--model", choices=["lin", "exp"], default="lin", help="controller model: eq 23 (lin) or 22 (exp)")
     p.add_argument("--ratio", type=positive_float, default=None,
-                   help="model ratio F_lin/F_act for eq 19-20 (default 1)")
+                   help="model ratio rho of the linear analyses (default: the plant scale when the model is exp "
+                        "and the plant eq 22 scaled, else 1)")
     p.add_argument("--min-gap-um", type=positive_float, default=None,
                    help="minimum gap bound in µm (default: models/push.toml, 370 µm)")
     p.add_argument("--goal-um", type=positive_float, default=None,
                    help="initial goal distance in µm (default: models/push.toml, 300 µm)")
     p.add_argument("--plant", choices=["exp", "fluid"], default="exp",
                    help="actual F_act: eq 22 (exp) or the fluid model's side-push curve (fluid, a few seconds)")
+    p.add_argument("--plant-scale", type=positive_float, default=1.0,
+                   help="multiply the plant's displacements (eq 22 scaled: a mismatched plant; default 1)")
+    p.add_argument("--plant-gap-scale", type=positive_float, default=1.0,
+                   help="stretch the plant's gap axis (a curve decaying this many times more slowly; default 1)")
     add_json(p)
     p.set_defaults(func=cmd_side)
 
@@ -63,7 +68,7 @@ def cmd_side(args) -> int:
     min_gap_um = MIN_GAP / UM if args.min_gap_um is None else args.min_gap_um
     goal_um = SIDE_GOAL / UM if args.goal_um is None else args.goal_um
     doc = side_report(args.ks, args.model, min_gap_um=min_gap_um, goal_um=goal_um, ratio=args.ratio,
-                      plant=args.plant)
+                      plant=args.plant, plant_scale=args.plant_scale, plant_gap_scale=args.plant_gap_scale)
     emit(args, doc, _side_summary)
     return 0
 
@@ -96,14 +101,29 @@ def _front_summary(d: dict) -> str:
 
 
 def _side_summary(d: dict) -> str:
-    pa, ff, op, nl = d["paper_analysis"], d["with_feedforward"], d["operating_range"], d["nonlinear_map"]
+    pa, ff, sw, op, nl = (d["paper_analysis"], d["with_feedforward"], d["switched"], d["operating_range"],
+                          d["nonlinear_map"])
     rng = ff["stable_gain_range"]
+    runs = ", ".join(f"[{a:g}, {b:g}]" for a, b in sw["stable_gain_ranges"]) or "none"
+    ray = sw["growing_ray"]
     lines = [
         f"side push, K_s = {d['ks']:g}, model {d['model']}, plant {d['plant']}, min gap {d['min_gap_um']:g} µm",
-        f"  paper (eq 19-20, ratio {pa['ratio']:g}): poles {_fmt_poles(pa['poles'])}: {pa['verdict']} "
-        f"({pa['damping']}), stable for {pa['stable_gain_range'][0]:g} < K_s < {pa['stable_gain_range'][1]:g}",
-        f"  with feed-forward path: poles {_fmt_poles(ff['poles'])}: {ff['verdict']} ({ff['damping']})"
+        f"  ratio {d['ratio']:g} ({d['ratio_source']})",
+        f"  verdict: {d['verdict']} ({d['verdict_source']})",
+        f"  [eq 19-20 as printed] poles {_fmt_poles(pa['poles'])}: {pa['verdict']} ({pa['damping']}), "
+        f"stable for {pa['stable_gain_range'][0]:g} < K_s < {pa['stable_gain_range'][1]:g}",
+        f"  [signed 1-D model] poles {_fmt_poles(ff['poles'])}: {ff['verdict']} ({ff['damping']})"
         + (f", stable for {rng[0]:g} < K_s < {rng[1]:g}" if rng else ", no stable K_s"),
+        f"  [switched, as the task runs] {sw['verdict']}: |e| grows x{sw['growth_rate']:.4g} per attempt "
+        f"(attempt map: x{sw['growth_rate_attempt_map']:.4g}); stable K_s (0..4 by 0.02): {runs}",
+        "    branch poles: " + "; ".join(f"{k} {_fmt_poles(v)}" for k, v in sw["branch_poles"].items())
+        + "; JSR bounds (any switching) {:.3g}..{:.3g}".format(*sw["jsr_bounds_any_switching"]),
+    ]
+    if ray:
+        lines.append(f"    a ray returns x{ray['multiplier_per_attempt']:.4g} per attempt after "
+                     f"{' -> '.join(ray['branches'])}" + (" (repelling: other starts converge)"
+                                                          if sw["verdict"] == "stable" else ""))
+    lines += [
         f"  local model ratio over the operating range: {op['local_ratio_min']:.3g} .. {op['local_ratio_max']:.3g}",
         f"  nonlinear map from {d['goal_um']:g} µm: "
         + (f"converged in {nl['attempts']} attempts" if nl["converged"] else f"not converged in {nl['max_attempts']}")

@@ -43,6 +43,7 @@ import numpy as np
 from magctl import FRAME_PERIOD_S
 from magctl.config import load_model
 from magctl.core.block import Block, StateVar, rng_var
+from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
 from magctl.plant.robot import ROBOT_INPUTS, steady_speed
 
@@ -285,6 +286,9 @@ class StandinSpheres(Block):
         ``a``, m (0: spheres pass through each other).
     start_robot : (2,) array_like
         Robot position before the first frame, m.
+    side_scale : float or (B,) array_like
+        Multiplies eq 22's displacement (one value per trial allowed): a plant whose side-push curve is
+        eq 22 scaled, for the mismatched-plant checks of the side-push analysis (default 1).
 
     Ports
     -----
@@ -298,11 +302,15 @@ class StandinSpheres(Block):
 
     def __init__(self, name: str, start, contact_distance: float, *, release_mean: float = 0.0,
                  release_std: float = 0.0, side_range: float = 0.0, sphere_radius: float = 0.0, start_robot=(0.0, 0.0),
-                 dt: float = FRAME_PERIOD_S):
+                 side_scale=1.0, dt: float = FRAME_PERIOD_S):
         self.start = np.asarray(start, dtype=float).reshape(-1, 2)
         self.contact_distance = float(contact_distance)
         self.release_mean, self.release_std = float(release_mean), float(release_std)
         self.side_range = float(side_range)
+        self.side_scale = np.asarray(side_scale, dtype=float)
+        if self.side_scale.ndim > 1 or not np.all(np.isfinite(self.side_scale)) or np.any(self.side_scale <= 0):
+            raise MagctlError(f"stand-in spheres {name!r}: side_scale {side_scale!r} must be positive, "
+                              "a number or one per trial")
         self.sphere_radius = float(sphere_radius)
         self.start_robot = np.asarray(start_robot, dtype=float).reshape(2)
         n = self.start.shape[0]
@@ -365,7 +373,8 @@ class StandinSpheres(Block):
         lat = np.abs(dd[..., 0] * rel0[..., 1] - dd[..., 1] * rel0[..., 0])
         cross = (straight[:, None] & ~passed & (a0 > 0) & (a1 <= 0) & (lat > self.contact_distance)
                  & (lat < self.side_range))
-        s = s + (cross * self.SIDE_A * np.exp(-self.SIDE_K * lat))[..., None] * dd
+        amp = self.SIDE_A * (self.side_scale[:, None] if self.side_scale.ndim else self.side_scale)
+        s = s + (cross * amp * np.exp(-self.SIDE_K * lat))[..., None] * dd
         passed = passed | cross
 
         # 2. release: the sphere follows a robot that moves away from it

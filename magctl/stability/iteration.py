@@ -668,39 +668,82 @@ def fluid_side_plant(gaps=None) -> TabulatedSideModel:
 
 
 def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM, goal_um: float = SIDE_GOAL / UM,
-                ratio: float | None = None, plant: str = "exp") -> dict:
-    """Everything ``magctl stability side`` prints (µm in keys); ``plant`` is ``exp`` (eq 22) or ``fluid``."""
+                ratio: float | None = None, plant: str = "exp", plant_scale: float = 1.0,
+                plant_gap_scale: float = 1.0) -> dict:
+    """Everything ``magctl stability side`` prints (µm in keys).
+
+    ``plant`` is ``exp`` (eq 22) or ``fluid``; ``plant_scale`` multiplies its displacements and
+    ``plant_gap_scale`` stretches its gap axis (:class:`~magctl.stability.switched.ScaledSideModel`: a
+    mismatched plant). Three analyses of the loop at the model ratio ``ρ`` (``ratio``; by default the
+    exact one when the pairing is linear — eq 22 model against eq 22 scaled by ``s`` gives ``ρ = s`` —
+    else 1): eq 19–20 as printed, the signed 1-D model, and the switched map the algorithm runs
+    (:mod:`magctl.stability.switched`), whose verdict is the report's ``verdict``.
+    """
+    from magctl.stability import switched as W
+
     ks = check_finite("--ks", ks)
     mdl = side_model(model)
     min_gap = check_positive("--min-gap-um", min_gap_um) * UM
     goal = check_positive("--goal-um", goal_um) * UM
+    plant_scale = check_positive("--plant-scale", plant_scale)
+    plant_gap_scale = check_positive("--plant-gap-scale", plant_gap_scale)
     if plant not in ("exp", "fluid"):
         raise MagctlError(f"--plant {plant!r} is not known; use 'exp' (eq 22) or 'fluid' (the fluid model's curve)")
     plant_name = "exp (eq 22)" if plant == "exp" else "fluid model (Fig 6 simulation)"
-    plant = ExpSideModel() if plant == "exp" else fluid_side_plant()
+    base = ExpSideModel() if plant == "exp" else fluid_side_plant()
+    scaled = plant_scale != 1.0 or plant_gap_scale != 1.0
+    if scaled:
+        plant_name += f", displacements x{plant_scale:g}, gaps x{plant_gap_scale:g}"
+    plant_obj = W.ScaledSideModel(base, plant_scale, plant_gap_scale) if scaled else base
+    linear_pair = mdl.name == "exp" and plant == "exp" and plant_gap_scale == 1.0
+    if ratio is None:
+        rho = plant_scale if linear_pair else 1.0
+        rho_source = ("exact: eq 22 model against eq 22 scaled, D_s,act = ratio (D_s,des + Delta)" if linear_pair
+                      else "assumed 1 (the pairing is nonlinear: see operating_range for the local ratio)")
+    else:
+        rho = check_positive("--ratio", ratio)
+        rho_source = "given (--ratio)"
     d_max_model = float(mdl.displacement(min_gap))
-    d_act_max = float(plant.displacement(max(float(mdl.gap(d_max_model)), min_gap)))
+    d_act_max = float(plant_obj.displacement(max(float(mdl.gap(d_max_model)), min_gap)))
     d_range = np.linspace(SIDE_EPS, d_act_max, 200)
-    r_local = local_ratio(d_range, mdl, plant)
-    rho = 1.0 if ratio is None else check_finite("--ratio", ratio)
+    r_local = local_ratio(d_range, mdl, plant_obj)
     paper = side_loop(ks, rho)
     full_p = side_full_poles(ks, rho)
     full_verdict, full_damping = classify(full_p)
-    run = side_attempt_map(ks, goal, model=mdl, plant=plant, min_gap=min_gap)
+    sw = W.switched_verdict(ks, rho)
+    map_rate = float(W.map_growth_rate(ks, rho))
+    run = side_attempt_map(ks, goal, model=mdl, plant=plant_obj, min_gap=min_gap)
     errs = run["error"][0]
-    nl = side_nonlinear_gain_range(mdl, plant=plant, min_gap=min_gap)
+    nl = side_nonlinear_gain_range(mdl, plant=plant_obj, min_gap=min_gap)
     r_lo, r_hi = float(r_local.min()), float(r_local.max())
+    poles = {name: _poles_doc(p) for name, p in sw.branch_poles.items()}
     return {
         "loop": "side", "equations": "eq 16-20, 22-23", "ks": ks, "model": mdl.name, "plant": plant_name,
+        "plant_scale": plant_scale, "plant_gap_scale": plant_gap_scale,
         "min_gap_um": min_gap / UM, "goal_um": goal / UM, "eps_p_um": SIDE_EPS / UM,
+        "ratio": rho, "ratio_source": rho_source,
+        "verdict": sw.verdict, "verdict_source": "switched (the algorithm as run)",
         "paper_analysis": {
+            "label": "eq 19-20 as printed: one state, ratio constant",
             "ratio": rho, "H_ol": _tf_doc(paper.open_loop), "H_cl": _tf_doc(paper.closed_loop),
             "poles": _poles_doc(paper.poles), "verdict": paper.verdict, "damping": paper.damping,
             "stable_gain_range": list(paper.stable_gain_range),
         },
         "with_feedforward": {
+            "label": "signed 1-D model: eq 16-18 with e keeping its sign (no branch switch on over-push)",
             "ratio": rho, "poles": _poles_doc(full_p), "verdict": full_verdict, "damping": full_damping,
             "stable_gain_range": side_full_stable_range(rho),
+        },
+        "switched": {
+            "label": "switched map as the task runs it: |e| (eq 16), over-push reverses the next pass, "
+                     "no pass when D_s,des + Delta <= 0",
+            "ratio": rho, "verdict": sw.verdict, "growth_rate": sw.growth_rate,
+            "growth_rate_attempt_map": map_rate,
+            "growth_rate_attempt_map_note": "side_attempt_map, eq 22 model against eq 22 scaled by the ratio, "
+                                            "33 starts, bounds off",
+            "branch_poles": poles, "jsr_bounds_any_switching": list(sw.jsr),
+            "growing_ray": sw.growing_ray,
+            "stable_gain_ranges": [list(r) for r in W.switched_gain_ranges(rho)],
         },
         "operating_range": {
             "max_desired_displacement_um": d_max_model / UM, "max_actual_displacement_um": d_act_max / UM,
@@ -708,6 +751,7 @@ def side_report(ks: float, model: str = "lin", min_gap_um: float = MIN_GAP / UM,
             "paper_test_gain_range_over_range": [0.0, 2.0 / r_hi] if r_hi > 0 else None,
         },
         "nonlinear_map": {
+            "label": "side_attempt_map with the bounds of §V-B and the plant above",
             "converged": bool(run["attempts"][0] >= 0), "attempts": int(run["attempts"][0]),
             "max_attempts": SIDE_MAX_ATTEMPTS,
             "error_um": [float(x) / UM for x in errs[np.isfinite(errs)]],

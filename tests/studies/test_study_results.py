@@ -86,6 +86,13 @@ def test_side_full_loop_poles_follow_the_jury_bound(computed):
     assert computed["stability"].results["side_full_loop_gain_max_at_ratio_1"] == pytest.approx(2.0)
 
 
+def test_switched_boundary_in_the_study(computed):
+    # K_s ≥ 0.9: the neutral 2-cycle's K_s ρ = 2 (docs/push-control.md §2), the first 0.05-grid ratio at or past 2/K_s
+    b = computed["stability"].results["side_switched_boundary"]
+    assert b["0.9"] == pytest.approx(2.25) and b["1.5"] == pytest.approx(1.35)
+    assert b["0.5"] is None  # stable on the whole grid, where the signed model has no stable K_s beyond ρ = 2
+
+
 def test_side_attempt_maps(computed):
     side = computed["stability"].results["side_maps"]
     assert side["lin, K_s=0.9, eq 18 as printed"]["attempts"] == -1  # positive feedback: diverges

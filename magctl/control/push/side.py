@@ -12,6 +12,10 @@ One attempt, per trial:
 4. ``SETTLE`` — wait, then measure ``D_s,act`` along the line; eq 12 ends the task,
    otherwise the eq 18 law block takes ``e = D_s,act − D_s,des``.
 
+When ``D_s,des + Δ ≤ 0`` (possible after an over-push with ``K_s`` ≥ 1 or a plant stronger than
+the model) eq 22 gives an infinite gap: the attempt makes no pass, settles and measures
+``D_s,act = 0`` (the no-push branch of :mod:`magctl.stability.switched`).
+
 The naive controllers of §VI-B (a fixed gap, no model) are ``fixed_gap=``.
 """
 
@@ -57,7 +61,8 @@ class SidePushTask(PushTask, Block):
 
     Notes
     -----
-    Ports: as :class:`~magctl.control.push.front.FrontPushTask`; ``correction`` is ``Δ``.
+    Ports: as :class:`~magctl.control.push.front.FrontPushTask`; ``correction`` is ``Δ``; ``gap`` is
+    ``D_g`` of the attempt, 0 for an attempt that makes no pass (``D_s,des + Δ ≤ 0``).
     """
 
     PHASES = {0: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", FINISHED: "finished"}
@@ -122,7 +127,7 @@ class SidePushTask(PushTask, Block):
 
     def _frame(self, state, u):
         out, new = super()._frame(state, u)
-        out["gap"] = new["gap"].copy()
+        out["gap"] = np.where(np.isinf(new["gap"]), 0.0, new["gap"])  # 0: the attempt makes no pass
         return out, new
 
     def _begin(self, new, mask, r, spheres):
@@ -133,15 +138,19 @@ class SidePushTask(PushTask, Block):
             gap = np.maximum(self.model.gap(d_des + delta), self.min_gap)  # eq 17
         else:
             gap = np.full(dist.shape, self.fixed_gap)
-        n = side[:, None] * perp(u) * gap[:, None]
+        # D_s,des + Δ ≤ 0: eq 22 asks for an infinite gap, i.e. no pass; the attempt only settles and
+        # measures D_s,act = 0 (the no-push branch of magctl.stability.switched)
+        skip = mask & ~np.isfinite(gap)
+        n = side[:, None] * perp(u) * np.where(np.isfinite(gap), gap, 0.0)[:, None]
         m = mask[:, None]
         new["u"] = np.where(m, u, new["u"])
         new["p0"] = np.where(m, s, new["p0"])
         new["start"] = np.where(m, s - self.behind * u + n, new["start"])
-        new["end"] = np.where(m, s + self.ahead * u + n, new["end"])
+        new["end"] = np.where(m, np.where(skip[:, None], r, s + self.ahead * u + n), new["end"])
         new["d_des"] = np.where(mask, d_des, new["d_des"])
         new["gap"] = np.where(mask, gap, new["gap"])
-        self._enter(new, mask, REPOSITION)
+        self._enter(new, mask & ~skip, REPOSITION)
+        self._enter(new, skip, SETTLE)
 
     def _step(self, state, new, r, spheres, ok):
         ph = new["phase"]
