@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from magctl.config import UNITS, Params, load_model, split_unit
-from magctl.control.push.common import task_parameters
+from magctl.control.push.common import SIDE_MODELS, task_parameters
 from magctl.control.servo import default_servo_setting, servo_params, servo_settings
 from magctl.control.status import STATUS_NAMES, Status
 from magctl.core.diagram import Diagram
@@ -138,8 +138,10 @@ class Controller:
 
 # --- options ---------------------------------------------------------------------------------------------
 _SI_SUFFIX = {"m": "m", "m/s": "m_s", "rad": "rad", "1": "", "": ""}
-_PUSH_TABLES = {"front-push": ("front",), "side-push": ("side",), "assemble": ("side", "assembly")}
-_OPTIONAL = {"front-push": {"push_tol": "m"}, "side-push": {"fixed_gap": "m"}, "assemble": {"fixed_gap": "m"}}
+_PUSH_TABLES = {"front-push": ("front",), "side-push": ("side",), "assemble": ("side", "assembly"),
+                "front-side-assemble": ("side", "assembly")}
+_OPTIONAL = {"front-push": {"push_tol": "m"}, "side-push": {"fixed_gap": "m"}, "assemble": {"fixed_gap": "m"},
+             "front-side-assemble": {"fixed_gap": "m", "front_attempts": "1"}}
 
 
 def task_options(task: str) -> dict[str, tuple[Any, str]]:
@@ -190,8 +192,8 @@ def _option_value(task: str, key: str, raw, factor: float, unit: str, name: str)
             raise TaskError(f"{task}: option servo={raw!r} is not one of {', '.join(servo_settings())}")
         return str(raw)
     if name == "model":
-        if raw not in ("lin", "exp"):
-            raise TaskError(f"{task}: option model={raw!r} must be 'lin' (eq 23) or 'exp' (eq 22)")
+        if raw not in SIDE_MODELS:
+            raise TaskError(f"{task}: option model={raw!r} is not one of {', '.join(SIDE_MODELS)}")
         return str(raw)
     if name in ("goal", "target", "origin"):
         try:
@@ -305,3 +307,9 @@ def _side_push(first_obs: Observation, options: dict, params: Params) -> Task:
 def _assemble(first_obs: Observation, options: dict, params: Params) -> Task:
     """Assemble sphere 0 onto sphere 1 by side-pushing along the adjusted line (§V-C, eq 21)."""
     return _push("assemble", first_obs, options)
+
+
+@register_task("front-side-assemble")
+def _front_side_assemble(first_obs: Observation, options: dict, params: Params) -> Task:
+    """The paper's Fig 15: front-push sphere 0 onto sphere 1 once, then side-push assembly (§V-C, eq 21)."""
+    return _push("front-side-assemble", first_obs, options)

@@ -54,6 +54,17 @@ class ExpSideModel:
         """``dF/dD_s = −1/(k·D_s)``."""
         return -1.0 / (self.rate * np.asarray(ds, dtype=float))
 
+    def linearised(self, gap: float, name: str = "lin") -> LinSideModel:
+        """The tangent of ``F`` at the gap ``gap`` (m), as eq 23 linearises eq 22 (§VI-B).
+
+        At ``D_s0 = A·exp(−k·gap)``: ``F_lin(D_s) = gap + 1/k − D_s/(k·D_s0)``. The paper
+        says "about D_s = 500 µm", which lies in the contact region; read as the gap it gives,
+        for eq 22 itself, ``−5.80·D_s + 611 µm`` beside the printed ``−5.29·D_s + 621 µm``
+        (docs/push-control.md §4.2).
+        """
+        ds0 = float(self.displacement(gap))
+        return LinSideModel(slope_=-1.0 / (self.rate * ds0), intercept=float(gap) + 1.0 / self.rate, name=name)
+
 
 @dataclass(frozen=True)
 class LinSideModel:
@@ -134,13 +145,38 @@ class TabulatedSideModel:
         return 1.0 / (rate[k] * ds)
 
 
+SIDE_MODELS = {
+    "lin": "eq 23 as printed (fitted to the paper's Fig 6 simulation)",
+    "exp": "eq 22 as printed (fitted to the paper's Fig 6 simulation)",
+    "lin-fit": "eq 23's form refitted to magctl's Fig 6 curve (models/push.toml [side_fit])",
+    "exp-fit": "eq 22's form refitted to magctl's Fig 6 curve (models/push.toml [side_fit])",
+}
+"""The side-push models by name: the paper's eq 22/23 and the same forms fitted to magctl's plant."""
+
+
+def fitted_side_model() -> ExpSideModel:
+    """Eq 22's form fitted to magctl's own Fig 6 curve, as the paper fitted its simulation (§VI-B).
+
+    ``A`` and ``k`` come from ``models/push.toml`` ``[side_fit]``, which the ``sidepush-curve``
+    study regenerates (and a test checks against it).
+    """
+    fit = load_model("push").side_fit
+    return ExpSideModel(amplitude=float(fit.amplitude), rate=float(fit.rate), name="exp-fit")
+
+
 def side_model(name: str):
-    """``"exp"`` → eq 22, ``"lin"`` → eq 23."""
+    """A model of :data:`SIDE_MODELS`: ``"exp"`` → eq 22, ``"lin"`` → eq 23 (as printed);
+    ``"exp-fit"`` / ``"lin-fit"`` → the same forms fitted to magctl's Fig 6 curve, the linear one
+    the tangent of the exponential at ``[side_fit] about_gap`` (as eq 23 linearises eq 22)."""
     if name == "exp":
         return ExpSideModel()
     if name == "lin":
         return LinSideModel()
-    raise MagctlError(f"side-push model {name!r} is not known; use 'lin' (eq 23) or 'exp' (eq 22)")
+    if name == "exp-fit":
+        return fitted_side_model()
+    if name == "lin-fit":
+        return fitted_side_model().linearised(float(load_model("push").side_fit.about_gap), name="lin-fit")
+    raise MagctlError(f"side-push model {name!r} is not known; use one of {', '.join(SIDE_MODELS)}")
 
 
 def around(robot: np.ndarray, obstacle: np.ndarray, target: np.ndarray, clearance, step=np.pi / 4) -> np.ndarray:
