@@ -33,7 +33,7 @@ import numpy as np
 
 from magctl.config import Params, load_model
 from magctl.control.guards import ArrivalStatus, Patrol
-from magctl.control.push.assembly import AssemblyTask
+from magctl.control.push.assembly import AssemblyTask, FrontThenSideAssemblyTask
 from magctl.control.push.common import goal_distance
 from magctl.control.push.front import FrontAssemblyTask, FrontPushTask
 from magctl.control.push.side import SidePushTask
@@ -59,11 +59,13 @@ OBSERVATION = ("robot_est", "heading_est", "spheres_est", "lost")
 """The tracker's estimate: the plant's outputs, a superset of the controller's inputs."""
 PLANT_OUTPUTS = (*OBSERVATION, "currents")
 PUSH_TASKS = {"front-push": FrontPushTask, "side-push": SidePushTask, "assemble": AssemblyTask,
-              "front-assemble": FrontAssemblyTask}
+              "front-assemble": FrontAssemblyTask, "front-side-assemble": FrontThenSideAssemblyTask}
 TASKS = ("goto", "patrol", *PUSH_TASKS)
+ASSEMBLY_TASKS = ("assemble", "front-assemble", "front-side-assemble")
 PLANTS = ("physics", "standin")
 
-__all__ = ["COMMAND", "OBSERVATION", "PLANTS", "PLANT_OUTPUTS", "PUSH_TASKS", "TASKS", "Experiment", "Scene",
+__all__ = ["ASSEMBLY_TASKS", "COMMAND",
+           "OBSERVATION", "PLANTS", "PLANT_OUTPUTS", "PUSH_TASKS", "TASKS", "Experiment", "Scene",
            "Variability", "closed_loop", "controller", "default_goal", "experiment_controller", "geometry", "plant",
            "push_loop", "sphere_count"]
 
@@ -75,10 +77,11 @@ def controller(task: str, *, n_spheres: int, goal=None, target=None, waypoints=N
 
     Parameters
     ----------
-    task : {"goto", "patrol", "front-push", "side-push", "assemble", "front-assemble"}
+    task : {"goto", "patrol", "front-push", "side-push", "assemble", "front-assemble", "front-side-assemble"}
         ``goto``: servo to ``target`` and stop (status ``CONVERGED`` on arrival). ``patrol``: drive
         round ``waypoints`` forever. The push tasks are §V-A (eq 10–13), §V-B (eq 16–18), §V-C
-        (eq 21, by side pushing) and the front-push assembly the paper shows failing (Fig 3).
+        (eq 21, by side pushing), the front-push assembly the paper shows failing (Fig 3) and the
+        paper's Fig 15 protocol (one front push, then side-push assembly).
     n_spheres : int
         Width of the ``spheres_est`` input (push tasks).
     goal : (2,) or (B, 2) array_like, optional
@@ -170,7 +173,7 @@ def default_goal(task: str, robot, spheres) -> np.ndarray:
 
 def sphere_count(task: str) -> int:
     """Spheres a task needs tracked: 2 for the assemblies, 1 for the pushes, 0 otherwise."""
-    return 2 if task in ("assemble", "front-assemble") else 1 if task in PUSH_TASKS else 0
+    return 2 if task in ASSEMBLY_TASKS else 1 if task in PUSH_TASKS else 0
 
 
 # --- the plant ---------------------------------------------------------------------------------------------
@@ -391,7 +394,7 @@ def closed_loop(ctrl: Diagram, plnt: Diagram, name: str = "loop") -> Diagram:
 ORIGIN = np.array([2.0e-3, 1.8e-3])
 """Where the (first) sphere starts: near the middle of the 4.8 × 3.6 mm camera field."""
 EXPERIMENT_TASKS = {"front": "front-push", "side": "side-push", "assembly": "assemble",
-                    "front-assembly": "front-assemble"}
+                    "front-assembly": "front-assemble", "front-side-assembly": "front-side-assemble"}
 
 
 @dataclass(frozen=True)
@@ -400,9 +403,10 @@ class Experiment:
 
     Attributes
     ----------
-    kind : {"front", "side", "assembly", "front-assembly"}
-        Set-up: front push (§V-A), side push (§V-B), side-push assembly (§V-C) or the
-        front-push assembly the paper shows failing (Fig 3).
+    kind : {"front", "side", "assembly", "front-assembly", "front-side-assembly"}
+        Set-up: front push (§V-A), side push (§V-B), side-push assembly (§V-C), the
+        front-push assembly the paper shows failing (Fig 3), or the paper's Fig 15 protocol
+        (a front push, then side-push assembly).
     task : dict
         Options of :func:`controller` (push-task gains, model, fixed gap, ``servo`` …); what is
         not given is the default every controller uses, on the rig too.

@@ -319,9 +319,12 @@ def _scaled(value, factor: float):
 
 def _task_phases(task: str | None) -> dict[int, str]:
     """Phase names of a push task's ``phase`` output (empty for tasks without phases)."""
+    from magctl.control.push.assembly import FrontThenSideAssemblyTask
     from magctl.control.push.front import FrontPushTask
     from magctl.control.push.side import SidePushTask
 
+    if task == "front-side-assemble":
+        return FrontThenSideAssemblyTask.phase_names()
     return {"front-push": FrontPushTask.PHASES, "side-push": SidePushTask.PHASES,
             "assemble": SidePushTask.PHASES}.get(task or "", {})
 

@@ -16,7 +16,7 @@ import pytest
 
 from magctl import FRAME_PERIOD_S as T
 from magctl.control.learning import front_push_law, side_push_law
-from magctl.control.push.assembly import AssemblyTask, FrontAssemblyTask
+from magctl.control.push.assembly import AssemblyTask, FrontAssemblyTask, FrontThenSideAssemblyTask
 from magctl.control.push.front import FrontPushTask
 from magctl.control.push.side import SidePushTask
 from magctl.control.status import Status
@@ -28,6 +28,7 @@ from magctl.plant.standin import KinematicRobot, StandinSpheres, StandinTracker,
 from magctl.stability import iteration as S
 
 CONVERGED, ATTEMPT_LIMIT, TRACKING_LOST = Status.CONVERGED, Status.ATTEMPT_LIMIT, Status.TRACKING_LOST
+RUNNING = Status.RUNNING
 SPHERE_LOST, STALLED = Status.SPHERE_LOST, Status.STALLED
 
 UM = 1e-6
@@ -263,3 +264,31 @@ def test_front_push_runs_on_the_plant_blocks():
     assert np.all(res[attempt][:, -1] >= 1)
     err = np.linalg.norm(res[spheres][:, -1, 0] - geometry("front")["goal"], axis=1)
     assert np.all(err[status == CONVERGED] < 75 * UM + 20 * UM)  # eq 12 on the estimate; tracker error margin
+
+
+def test_front_then_side_assembly_runs_the_front_stage_unchanged_then_side_passes():
+    """Fig 15's protocol: until the front stage ends, the composite is the one-push front assembly frame
+    for frame; then the side stage (stage 2) takes over and closes the pair by eq 21."""
+    start, spheres = (-1e-3, 0.0), [[0.0, 0.0], [800 * UM, 0.0]]
+    front = FrontAssemblyTask(kc=1.0, max_attempts=1, eps_as=10 * UM, **EXACT)
+    both = FrontThenSideAssemblyTask(front_attempts=1, ks=0.9, model="lin", clearance=850 * UM, eps_as=10 * UM,
+                                     **EXACT)
+    ref = simulate(ideal_loop(front, start, spheres), 1500, batch=2, seed=3)
+    res = simulate(ideal_loop(both, start, spheres), 4000, batch=2, seed=3)
+    name = both.name
+    end = np.argmax(ref["front_assembly.status"] != RUNNING, axis=1)
+    assert np.all(ref["front_assembly.status"][np.arange(2), end] == ATTEMPT_LIMIT)  # the pair separated
+    for b in range(2):
+        k = end[b]
+        assert np.array_equal(res["spheres.spheres"][b, :k + 1], ref["spheres.spheres"][b, :k + 1])
+        assert np.all(res[f"{name}.stage"][b, :k + 1] == 1) and np.all(res[f"{name}.stage"][b, k + 1:] == 2)
+        assert res[f"{name}.status"][b, k] == RUNNING  # the hand-over is not an end
+    assert np.all(res[f"{name}.status"][:, -1] == CONVERGED)
+    s = res["tracker.spheres_est"][:, -1]
+    assert np.all(np.linalg.norm(s[:, 1] - s[:, 0], axis=1) <= 220 * UM)
+    assert np.all(res[f"{name}.attempt"][:, -1] >= 2)  # the front push and at least one side pass
+
+
+def test_front_then_side_assembly_refuses_no_front_push():
+    with pytest.raises(MagctlError, match="front_attempts"):
+        FrontThenSideAssemblyTask(front_attempts=0)

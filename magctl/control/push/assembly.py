@@ -5,18 +5,25 @@ line sphere 1 → sphere 2, turned towards the side the robot is on; the *motion
 is parallel to it at the gap ``D_g`` (eq 17 with ``D_s,des`` the distance still to
 close, bounded); the robot passes along it, side-pushing sphere 1 towards sphere 2 and
 diverging from sphere 2. Repeat until eq 21: ``|P_s2 − P_s1| ≤ R_1 + R_2 + ε_as``.
+
+The paper's experiment (Fig 15) chains the two: a front push brings sphere 1 against
+sphere 2, the pair separates as the robot retracts, and side passes close the gap
+(:class:`FrontThenSideAssemblyTask`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from magctl.control.push.common import sphere_radii, with_defaults
+from magctl import FRAME_PERIOD_S
+from magctl.control.push.common import ATTEMPT_LIMIT, FINISHED, RUNNING, sphere_radii, with_defaults
 from magctl.control.push.front import FrontAssemblyTask
 from magctl.control.push.side import SidePushTask
 from magctl.core.batched import cross, norm, rotate, unit
+from magctl.core.block import Block, StateVar, substate
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
+from magctl.core.ports import Port
 
 
 class AssemblyTask(SidePushTask):
@@ -66,4 +73,98 @@ class AssemblyTask(SidePushTask):
         return np.isfinite(s).all(axis=(1, 2)) & (norm(s[:, 0] - s[:, 1]) < self.workspace)
 
 
-__all__ = ["AssemblyTask", "FrontAssemblyTask"]
+class FrontThenSideAssemblyTask(Block):
+    """The paper's Fig 15 protocol: front-push sphere 1 onto sphere 2, then side-push assembly.
+
+    Stage 1 is :class:`FrontAssemblyTask` with ``front_attempts`` attempts (Fig 15b–d: one
+    push, after which the spheres separate on retraction). If eq 21 holds when it ends the
+    task has converged; otherwise, from the next frame, stage 2 is :class:`AssemblyTask`
+    (Fig 15e–f), which starts from where the spheres then are. A failure of stage 1 other
+    than its attempt limit (tracking or sphere lost, stalled) ends the task.
+
+    Parameters
+    ----------
+    front_attempts : int
+        Front pushes before side pushing (1, as in Fig 15).
+    theta_n, eps_as, radii, ks, model, law, fixed_gap, max_attempts, …
+        Options of :class:`AssemblyTask` (the side-push stage); ``eps_as`` and ``radii`` are
+        shared with the front stage.
+
+    Ports: as :class:`AssemblyTask`; ``attempt`` counts both stages' attempts, ``phase`` is the
+    front stage's phase in stage 1 and the side stage's plus :data:`SIDE_PHASE_OFFSET` in stage 2,
+    and ``stage`` says which stage runs (1 or 2).
+    """
+
+    SIDE_PHASE_OFFSET = 10
+
+    def __init__(self, name: str = "front_side_assembly", *, n_spheres: int = 2, moved: int = 0, fixed: int = 1,
+                 front_attempts: int = 1, radii=None, eps_as: float | None = None, **side_options):
+        if int(front_attempts) < 1:
+            raise MagctlError(f"assembly {name!r}: front_attempts={front_attempts} must be at least 1")
+        shared = dict(n_spheres=n_spheres, moved=moved, fixed=fixed, radii=radii, eps_as=eps_as)
+        self.front = FrontAssemblyTask(f"{name}_front", max_attempts=int(front_attempts), **shared)
+        self.side = AssemblyTask(f"{name}_side", **shared, **side_options)
+        self.front_attempts = int(front_attempts)
+        self.max_attempts = self.front_attempts + self.side.max_attempts
+        self.sphere_indices = self.side.sphere_indices
+        outs = [*self.side.outputs.values(), Port("stage", (), "1", "int64")]
+        Block.__init__(self, name, inputs=list(self.side.inputs.values()), outputs=outs, dt=FRAME_PERIOD_S,
+                       feedthrough=True)
+
+    @classmethod
+    def phase_names(cls) -> dict[int, str]:
+        """Names of the ``phase`` output's values (front stage, then side stage offset)."""
+        side = {k + cls.SIDE_PHASE_OFFSET: f"side {v}" for k, v in SidePushTask.PHASES.items() if k != FINISHED}
+        return {**{k: f"front {v}" for k, v in FrontAssemblyTask.PHASES.items() if k != FINISHED}, **side,
+                FINISHED: "finished"}
+
+    def state_vars(self):
+        return (StateVar("stage", (), "int64", description="1: front push, 2: side-push assembly"),
+                substate("front", self.front.state_vars(), "the front-push stage"),
+                substate("side", self.side.state_vars(), "the side-push stage"))
+
+    def initial_state(self, batch, rng=None):
+        return {"stage": np.ones(batch, dtype=np.int64), "front": self.front.initial_state(batch),
+                "side": self.side.initial_state(batch)}
+
+    def step(self, state, u):
+        """One frame: the running stage's outputs; stage 2 starts the frame after stage 1 ended short of eq 21."""
+        f_out, f_new = self.front.step(state["front"], u)
+        s_out, s_new = self.side.step(state["side"], u)
+        in_side = state["stage"] == 2
+        handover = ~in_side & (f_out["status"] == ATTEMPT_LIMIT)
+        out = {k: np.where(in_side.reshape((-1,) + (1,) * (np.ndim(s_out[k]) - 1)), s_out[k],
+                           f_out[k] if k in f_out else np.zeros_like(s_out[k]))
+               for k in s_out}
+        out["attempt"] = np.where(in_side, f_out["attempt"] + s_out["attempt"], f_out["attempt"])
+        out["phase"] = np.where(in_side & (s_out["phase"] != FINISHED), s_out["phase"] + self.SIDE_PHASE_OFFSET,
+                                out["phase"])
+        out["status"] = np.where(handover, RUNNING, out["status"])
+        out["phase"] = np.where(handover, self.SIDE_PHASE_OFFSET, out["phase"])
+        out["stage"] = np.where(in_side, 2, 1).astype(np.int64)
+        new = {"stage": np.where(in_side | handover, 2, 1).astype(np.int64),
+               "front": f_new, "side": _select(in_side, s_new, state["side"])}
+        return out, new
+
+    def output(self, state, u):
+        return self.step(state, u)[0]
+
+    def update(self, state, u):
+        return self.step(state, u)[1]
+
+
+def _select(mask: np.ndarray, a: dict, b: dict) -> dict:
+    """Per trial, ``a``'s entries where ``mask`` holds and ``b``'s elsewhere (nested dicts alike)."""
+    out = {}
+    for k, va in a.items():
+        vb = b[k]
+        if isinstance(va, dict):
+            out[k] = _select(mask, va, vb)
+        elif isinstance(va, np.ndarray) and va.ndim >= 1 and va.shape[0] == mask.shape[0]:
+            out[k] = np.where(mask.reshape((-1,) + (1,) * (va.ndim - 1)), va, vb)
+        else:
+            out[k] = va
+    return out
+
+
+__all__ = ["AssemblyTask", "FrontAssemblyTask", "FrontThenSideAssemblyTask"]
