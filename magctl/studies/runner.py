@@ -48,14 +48,65 @@ STEPS = ("compute", "draw", "summarise")
 """The functions every study module defines."""
 
 
+MODELS = ("closed loop", "attempt map", "analysis", "fluid model")
+"""What can produce a row's magctl number: the 30 Hz closed-loop simulation, the attempt-to-attempt
+map (eq 14–18 iterated), a closed-form or linear analysis, or the fluid model on its own."""
+VERDICTS = ("reproduced", "not reproduced", "opposite")
+
+
 @dataclass
 class PaperRow:
-    """One line of the report's "paper vs magctl" table."""
+    """One line of the report's paper-vs-magctl tables.
+
+    A row with a ``verdict`` is a claim of the paper (its §VI when ``section`` says so): it goes
+    into the claim-by-claim table, and a verdict other than "reproduced" must name its ``cause``
+    in one sentence.
+
+    Attributes
+    ----------
+    quantity : str
+        The claim or quantity.
+    paper, magctl : str
+        The paper's value or statement, and magctl's.
+    note : str
+        Anything else the reader needs (plant, trials).
+    model : str
+        Which of :data:`MODELS` produced magctl's number.
+    verdict : str
+        One of :data:`VERDICTS`, or empty for a plain comparison.
+    cause : str
+        Why the claim is not reproduced (required then).
+    section : str
+        The paper's section of the claim, e.g. "§VI-A".
+    """
 
     quantity: str
     paper: str
     magctl: str
     note: str = ""
+    model: str = ""
+    verdict: str = ""
+    cause: str = ""
+    section: str = ""
+
+    def __post_init__(self):
+        if self.model and self.model not in MODELS:
+            raise MagctlError(f"paper row {self.quantity!r}: model {self.model!r} is not one of {', '.join(MODELS)}")
+        if self.verdict and self.verdict not in VERDICTS:
+            raise MagctlError(f"paper row {self.quantity!r}: verdict {self.verdict!r} is not one of "
+                              f"{', '.join(VERDICTS)}")
+        if self.verdict and self.verdict != "reproduced" and not self.cause:
+            raise MagctlError(f"paper row {self.quantity!r}: verdict {self.verdict!r} needs its cause")
+        if self.verdict == "reproduced":
+            self.cause = ""
+
+
+def claim(section: str, quantity: str, paper: str, magctl: str, model: str, *, holds: bool,
+          cause: str, opposite: bool = False, note: str = "") -> PaperRow:
+    """A claim of the paper with its verdict: reproduced when ``holds``, otherwise "opposite" when
+    ``opposite`` (magctl finds the reverse) or "not reproduced", with ``cause``."""
+    verdict = "reproduced" if holds else "opposite" if opposite else "not reproduced"
+    return PaperRow(quantity, paper, magctl, note=note, model=model, verdict=verdict, cause=cause, section=section)
 
 
 @dataclass
