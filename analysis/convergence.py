@@ -11,7 +11,7 @@ import numpy as np
 
 from magctl.studies import runner as studies
 from magctl.studies.push import carried_errors, controller_summary, reuse_note, run_experiments
-from magctl.studies.runner import Computed, PaperRow, StudyContext
+from magctl.studies.runner import Computed, PaperRow, StudyContext, claim
 
 NAME = "convergence"
 TITLE = "Fig 14 — error versus attempt for the best front and side controllers"
@@ -32,7 +32,7 @@ def compute(ctx: StudyContext) -> Computed:
     front, side = studies.get("front-push"), studies.get("side-push")
     f_exp = front.controllers(front.model_delta0())
     f_label = next(k for k in f_exp if k.startswith("K_c=1,") and "δ(0)=0" not in k)
-    s_label = "lin, K_s=0.9"
+    s_label = side.BEST
     runs, sources = run_experiments(ctx, {f_label: f_exp[f_label], s_label: side.experiments()[s_label]}, n)
     f_err, s_err = carried_errors(runs[f_label]), carried_errors(runs[s_label])
     f_sum, s_sum = controller_summary(runs[f_label]), controller_summary(runs[s_label])
@@ -100,8 +100,17 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
                f"{every(s_all, s_lim, d['side_converged_by_attempt'])}, "
                f"95 % {after(s_95, s_lim)}; paper: all after 10.",
                "", reuse_note(r["trials_from_study"], NAME)]
-    paper = [PaperRow("attempts until all trials within ε_p, front (best)", "4",
-                      f"{after(f_all, f_lim)}; 95 % {after(f_95, f_lim)}"),
-             PaperRow("attempts until all trials within ε_p, side (best)", "10",
-                      f"{after(s_all, s_lim)}; 95 % {after(s_95, s_lim)}")]
+    f_by, s_by = d["front_converged_by_attempt"], d["side_converged_by_attempt"]
+    paper = [
+        claim("§VI-A", "Fig 14: with the best front controller every trial is within ε_p after 4 attempts",
+              "all after 4", f"{after(f_all, f_lim)}; {f_by[3]:.0%} by attempt 4, 95 % {after(f_95, f_lim)} "
+              f"({f_label})", "closed loop", holds=f_all is not None and f_all <= 4,
+              cause="the release scatters by about ±110 µm from attempt to attempt in the task (front-release "
+                    "model), wider than the 75 µm band, so each attempt misses with a fixed probability."),
+        claim("§VI-B", "Fig 14: with the best side controller every trial is within ε_p after 10 attempts",
+              "all after 10", f"{after(s_all, s_lim)}; {s_by[9]:.0%} by attempt 10, 95 % {after(s_95, s_lim)} "
+              f"({s_label})", "closed loop", holds=s_all is not None and s_all <= 10,
+              cause="ε_p is one camera pixel, so pixel noise and the ±10 % mobility scatter leave a few trials "
+                    "stepping over the band for a few more passes."),
+    ]
     return summary, paper

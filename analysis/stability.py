@@ -10,7 +10,7 @@ import numpy as np
 from magctl.control.push.common import ExpSideModel, LinSideModel
 from magctl.stability import iteration as S
 from magctl.stability import switched as W
-from magctl.studies.runner import Computed, PaperRow, StudyContext
+from magctl.studies.runner import Computed, PaperRow, StudyContext, claim
 
 NAME = "stability"
 TITLE = "Iteration-domain stability of front and side pushing (eq 13-23)"
@@ -245,6 +245,14 @@ def _draw_side_maps(curves: dict, ctx: StudyContext):
     return save_figure(fig, ctx.figure_path("stability_side_maps"), dpi=110)
 
 
+def exact_model_poles(ks: float = 1.0, rho: float = 1.0) -> dict:
+    """Poles of the side push's attempt loop with feed-forward, λ² − (2 − ρ(1 + K_s))λ + (1 − ρ), at an
+    exact model (ρ = 1): the paper's "K_s = 1 for critical damping" (§VI-B) is both poles at 0."""
+    poles = np.roots([1.0, -(2.0 - rho * (1.0 + ks)), 1.0 - rho])
+    return {"poles": "{" + ", ".join(f"{abs(p):.2g}" for p in poles) + "}",
+            "deadbeat": bool(np.all(np.abs(poles) < 1e-9))}
+
+
 def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
     """The paper's stability claims (eq 15, 20, 18, 23) beside ours."""
     r = computed.results
@@ -254,32 +262,41 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
     nl_range = r["side_nonlinear_stable_gain_range"]
     nl_range = None if nl_range is None else tuple(nl_range)
     best_front = front["K_c=1, delta0=127 µm"]
+    critical = exact_model_poles()
     paper = [
-        PaperRow("front K_c stable range", "0 < K_c < 2", "0 < K_c < 2 (pole 1 - K_c)"),
-        PaperRow("front K_c = 1", "critically damped", computed.data["front_kc1_damping"] + " (dead-beat, pole 0)"),
+        PaperRow("front K_c stable range", "0 < K_c < 2", "0 < K_c < 2 (pole 1 - K_c)", model="analysis"),
+        PaperRow("front K_c = 1", "critically damped", computed.data["front_kc1_damping"] + " (dead-beat, pole 0)",
+                 model="analysis"),
         PaperRow("front naive steady error", "~200 µm", "200 µm with 300 µm release, 100 µm overshoot",
-                 "attempt map, overshoot as the paper explains it"),
+                 "the paper's 0th-order plant with its 300 µm release and 100 µm overshoot; the closed loop's is "
+                 "in the front-push study", model="attempt map"),
         PaperRow("front best: converged by attempt 4", "all 10 trials (Fig 14)",
                  f"{best_front['p_converged_by_attempt_markov'][3]:.2f} (K_c=1, delta0=127 µm)",
-                 "Markov chain, D_p,r ~ N(300, 75^2) µm"),
+                 "Markov chain, D_p,r ~ N(300, 75^2) µm", model="attempt map"),
         PaperRow("side stability condition", "0 < K_s ratio < 2",
                  f"switched map as run: stable to ratio {r['side_switched_boundary']['0.9']} at K_s = 0.9, "
                  f"{r['side_switched_boundary']['1.5']} at K_s = 1.5 (first unstable/marginal grid ratio, step 0.05); "
                  "signed 1-D model: 0 < ratio < 2 and K_s < 4/ratio - 2",
-                 "analysis: magctl.stability.switched (over-push reverses the next pass); the signed model has no "
-                 "branches"),
+                 "magctl.stability.switched (over-push reverses the next pass); the signed model has no "
+                 "branches", model="analysis"),
         PaperRow("side local model ratio (eq 23 vs eq 22)", "~1 (K_s=0.9 for critical damping)",
-                 f"{r_lo:.2f} .. {r_hi:.2f} over the operating range", "slope ratio at the actual displacement"),
+                 f"{r_lo:.2f} .. {r_hi:.2f} over the operating range", "slope ratio at the actual displacement",
+                 model="analysis"),
         PaperRow("side best: attempts from 300 µm", "<= 10 (Fig 14)",
-                 f"{side['lin, K_s=0.9']['attempts']} (K_s=0.9, lin, eq 22 plant)"),
+                 f"{side['lin, K_s=0.9']['attempts']} (K_s=0.9, lin, eq 22 plant)",
+                 "noise-free; the closed loop's is in the convergence study", model="attempt map"),
         PaperRow("side naive D_g = 370 µm", "fails in many cases, oscillates",
                  "oscillates 52.6 / -9.2 µm, never within 7.5 µm" if side["naive D_g=370 µm"]["attempts"] < 0
-                 else f"{side['naive D_g=370 µm']['attempts']} attempts"),
+                 else f"{side['naive D_g=370 µm']['attempts']} attempts", model="attempt map"),
         PaperRow("eq 18 sign", "+K_s [D_s,act - D_s,des]",
-                 "diverges as printed; converges with -K_s", "see docs/push-control.md"),
+                 "diverges as printed; converges with -K_s", "see docs/push-control.md", model="attempt map"),
         PaperRow("eq 23: F linearised about D_s = 500 µm", "-5.29 D_s + 621 µm",
                  f"tangent there: {tangent['slope']:.3f} D_s + {tangent['intercept_um']:.0f} µm",
-                 "eq 23 fits eq 22 near D_g ~ 500 µm (D_s ~ 20 µm)"),
+                 "eq 23 fits eq 22 near D_g ~ 500 µm (D_s ~ 20 µm)", model="analysis"),
+        claim("§VI-B", "with an exact model (F_lin·F_act⁻¹ = 1) K_s = 1 is critically damped",
+              "K_s = 1.0", f"poles {critical['poles']} at K_s = 1, ρ = 1 (attempt loop with feed-forward, eq 16–19)",
+              "analysis", holds=critical["deadbeat"],
+              cause="with the feed-forward of eq 16–17 the loop has a second pole, so K_s = 1 is not dead-beat."),
     ]
     summary = [
         "Front push (eq 15): pole 1 - K_c; K_c = 1 is dead-beat (the paper's 'critically damped').",

@@ -232,7 +232,10 @@ def test_assembly_computes_from_cached_trials_and_draws(tmp_path):
         assert s["converged_fraction"] == pytest.approx(2 / 3)
         assert s["mean_attempts_all"] == pytest.approx((2 + 10 + 4) / 3)
     paths = asm.draw(computed, ctx)
-    assert [p.suffix for p in paths] == [".png", ".gif", ".gif"] and all(p.stat().st_size > 1000 for p in paths)
+    assert computed.results["fig15_side_passes_median"] == pytest.approx(np.median([2 - 1, 4 - 1]))
+    summary, paper = asm.summarise(computed)
+    assert all(row.verdict and row.section == "§VI-C" for row in paper)
+    assert [p.suffix for p in paths] == [".png", ".gif", ".gif", ".gif"] and all(p.stat().st_size > 1000 for p in paths)
 
 
 def test_cheap_studies_draw_nonempty_pngs(cheap_studies, tmp_path):

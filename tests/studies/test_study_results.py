@@ -177,5 +177,15 @@ def test_sidepush_curve_threshold_and_fit(computed):
     assert r["paper"]["a_um"] == pytest.approx(1755.0) and r["paper"]["b_per_um"] == pytest.approx(0.009042)
 
 
+def test_side_models_are_fitted_to_this_fig6_curve(computed):
+    """models/push.toml [side_fit] is the fit the sidepush-curve study computes now (regenerate it if not)."""
+    from magctl.config import load_model
+
+    fit = computed["sidepush-curve"].results["fit"]
+    stored = load_model("push").side_fit
+    assert stored.amplitude / UM == pytest.approx(fit["a_um"], rel=1e-4)
+    assert stored.rate * UM == pytest.approx(fit["b_per_um"], rel=1e-4)
+
+
 def test_cheap_studies_list(cheap_studies):
     assert set(cheap_studies["computed"]) <= set(cheap_studies["studies"]) == set(studies.discover())
