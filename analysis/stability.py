@@ -124,63 +124,78 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
             _draw_front_convergence(d["front_curves"], ctx), _draw_side_maps(d["side_curves"], ctx)]
 
 
+RE_Z = "Re z (dimensionless; z: one push attempt)"
+IM_Z = "Im z (dimensionless)"
+RATIO = "model ratio ρ = F_model slope / F_act slope\n(dimensionless)"
+K_S = "learning gain K_s (dimensionless)"
+
+
 def _draw_pole_paths(pp: dict, ctx: StudyContext):
     import control
+    from matplotlib.lines import Line2D
 
     from magctl.control.learning import side_push_law
     from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 5))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5.4))
     th = np.linspace(0, 2 * np.pi, 400)
     for ax in axes:
-        ax.plot(np.cos(th), np.sin(th), "k-", lw=0.8, label="unit circle")
+        ax.plot(np.cos(th), np.sin(th), "k-", lw=0.8, label="unit circle |z| = 1 (stability limit)")
         ax.axhline(0, color="0.8", lw=0.5)
         ax.axvline(0, color="0.8", lw=0.5)
         ax.set_aspect("equal")
-        ax.set_xlabel("Re z (z: one push attempt)")
-        ax.set_ylabel("Im z")
+        ax.set_xlabel(RE_Z)
+        ax.set_ylabel(IM_Z)
     p = pp["front"]
-    sc = axes[0].scatter(p.real, p.imag, c=pp["kc"], cmap="viridis", s=14, label="pole 1 − K_c")
+    sc = axes[0].scatter(p.real, p.imag, c=pp["kc"], cmap="viridis", s=14, label="closed-loop pole z = 1 − K_c")
     for k in (0.5, 1.0, 2.0):
         axes[0].annotate(f"K_c = {k:g}", (1 - k, 0), textcoords="offset points", xytext=(0, 10 + 10 * (k == 1)),
                          ha="center", fontsize=8)
-    fig.colorbar(sc, ax=axes[0], label="learning gain K_c", shrink=0.7)
+    fig.colorbar(sc, ax=axes[0], label="learning gain K_c (dimensionless)", shrink=0.7)
     axes[0].set_title("front push, eq 15: G_cl = K_c/(z − 1 + K_c)", fontsize=10)
     axes[0].legend(fontsize=8, loc="lower left")
     for (rho, poles), mk in zip(pp["side"].items(), ("o", "s", "^", "x"), strict=True):
         sc = axes[1].scatter(poles.real.ravel(), poles.imag.ravel(), c=np.repeat(pp["ks"], 2), cmap="plasma", s=12,
-                             marker=mk, vmin=0, vmax=float(pp["ks"][-1]), label=f"ρ = {rho:g}")
-    fig.colorbar(sc, ax=axes[1], label="learning gain K_s", shrink=0.7)
-    axes[1].legend(fontsize=8, loc="lower left", title="model ratio", title_fontsize=8)
+                             marker=mk, vmin=0, vmax=float(pp["ks"][-1]), label=f"poles at ρ = {rho:g}")
+    fig.colorbar(sc, ax=axes[1], label=K_S, shrink=0.7)
+    axes[1].legend(fontsize=7, loc="upper left", title="model ratio ρ (colour: K_s)", title_fontsize=7)
     axes[1].set_title("side push, signed 1-D model (under-push branch):\n"
                       "z² − (2 − ρ(1 + K_s))z + (1 − ρ), K_s = 0..3", fontsize=10)
     axes[1].set_xlim(-2.2, 1.3)
     axes[1].set_ylim(-1.4, 1.4)
     # python-control's pole-zero map of the signed model's closed loop (goal → error) at K_s = 0.9
-    systems = [S.side_iteration_diagram(side_push_law(0.9), rho).to_control()[1, 0] for rho in (0.5, 1.0, 1.4)]
+    ratios = (0.5, 1.0, 1.4)
+    systems = [S.side_iteration_diagram(side_push_law(0.9), rho).to_control()[1, 0] for rho in ratios]
     control.pole_zero_plot(systems, ax=axes[2], xlim=(-1.4, 1.4), ylim=(-1.4, 1.4),
-                           label=[f"K_s = 0.9, ρ = {r:g}" for r in (0.5, 1.0, 1.4)])
+                           label=[f"K_s = 0.9, ρ = {r:g}" for r in ratios])
     axes[2].set_aspect("equal")
-    axes[2].set_xlabel("Re z (z: one push attempt)")
-    axes[2].set_ylabel("Im z")
-    axes[2].legend(fontsize=8, loc="lower left")
+    axes[2].set_xlabel(RE_Z)
+    axes[2].set_ylabel(IM_Z)
+    handles, labels = axes[2].get_legend_handles_labels()
+    kinds = [Line2D([], [], ls="", marker="x", color="0.3", label="pole"),
+             Line2D([], [], ls="", marker="o", mfc="none", color="0.3", label="zero")]
+    axes[2].legend(handles=[*handles, *kinds], labels=[*labels, *(h.get_label() for h in kinds)], fontsize=8,
+                   loc="lower left", title="colour: model ratio ρ", title_fontsize=8)
     axes[2].set_title("signed model, goal → error (pole_zero_plot):\n"
                       "at ρ = 1.4 a pole is at −1.04; the switched map converges", fontsize=10)
     return save_figure(fig, ctx.figure_path("stability_pole_paths"), dpi=110)
 
 
 def _draw_regions(reg: dict, r_lo: float, r_hi: float, ctx: StudyContext):
-    from matplotlib.colors import ListedColormap
+    from matplotlib.collections import LineCollection
+    from matplotlib.colors import ListedColormap, Normalize
+    from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
     from magctl.studies.figures import pyplot, save_figure
 
     plt = pyplot()
-    fig, grid = plt.subplots(2, 3, figsize=(15, 5.6), gridspec_kw={"height_ratios": [1, 0.13]})
-    axes, legend_axes = grid[0], grid[1]
-    for ax in legend_axes:
-        ax.axis("off")
+    fig = plt.figure(figsize=(20, 6.2))
+    gs = fig.add_gridspec(2, 4, height_ratios=[1, 0.14])
+    axes = [fig.add_subplot(gs[0, i]) for i in range(4)]
+    legend_ax = fig.add_subplot(gs[1, :])
+    legend_ax.axis("off")
     green, red, amber = "#c8e6c9", "#f4c7c3", "#ffe0a3"
     rr = reg["ratios"]
     for ax, loop, title in ((axes[0], "paper", "eq 20 as printed: 0 < K_s ρ < 2"),
@@ -194,53 +209,83 @@ def _draw_regions(reg: dict, r_lo: float, r_hi: float, ctx: StudyContext):
                        shading="nearest")
     axes[2].set_title("switched map, as the task runs it (growth of |e|)", fontsize=10)
     curve = np.linspace(0.55, 3.5, 200)
-    for ax in axes:
+    for ax in axes[:3]:
         ax.plot(curve, 2 / curve, "k--", lw=1.0, label="eq 20: K_s = 2/ρ")
         ax.plot(curve[curve < 2], 4 / curve[curve < 2] - 2, "b:", lw=1.2, label="signed: K_s = 4/ρ − 2")
         ax.axvspan(r_lo, r_hi, color="0.5", alpha=0.12)
-        ax.axhline(0.9, color="0.3", ls="-.", lw=0.8)
+        ax.axhline(0.9, color="0.3", ls="-.", lw=0.8, label="K_s = 0.9 (paper)")
         ax.set_xlim(0, 3.5)
         ax.set_ylim(0, 4)
-        ax.set_xlabel("model ratio ρ = F_model slope / F_act slope")
-    axes[0].set_ylabel("learning gain K_s")
-    for ax in axes[1:]:
-        ax.set_yticklabels([])
+        ax.set_xlabel(RATIO)
+        ax.set_ylabel(K_S)
+    # the switched map's growth factor per attempt along ρ, one line per K_s (colour)
+    ax = axes[3]
+    norm = Normalize(float(sw["gains"][0]), float(sw["gains"][-1]))
+    rate = np.asarray(sw["rate"], dtype=float)
+    lines = LineCollection([np.column_stack([sw["ratios"], row]) for row in rate], cmap="plasma", norm=norm,
+                           lw=0.9, alpha=0.8)
+    lines.set_array(np.asarray(sw["gains"], dtype=float))
+    ax.add_collection(lines)
+    fig.colorbar(lines, ax=ax, label=K_S, shrink=0.9)
+    k09 = int(np.argmin(np.abs(sw["gains"] - 0.9)))
+    ax.plot(sw["ratios"], rate[k09], color="k", ls="-.", lw=2.0, zorder=5, label=f"K_s = {sw['gains'][k09]:g} (paper)")
+    ax.axhline(1.0, color="k", lw=0.8, ls="--", label="growth 1: neutral cycle")
+    ax.axvspan(r_lo, r_hi, color="0.5", alpha=0.12)
+    ax.set_xlim(0, 3.5)
+    ax.set_ylim(0, 1.6)
+    ax.set_xlabel(RATIO)
+    ax.set_ylabel("growth factor of |e| per attempt (dimensionless)")
+    ax.set_title("switched map: growth of |e| along ρ, one line per K_s", fontsize=10)
+    ax.legend(fontsize=8, loc="upper left")
     handles = [Patch(color=green, label="stable"), Patch(color=amber, label="marginal (neutral cycle)"),
-               Patch(color=red, label="unstable"), *axes[2].get_lines()[:2],
+               Patch(color=red, label="unstable"), *axes[2].get_lines()[:3],
                Patch(color="0.5", alpha=0.3, label=f"local ratio of eq 23 vs eq 22 ({r_lo:.2f}..{r_hi:.2f})"),
-               axes[2].get_lines()[-1]]
-    axes[2].get_lines()[-1].set_label("K_s = 0.9 (paper)")
-    legend_axes[1].legend(handles=handles, loc="center", ncol=4, fontsize=8, frameon=False)
+               Line2D([], [], color=plt.get_cmap("plasma")(0.6), lw=0.9, label="growth factor at one K_s (colour)")]
+    legend_ax.legend(handles=handles, loc="center", ncol=5, fontsize=8, frameon=False)
     return save_figure(fig, ctx.figure_path("stability_regions"), dpi=110)
 
 
 def _draw_front_convergence(curves: dict, ctx: StudyContext):
-    from magctl.studies.figures import pyplot, save_figure
+    from matplotlib.lines import Line2D
+
+    from magctl.studies.figures import distinct_style, pyplot, save_figure
 
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = plt.subplots(figsize=(6.6, 4.6))
     n = np.arange(1, S.FRONT_MAX_ATTEMPTS + 1)
-    for label, (markov, monte_carlo) in curves.items():
-        line, = ax.plot(n, markov, "-", label=label)
-        ax.plot(n, monte_carlo, "o", color=line.get_color(), ms=3)
-    ax.set_xlabel("pushing attempts")
-    ax.set_ylabel("fraction converged (ε_p = 75 µm)")
-    ax.set_title("front push, D_p,r ~ N(300, 75^2) µm: Markov (lines), Monte Carlo (dots)", fontsize=9)
-    ax.legend(fontsize=7)
+    handles = []
+    for i, (label, (markov, monte_carlo)) in enumerate(curves.items()):
+        style = distinct_style(i, len(curves))
+        marker = {k: style.pop(k) for k in ("marker", "ms", "markerfacecolor")}
+        ax.plot(n, markov, **style)
+        ax.plot(n, monte_carlo, ls="", color=style["color"], marker=marker["marker"], ms=4,
+                mfc=marker["markerfacecolor"], zorder=style["zorder"] + 1)
+        handles.append(Line2D([], [], color=style["color"], ls=style["ls"], lw=1.2, marker=marker["marker"], ms=4,
+                              mfc=marker["markerfacecolor"], label=label))
+    kinds = [Line2D([], [], color="0.3", lw=1.2, label="line: Markov chain"),
+             Line2D([], [], color="0.3", ls="", marker="o", ms=4, label="markers: Monte Carlo")]
+    ax.legend(handles=[*handles, *kinds], fontsize=7, loc="lower right", bbox_to_anchor=(1, 0.07))
+    ax.set_xlabel("pushing attempts (count)")
+    ax.set_ylabel("share of trials within ε_p = 75 µm (fraction)")
+    ax.set_title("front push, D_p,r ~ N(300, 75²) µm: Markov chain (lines), Monte Carlo (markers)", fontsize=9)
+    ax.grid(alpha=0.3)
     return save_figure(fig, ctx.figure_path("stability_front_convergence"), dpi=110)
 
 
 def _draw_side_maps(curves: dict, ctx: StudyContext):
-    from magctl.studies.figures import pyplot, save_figure
+    from magctl.studies.figures import distinct_style, marker_every, pyplot, save_figure
 
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for label, e in curves.items():
-        ax.semilogy(np.arange(e.size), np.maximum(e, 0.1), ".-", label=label)
-    ax.axhline(7.5, color="k", ls=":", lw=0.8)
-    ax.set_xlabel("pushing attempts")
-    ax.set_ylabel("|positioning error| (µm)")
+    fig, ax = plt.subplots(figsize=(6.6, 4.6))
+    for i, (label, e) in enumerate(curves.items()):
+        style = distinct_style(i, len(curves))
+        style["ms"] = min(style["ms"], 5)
+        ax.semilogy(np.arange(e.size), np.maximum(e, 0.1), label=label, markevery=marker_every(i, e.size), **style)
+    ax.axhline(7.5, color="k", ls=":", lw=0.8, label="ε_p = 7.5 µm", zorder=1.5)
+    ax.set_xlabel("pushing attempts (count)")
+    ax.set_ylabel("|positioning error| (µm; shown ≥ 0.1 µm)")
     ax.set_title("side push from 300 µm, plant eq 22 (attempt map)", fontsize=9)
+    ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     return save_figure(fig, ctx.figure_path("stability_side_maps"), dpi=110)
 
