@@ -140,7 +140,7 @@ class Controller:
 _SI_SUFFIX = {"m": "m", "m/s": "m_s", "rad": "rad", "1": "", "": ""}
 _PUSH_TABLES = {"front-push": ("front",), "side-push": ("side",), "assemble": ("side", "assembly"),
                 "front-side-assemble": ("side", "assembly")}
-_OPTIONAL = {"front-push": {"push_tol": "m"}, "side-push": {"fixed_gap": "m"}, "assemble": {"fixed_gap": "m"},
+_OPTIONAL = {"front-push": {}, "side-push": {"fixed_gap": "m"}, "assemble": {"fixed_gap": "m"},
              "front-side-assemble": {"fixed_gap": "m", "front_attempts": "1"}}
 
 

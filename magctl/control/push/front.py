@@ -5,7 +5,8 @@ One attempt, per trial:
 1. ``APPROACH`` — servo to ``P_ri``, a point on the pushing line ``P_s → P_g``
    ``approach`` behind the sphere, going round the sphere at ``clearance``;
 2. ``PUSH`` — drive along the line until the sphere reaches ``P_o = P_g + δ(i)·u``
-   (eq 10), i.e. ``|P_s − P_o| < push_tol`` (eq 11, ``push_tol = ε_p`` as in the paper)
+   (eq 10), i.e. ``|P_s − P_o| < push_tol`` (eq 11, ``push_tol`` = ε_p = 75 µm as in the paper,
+   ``models/push.toml``)
    or the robot is where it would stand with the sphere at ``P_o``;
 3. ``RETRACT`` — move ``retract`` back along the line (the fluid pulls the sphere
    ``D_p,r`` after it);
@@ -44,7 +45,7 @@ class FrontPushTask(PushTask, Block):
     eps : float
         ``ε_p`` of eq 12 (75 µm, §VI-A).
     push_tol : float, optional
-        Tolerance of eq 11 (default ``eps``, as printed).
+        Tolerance of eq 11 (75 µm, ``models/push.toml``: ε_p, as in the paper).
     max_attempts : int
         Attempt limit (10, §VI-A).
     contact : float
@@ -79,14 +80,15 @@ class FrontPushTask(PushTask, Block):
                  arrive_tol: float | None = None, push_speed: float | None = None, travel_speed: float | None = None,
                  settle_frames: int | None = None, max_lost_frames: int | None = None,
                  phase_timeout_frames: int | None = None, workspace: float | None = None):
-        p = with_defaults("front", kc=kc, delta0=delta0, eps=eps, max_attempts=max_attempts, contact=contact,
+        p = with_defaults("front", kc=kc, delta0=delta0, eps=eps, push_tol=push_tol, max_attempts=max_attempts,
+                          contact=contact,
                           approach=approach, retract=retract, clearance=clearance, arrive_tol=arrive_tol,
                           push_speed=push_speed, travel_speed=travel_speed, settle_frames=settle_frames,
                           max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
                           workspace=workspace)
         self._check_common("front push", name, p, goal=goal, n_spheres=n_spheres, sphere=sphere)
         self.law = law if law is not None else front_push_law(p["kc"], p["delta0"])
-        self.push_tol = self.eps if push_tol is None else check_positive("push_tol", push_tol)
+        self.push_tol = check_positive("push_tol", p["push_tol"])
         self.contact = check_positive("contact", p["contact"])
         self.approach = check_positive("approach", p["approach"])
         self.retract = check_positive("retract", p["retract"])
