@@ -147,6 +147,7 @@ FACTORIES = {
     "SidePushTask": (lambda cls: cls("side", goal=(2.5e-3, 1.5e-3), n_spheres=2, arrive_tol=500 * UM,
                                      settle_frames=1), NEAR),
     "AssemblyTask": (lambda cls: cls("assembly", arrive_tol=500 * UM, settle_frames=1), NEAR),
+    "FrontThenSideAssemblyTask": (lambda cls: cls("front_side", arrive_tol=500 * UM, settle_frames=1), NEAR),
 }
 
 BLOCKS = _block_classes()

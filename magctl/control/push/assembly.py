@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.control.push.common import ATTEMPT_LIMIT, FINISHED, RUNNING, sphere_radii, with_defaults
+from magctl.control.push.common import ATTEMPT_LIMIT, FINISHED, RUNNING, sphere_radii, task_parameters, with_defaults
 from magctl.control.push.front import FrontAssemblyTask
 from magctl.control.push.side import SidePushTask
 from magctl.core.batched import cross, norm, rotate, unit
@@ -87,8 +87,9 @@ class FrontThenSideAssemblyTask(Block):
     front_attempts : int
         Front pushes before side pushing (1, as in Fig 15).
     theta_n, eps_as, radii, ks, model, law, fixed_gap, max_attempts, …
-        Options of :class:`AssemblyTask` (the side-push stage); ``eps_as`` and ``radii`` are
-        shared with the front stage.
+        Options of :class:`AssemblyTask` (the side-push stage); ``eps_as``, ``radii`` and the
+        options every push task shares (``models/push.toml`` ``[common]``: ``arrive_tol``,
+        ``settle_frames`` …) go to the front stage too.
 
     Ports: as :class:`AssemblyTask`; ``attempt`` counts both stages' attempts, ``phase`` is the
     front stage's phase in stage 1 and the side stage's plus :data:`SIDE_PHASE_OFFSET` in stage 2,
@@ -102,8 +103,9 @@ class FrontThenSideAssemblyTask(Block):
         if int(front_attempts) < 1:
             raise MagctlError(f"assembly {name!r}: front_attempts={front_attempts} must be at least 1")
         shared = dict(n_spheres=n_spheres, moved=moved, fixed=fixed, radii=radii, eps_as=eps_as)
+        shared |= {k: side_options[k] for k in task_parameters("common") if side_options.get(k) is not None}
         self.front = FrontAssemblyTask(f"{name}_front", max_attempts=int(front_attempts), **shared)
-        self.side = AssemblyTask(f"{name}_side", **shared, **side_options)
+        self.side = AssemblyTask(f"{name}_side", **(side_options | shared))
         self.front_attempts = int(front_attempts)
         self.max_attempts = self.front_attempts + self.side.max_attempts
         self.sphere_indices = self.side.sphere_indices
