@@ -210,6 +210,11 @@ class Block:
         """
         return self.output(state, u), self.update(state, u)
 
+    def kernel(self):
+        """The block's compiled form (:class:`magctl.core.kernel.Kernel`), or None: the compiled engine
+        (:mod:`magctl.core.compiled`) runs a diagram whose every leaf has one."""
+        return None
+
     # --- analysis hooks ------------------------------------------------------------------
     def to_control(self):
         """The block as a python-control system with ``dt``; linear blocks only."""

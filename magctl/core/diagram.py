@@ -192,6 +192,15 @@ class Diagram(Block):
 
         return diagram_to_control(self)
 
+    def compile(self):
+        """This diagram as one generated, numba-compiled step (:class:`magctl.core.compiled.CompiledDiagram`).
+
+        Raises :class:`magctl.core.compiled.NotCompilable`, naming the block, when a leaf has no kernel.
+        """
+        from magctl.core.compiled import compile_diagram
+
+        return compile_diagram(self)
+
     def linearize(self, state: State, u=None, eps: float = 1e-6):
         """Linearisation about ``state`` and inputs ``u`` as a ``control.StateSpace``."""
         from magctl.core.linearize import linearize_diagram

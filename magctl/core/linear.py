@@ -15,6 +15,7 @@ from magctl import FRAME_PERIOD_S
 from magctl.core.batched import rows_times
 from magctl.core.block import Block, StateVar, as_batch
 from magctl.core.errors import WiringError
+from magctl.core.kernel import Kernel
 from magctl.core.nonlinear import vector_norm
 from magctl.core.ports import DIMENSIONLESS, Port
 
@@ -58,6 +59,11 @@ class Constant(Block):
     def output(self, state, u):
         return {"y": state["y"]}
 
+    def kernel(self):
+        from magctl.core import kernels as k
+
+        return Kernel(output=k.constant_output, update=k.no_update)
+
     def to_control(self):
         n = _size(self.outputs["y"].shape)
         return _ss(np.zeros((0, 0)), np.zeros((0, 0)), np.zeros((n, 0)), np.zeros((n, 0)), dt=self.dt)
@@ -94,6 +100,13 @@ class Gain(Block):
         x = u["u"]
         return {"y": x * self.k if self.k.ndim == 0 else rows_times(x, self.k.T)}
 
+    def kernel(self):
+        from magctl.core import kernels as k
+
+        if self.k.ndim == 0:
+            return Kernel(step=k.gain_scalar_step, params=(float(self.k),))
+        return Kernel(step=k.gain_matrix_step, params=(np.ascontiguousarray(self.k),))
+
     def to_control(self):
         n = _size(self.inputs["u"].shape)
         D = self.k * np.eye(n) if self.k.ndim == 0 else self.k
@@ -127,6 +140,11 @@ class Sum(Block):
             else:
                 y -= u[name]
         return {"y": y}
+
+    def kernel(self):
+        from magctl.core import kernels as k
+
+        return Kernel(step=k.sum_step, params=(np.asarray(self.signs, dtype=float),))
 
     def to_control(self):
         n = _size(self.outputs["y"].shape)
@@ -168,6 +186,11 @@ class Delay(Block):
         new[names[-1]] = u["u"]
         return new
 
+    def kernel(self):
+        from magctl.core import kernels as k
+
+        return Kernel(output=k.delay_output, update=k.delay_update)
+
     def to_control(self):
         n = _size(self.inputs["u"].shape)
         d = self.d
@@ -208,6 +231,11 @@ class Integrator(Block):
 
     def update(self, state, u):
         return {"x": state["x"] + (self.gain * self.dt) * u["u"]}
+
+    def kernel(self):
+        from magctl.core import kernels as k
+
+        return Kernel(output=k.delay_output, update=k.integrator_update, params=(self.gain * self.dt,))
 
     def to_control(self):
         n = _size(self.inputs["u"].shape)
@@ -283,6 +311,13 @@ class PI(Block):
     def update(self, state, u):
         return self.step(state, u)[1]
 
+    def kernel(self):
+        from magctl.core import kernels as k
+
+        mode = 0 if self.limit is None else 1 if self.norm else 2
+        limit = 0.0 if self.limit is None else self.limit
+        return Kernel(step=k.pi_step, params=(self.kp, self.ki, self.dt, limit, mode, self.saturate))
+
     def to_control(self):
         n = _size(self.inputs["e"].shape)
         eye = np.eye(n)
@@ -330,6 +365,14 @@ class StateSpace(Block):
 
     def update(self, state, u):
         return {"x": rows_times(state["x"], self.A.T) + rows_times(u["u"], self.B.T)}
+
+    def kernel(self):
+        from magctl.core import kernels as k
+
+        params = tuple(np.ascontiguousarray(m) for m in (self.A, self.B, self.C, self.D))
+        if self.feedthrough:  # x' = A x reads every x after the first x' is written: no in-place update
+            return Kernel(step=k.state_space_step, params=params, in_place=False)
+        return Kernel(output=k.state_space_output, update=k.state_space_update, params=params, in_place=False)
 
     def to_control(self):
         return _ss(self.A, self.B, self.C, self.D, dt=self.dt, states=_labels("x", (self.A.shape[0],)))

@@ -6,6 +6,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.core.block import Block, StateVar, rng_var
+from magctl.core.kernel import Kernel
 from magctl.core.ports import DIMENSIONLESS, Port
 
 
@@ -43,6 +44,11 @@ class NormSaturation(Block):
         y, sat = clip_norm(u["u"], self.limit)
         return {"y": y, "saturated": sat}
 
+    def kernel(self):
+        from magctl.core import kernels as k
+
+        return Kernel(step=k.norm_saturation_step, params=(self.limit,))
+
 
 class GaussianNoise(Block):
     """``y[k] = u[k] + σ·n[k]`` with ``n`` drawn from the trial's own stream, N(0, 1) per element.
@@ -76,3 +82,9 @@ class GaussianNoise(Block):
 
     def update(self, state, u):
         return {"rng": state["rng"], "k": state["k"] + 1}
+
+    def kernel(self):
+        from magctl.core import kernels as k
+
+        return Kernel(step=k.gaussian_noise_step, params=(self.sigma,),
+                      noise=(("standard_normal", self.inputs["u"].shape),), position="k")

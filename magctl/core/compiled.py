@@ -1,0 +1,470 @@
+"""The compiled engine: one generated, numba-compiled step — and one loop over trials and steps — for a
+whole diagram whose every leaf block has a kernel (:mod:`magctl.core.kernel`).
+
+``compile_diagram(diagram)`` (``Diagram.compile()``) lays the diagram's values out in a few flat
+buffers by dtype (parameters, state, next state, outputs, the diagram's inputs), generates Python
+source that calls every leaf's kernel in the schedule's order — feedthrough outputs first, then the
+updates of the blocks without feedthrough, then the new state; a leaf of period ``r`` base ticks
+runs when ``tick % r == 0`` and holds its outputs in between — and compiles it with numba. The
+source is written to ``$MAGCTL_CACHE/compiled`` (or ``~/.cache/magctl/compiled``) under a hash of
+its text, so numba's on-disk cache serves the next run; parameters are data, not code, so two
+diagrams that differ only in their gains share the compiled code.
+
+Semantics are the interpreted engine's (:meth:`magctl.core.diagram.Schedule.run`): same order of
+evaluation, same per-trial random streams (drawn beforehand, :func:`magctl.core.kernel.stream_draws`),
+same results to floating-point reassociation. The loop runs trial by trial (each trial's steps in
+turn), which changes nothing since trials never interact.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from magctl.core.block import as_batch
+from magctl.core.diagram import EXTERNAL, Diagram
+from magctl.core.errors import MagctlError
+from magctl.core.kernel import Kernel, compiled_vars, pack_state, port_width, stream_draws, unpack_state
+
+GROUPS = {"float64": "F", "int64": "I", "bool": "B"}
+"""Buffer of each dtype."""
+
+
+class NotCompilable(MagctlError):
+    """A diagram the compiled engine cannot run; the message names the block and why."""
+
+
+def cache_dir() -> Path:
+    """Where generated sources (and numba's cache of them) live."""
+    root = os.environ.get("MAGCTL_CACHE")
+    return (Path(root) if root else Path.home() / ".cache" / "magctl") / "compiled"
+
+
+def _group(dtype) -> str:
+    name = np.dtype(dtype).name
+    if name not in GROUPS:
+        raise NotCompilable(f"dtype {name} has no compiled buffer (float64, int64, bool only)")
+    return GROUPS[name]
+
+
+@dataclass
+class _Slot:
+    """Where one ``(B, n)`` value lives: buffer letter, offset in units of B, width n."""
+
+    group: str
+    offset: int
+    width: int
+
+    def view(self, buf: str) -> str:
+        return f"{buf}{self.group}[B * {self.offset}:B * {self.offset + self.width}].reshape(B, {self.width})"
+
+
+class _Layout:
+    """Offsets of ``(B, n)`` values packed into one flat buffer per dtype."""
+
+    def __init__(self):
+        self.used = {g: 0 for g in GROUPS.values()}
+
+    def add(self, dtype, width: int) -> _Slot:
+        g = _group(dtype)
+        slot = _Slot(g, self.used[g], width)
+        self.used[g] += width
+        return slot
+
+    def buffers(self, batch: int) -> dict[str, np.ndarray]:
+        dt = {"F": np.float64, "I": np.int64, "B": np.bool_}
+        return {g: np.zeros(batch * n, dtype=dt[g]) for g, n in self.used.items()}
+
+
+def _param_expr(value, pbufs: dict[str, list], name: str) -> str:
+    """Source that rebuilds one kernel parameter from the flat parameter buffers (filled in ``pbufs``)."""
+    arr = np.asarray(value)
+    if isinstance(value, (bool, np.bool_)):
+        g = "B"
+    elif arr.dtype.kind in "iu":
+        g = "I"
+    elif arr.dtype.kind == "b":
+        g = "B"
+    elif arr.dtype.kind == "f":
+        g = "F"
+    else:
+        raise NotCompilable(f"{name}: kernel parameter of dtype {arr.dtype} (float, int and bool only)")
+    start = len(pbufs[g])
+    pbufs[g].extend(arr.ravel().tolist())
+    if arr.ndim == 0:
+        return f"P{g}[{start}]"
+    shape = ", ".join(str(n) for n in arr.shape)
+    return f"P{g}[{start}:{start + arr.size}].reshape(({shape},))"
+
+
+def _tuple(items: list[str]) -> str:
+    if not items:
+        return "()"
+    return "(" + ", ".join(items) + ("," if len(items) == 1 else "") + ")"
+
+
+def _kernel_name(fn) -> tuple[str, str]:
+    py = getattr(fn, "py_func", None)
+    if py is None:
+        raise NotCompilable(f"kernel function {fn!r} is not a numba dispatcher")
+    return py.__module__, py.__qualname__
+
+
+class CompiledDiagram:
+    """A diagram compiled into one generated step and one generated simulation loop.
+
+    Build it with :func:`compile_diagram` (``Diagram.compile()``); :func:`magctl.core.simulate.simulate`
+    uses it with ``engine="compiled"``, and :meth:`stepper` gives the one-call-per-frame form the rig
+    runs.
+    """
+
+    def __init__(self, diagram: Diagram):
+        self.diagram = diagram
+        sched = self.schedule = diagram.schedule
+        self.kernels: list[Kernel] = []
+        for lf in sched.leaves:
+            k = lf.block.kernel()
+            if k is None:
+                raise NotCompilable(f"block {lf.path!r} ({type(lf.block).__name__}) has no compiled kernel; "
+                                    "the interpreted engine runs this diagram")
+            if (k.step is not None) != bool(lf.block.feedthrough):
+                raise NotCompilable(f"block {lf.path!r}: its kernel's form does not match its feedthrough")
+            self.kernels.append(k)
+        self._generate()
+        self._module = None
+
+    # --- layout and source ------------------------------------------------------------------------
+    def _generate(self) -> None:
+        sched, kernels = self.schedule, self.kernels
+        state, outs, ext = _Layout(), _Layout(), _Layout()
+        pbufs: dict[str, list] = {g: [] for g in GROUPS.values()}
+        self.state_slots = [[state.add(v.dtype, max(v.size, 1)) for _, v in compiled_vars(lf.block)]
+                            for lf in sched.leaves]
+        self.out_slots = [{p: outs.add(port.dtype, port_width(port)) for p, port in lf.block.outputs.items()}
+                          for lf in sched.leaves]
+        self.ext_slots = {name: ext.add(port.dtype, port_width(port)) for name, port in sched.inputs.items()}
+        self.state_layout, self.out_layout, self.ext_layout = state, outs, ext
+        param_exprs = [_tuple([_param_expr(v, pbufs, f"block {lf.path!r}") for v in k.params])
+                       for lf, k in zip(sched.leaves, kernels, strict=True)]
+        dt = {"F": np.float64, "I": np.int64, "B": np.bool_}
+        self.params = {g: np.asarray(v, dtype=dt[g]) if v else np.zeros(1, dtype=dt[g]) for g, v in pbufs.items()}
+        self.noisy = [i for i, k in enumerate(kernels) if k.noise]
+
+        imports, views = {}, []
+        for i, k in enumerate(kernels):
+            for role, fn in (("step", k.step), ("output", k.output), ("update", k.update)):
+                if fn is not None:
+                    mod, qual = _kernel_name(fn)
+                    imports[f"k{i}_{role}"] = (mod, qual)
+            views.append(f"p{i} = {param_exprs[i]}")
+            for v, slot in enumerate(self.state_slots[i]):
+                views.append(f"s{i}_{v} = {slot.view('S')}")
+                if not k.in_place:
+                    views.append(f"n{i}_{v} = {slot.view('N')}")
+            for p, slot in self.out_slots[i].items():
+                views.append(f"o{i}_{p} = {slot.view('O')}")
+        for name, slot in self.ext_slots.items():
+            views.append(f"x_{name} = {slot.view('X')}")
+        for j, i in enumerate(self.noisy):
+            views.append(f"z{i} = NOISE[{j}]")
+
+        def inputs_of(i: int) -> str:
+            return _tuple([f"x_{q}" if j == EXTERNAL else f"o{j}_{q}" for _, j, q in sched.leaves[i].wiring])
+
+        def call_args(i: int) -> dict[str, str]:
+            n_state = len(self.state_slots[i])
+            nxt = "s" if kernels[i].in_place else "n"
+            return {"params": f"p{i}",
+                    "state": _tuple([f"s{i}_{v}" for v in range(n_state)]),
+                    "next": _tuple([f"{nxt}{i}_{v}" for v in range(n_state)]),
+                    "inputs": inputs_of(i),
+                    "outputs": _tuple([f"o{i}_{p}" for p in lf_outputs(i)]),
+                    "noise": f"BASES[{i}], z{i}" if i in self.noisy else "0, ()"}
+
+        def lf_outputs(i: int) -> list[str]:
+            return list(sched.leaves[i].block.outputs)
+
+        tick_lines = []
+        multirate = [i for i, lf in enumerate(sched.leaves) if lf.ratio != 1]
+        runs = {i: (f"(tick % {sched.leaves[i].ratio} == 0 or not ran{i})" if i in multirate else "True")
+                for i in range(len(sched.leaves))}
+        for i, k in enumerate(kernels):
+            a = call_args(i)
+            cond = runs[i]
+            if i in multirate:
+                tick_lines.append(f"go{i} = {cond}")
+                cond = f"go{i}"
+            call = (f"k{i}_step(b, {a['params']}, {a['state']}, {a['next']}, {a['inputs']}, {a['outputs']}, "
+                    f"{a['noise']})" if k.step is not None else
+                    f"k{i}_output(b, {a['params']}, {a['state']}, {a['outputs']})")
+            tick_lines += _guarded(cond, [call])
+        for i, k in enumerate(kernels):
+            if k.update is not None:
+                a = call_args(i)
+                cond = f"go{i}" if i in multirate else "True"
+                tick_lines += _guarded(cond, [f"k{i}_update(b, {a['params']}, {a['state']}, {a['next']}, "
+                                              f"{a['inputs']}, {a['noise']})"])
+        for i, slots in enumerate(self.state_slots):
+            copies = [] if kernels[i].in_place else \
+                [f"for c in range({s.width}):\n    s{i}_{v}[b, c] = n{i}_{v}[b, c]" for v, s in enumerate(slots)]
+            if i in multirate:
+                copies.append(f"ran{i} = True")
+            if copies:
+                tick_lines += _guarded(f"go{i}" if i in multirate else "True", copies)
+
+        self.record_names = [f"{lf.path}.{p}" for lf in sched.leaves for p in lf.block.outputs]
+        rec_source = {f"{lf.path}.{p}": f"o{i}_{p}" for i, lf in enumerate(sched.leaves) for p in lf.block.outputs}
+        self._rec_source = rec_source
+
+        head = [f"# generated by magctl.core.compiled; kernel sources {_fingerprint(imports.values())}",
+                "import numba", "import numpy as np"]
+        head += [f"from {mod} import {qual} as {alias}" for alias, (mod, qual) in sorted(imports.items())]
+        args = "B, PF, PI, PB, SF, SI, SB, NF, NI, NB, OF, OI, OB, XF, XI, XB, BASES, NOISE, RAN"
+        lines = head + ["", "", "@numba.njit(cache=True, nogil=True, error_model=\"numpy\")",
+                        f"def run_steps(T, tick0, EXT, RECIDX, RECF, RECI, RECB, {args}):"]
+        lines += _indent(views, 1)
+        lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 1)
+        lines += ["    for b in range(B):"]
+        lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 2)
+        lines += ["        for k in range(T):", "            tick = tick0 + k"]
+        for e, (name, slot) in enumerate(self.ext_slots.items()):
+            lines += [f"            for c in range({slot.width}):",
+                      f"                x_{name}[b, c] = EXT[{e}][b, k, c]"]
+        lines += _indent(tick_lines, 3)
+        lines += _indent(self._record_lines(), 3)
+        lines += ["    return 0", "", "", "@numba.njit(cache=True, nogil=True, error_model=\"numpy\")",
+                  f"def step_once(tick, {args}):"]
+        lines += _indent(views, 1)
+        lines += ["    for b in range(B):"]
+        lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 2)
+        lines += _indent(tick_lines, 2)
+        lines += _indent([f"RAN[{i}] = ran{i}" for i in multirate], 2)
+        lines += ["    return 0", ""]
+        self.source = "\n".join(lines)
+        self.multirate = multirate
+
+    def _record_lines(self) -> list[str]:
+        """Copy the recorded outputs into the record arrays, chosen at run time by ``RECIDX``."""
+        lines = []
+        for j, name in enumerate(self.record_names):
+            src = self._rec_source[name]
+            i, p = self._leaf_port(name)
+            slot = self.out_slots[i][p]
+            lines += [f"if RECIDX[{j}] >= 0:",
+                      f"    for c in range({slot.width}):",
+                      f"        REC{slot.group}[RECIDX[{j}]][b, k, c] = {src}[b, c]"]
+        return lines
+
+    def _leaf_port(self, name: str) -> tuple[int, str]:
+        path, port = name.rsplit(".", 1)
+        for i, lf in enumerate(self.schedule.leaves):
+            if lf.path == path:
+                return i, port
+        raise KeyError(name)
+
+    # --- loading --------------------------------------------------------------------------------
+    def module(self):
+        """The generated module, written to the cache folder and imported (numba compiles it on first use)."""
+        if self._module is None:
+            digest = hashlib.sha256(self.source.encode()).hexdigest()[:20]
+            folder = cache_dir()
+            folder.mkdir(parents=True, exist_ok=True)
+            path = folder / f"magctl_gen_{digest}.py"
+            if not path.exists():
+                tmp = path.with_suffix(f".{os.getpid()}.tmp")
+                tmp.write_text(self.source)
+                os.replace(tmp, path)
+            name = f"magctl_gen_{digest}"
+            mod = sys.modules.get(name)
+            if mod is None:
+                spec = importlib.util.spec_from_file_location(name, path)
+                mod = importlib.util.module_from_spec(spec)
+                sys.modules[name] = mod
+                spec.loader.exec_module(mod)
+            self._module = mod
+        return self._module
+
+    # --- buffers --------------------------------------------------------------------------------
+    def _buffers(self, state: dict, batch: int) -> dict:
+        sched = self.schedule
+        S = self.state_layout.buffers(batch)
+        for i, lf in enumerate(sched.leaves):
+            for slot, arr in zip(self.state_slots[i], pack_state(lf.block, state["leaves"][i], batch), strict=True):
+                S[slot.group][batch * slot.offset:batch * (slot.offset + slot.width)] = arr.ravel()
+        N = {g: v.copy() for g, v in S.items()}
+        O = self.out_layout.buffers(batch)
+        ran = np.zeros(len(sched.leaves), dtype=np.bool_)
+        for i, held in enumerate(state["held"]):
+            if held is None or i not in self.multirate:
+                continue
+            ran[i] = True
+            for p, slot in self.out_slots[i].items():
+                O[slot.group][batch * slot.offset:batch * (slot.offset + slot.width)] = \
+                    np.asarray(held[p]).reshape(batch, -1).ravel()
+        return {"S": S, "N": N, "O": O, "X": self.ext_layout.buffers(batch), "ran": ran}
+
+    def _noise(self, state: dict, batch: int, steps: int) -> tuple[np.ndarray, tuple]:
+        bases = np.zeros(len(self.schedule.leaves), dtype=np.int64)
+        arrays = []
+        for i in self.noisy:
+            lf, k = self.schedule.leaves[i], self.kernels[i]
+            leaf_state = state["leaves"][i]
+            rng = leaf_state.get("rng")
+            if rng is None:
+                raise NotCompilable(f"block {lf.path!r} draws noise but its state has no stream")
+            pos = np.asarray(leaf_state[k.position]).reshape(-1)
+            base = int(pos.min())
+            count = int(pos.max()) - base + steps + 1
+            bases[i] = base
+            arrays.append(tuple(stream_draws(rng, k.noise, base, count)))
+        return bases, tuple(arrays)
+
+    def _args(self, buf: dict, batch: int, bases, noise) -> tuple:
+        P, S, N, O, X = self.params, buf["S"], buf["N"], buf["O"], buf["X"]
+        return (batch, P["F"], P["I"], P["B"], S["F"], S["I"], S["B"], N["F"], N["I"], N["B"],
+                O["F"], O["I"], O["B"], X["F"], X["I"], X["B"], bases, noise, buf["ran"])
+
+    def _unpack(self, buf: dict, state: dict, batch: int) -> dict:
+        sched = self.schedule
+        leaves = []
+        for i, lf in enumerate(sched.leaves):
+            arrays = [buf["S"][s.group][batch * s.offset:batch * (s.offset + s.width)].reshape(batch, s.width)
+                      for s in self.state_slots[i]]
+            leaves.append(unpack_state(lf.block, arrays, state["leaves"][i]))
+        return leaves
+
+    def outputs_of(self, buf: dict, batch: int, i: int) -> dict[str, np.ndarray]:
+        lf = self.schedule.leaves[i]
+        out = {}
+        for p, port in lf.block.outputs.items():
+            s = self.out_slots[i][p]
+            out[p] = buf["O"][s.group][batch * s.offset:batch * (s.offset + s.width)].reshape(
+                (batch, *port.shape)).copy()
+        return out
+
+    # --- running --------------------------------------------------------------------------------
+    def run(self, state: dict, ext: dict[str, np.ndarray], steps: int, batch: int, record: list[str]):
+        """``steps`` ticks from ``state`` with the diagram inputs ``ext`` (each ``(B, T, *shape)``).
+
+        Returns the record arrays by name (``(B, T, *shape)``) and the final diagram state.
+        """
+        sched = self.schedule
+        buf = self._buffers(state, batch)
+        bases, noise = self._noise(state, batch, steps)
+        rec_index = np.full(len(self.record_names), -1, dtype=np.int64)
+        groups: dict[str, list[np.ndarray]] = {g: [] for g in GROUPS.values()}
+        arrays = {}
+        for name in record:
+            i, p = self._leaf_port(name)
+            slot = self.out_slots[i][p]
+            dtype = {"F": np.float64, "I": np.int64, "B": np.bool_}[slot.group]
+            arr = np.empty((batch, steps, slot.width), dtype=dtype)
+            rec_index[self.record_names.index(name)] = len(groups[slot.group])
+            groups[slot.group].append(arr)
+            arrays[name] = (arr, sched.leaves[i].block.outputs[p])
+        recs = tuple(tuple(groups[g]) if groups[g] else (np.zeros((0, 0, 0), dtype=d),)
+                     for g, d in (("F", np.float64), ("I", np.int64), ("B", np.bool_)))
+        ext_arrays = tuple(np.ascontiguousarray(np.asarray(ext[name], dtype=sched.inputs[name].dtype).reshape(
+            batch, steps, -1)) for name in self.ext_slots)
+        self.module().run_steps(steps, int(state["tick"]), ext_arrays, rec_index, *recs,
+                                *self._args(buf, batch, bases, noise))
+        held = list(state["held"])
+        for i in self.multirate:
+            held[i] = self.outputs_of(buf, batch, i)
+        final = {"tick": int(state["tick"]) + steps, "leaves": self._unpack(buf, state, batch), "held": held}
+        out = {name: arr.reshape((batch, steps, *port.shape)) for name, (arr, port) in arrays.items()}
+        return out, final
+
+    def stepper(self, state: dict, batch: int) -> Stepper:
+        """The diagram stepped one tick per call from ``state`` (the rig's form: no noise)."""
+        if self.noisy:
+            names = ", ".join(repr(self.schedule.leaves[i].path) for i in self.noisy)
+            raise NotCompilable(f"blocks {names} draw noise; a compiled stepper steps noise-free diagrams only")
+        return Stepper(self, state, batch)
+
+
+class Stepper:
+    """One compiled tick per call, the state held in the compiled buffers (the rig's controller).
+
+    ``step(u)`` takes the diagram inputs (``(B, *shape)`` or one trial's value) and returns the
+    exported outputs; ``state`` gives the diagram state as the interpreted engine holds it.
+    """
+
+    def __init__(self, compiled: CompiledDiagram, state: dict, batch: int):
+        self.compiled, self.batch = compiled, int(batch)
+        self._like = state
+        self._buf = compiled._buffers(state, self.batch)
+        self._tick = int(state["tick"])
+        self._args = compiled._args(self._buf, self.batch, np.zeros(len(compiled.schedule.leaves), np.int64), ())
+        self._fn = compiled.module().step_once
+        sched = compiled.schedule
+        self._ext = [(name, self._buf["X"][slot.group], slot, sched.inputs[name])
+                     for name, slot in compiled.ext_slots.items()]
+        self._out = []
+        for name, (i, p) in sched.outputs.items():
+            slot = compiled.out_slots[i][p]
+            port = sched.leaves[i].block.outputs[p]
+            view = self._buf["O"][slot.group][self.batch * slot.offset:self.batch * (slot.offset + slot.width)]
+            self._out.append((name, view.reshape((self.batch, *port.shape))))
+
+    def step(self, u: dict | None = None) -> dict[str, np.ndarray]:
+        u = u or {}
+        b = self.batch
+        for name, buf, slot, port in self._ext:
+            if name not in u:
+                raise MagctlError(f"compiled step: diagram input {name!r} needs a value")
+            value = u[name]
+            arr = value if isinstance(value, np.ndarray) and value.shape == (b, *port.shape) else \
+                as_batch(value, port, b)
+            buf[b * slot.offset:b * (slot.offset + slot.width)] = arr.reshape(-1)
+        self._fn(self._tick, *self._args)
+        self._tick += 1
+        return {name: view.copy() for name, view in self._out}
+
+    @property
+    def state(self) -> dict:
+        """The diagram state after the last step, as the interpreted engine holds it."""
+        c = self.compiled
+        held = list(self._like["held"])
+        for i in c.multirate:
+            held[i] = c.outputs_of(self._buf, self.batch, i)
+        return {"tick": self._tick, "leaves": c._unpack(self._buf, self._like, self.batch), "held": held}
+
+
+def _fingerprint(names) -> str:
+    """A hash of the kernel modules' source files and numba's version: numba's cache of the generated
+    module checks only that module's file, so an edited kernel must change the generated text."""
+    import numba
+
+    h = hashlib.sha256(numba.__version__.encode())
+    for mod in sorted({m for m, _ in names}):
+        path = getattr(sys.modules.get(mod) or importlib.import_module(mod), "__file__", None)
+        if path:
+            h.update(Path(path).read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _guarded(cond: str, lines: list[str]) -> list[str]:
+    if cond == "True":
+        return [x for line in lines for x in line.split("\n")]
+    return [f"if {cond}:"] + _indent([x for line in lines for x in line.split("\n")], 1)
+
+
+def _indent(lines: list[str], level: int) -> list[str]:
+    pad = "    " * level
+    return [pad + line for line in lines]
+
+
+def compile_diagram(diagram: Diagram) -> CompiledDiagram:
+    """``diagram`` compiled (raises :class:`NotCompilable`, naming the block, when a leaf has no kernel)."""
+    cached = getattr(diagram, "_compiled", None)
+    if cached is None:
+        cached = CompiledDiagram(diagram)
+        diagram._compiled = cached
+    return cached
