@@ -85,6 +85,9 @@ def register(sub) -> None:
     r.add_argument("--curve-secret", type=existing_file, default=None, metavar="FILE",
                    help="this client's secret key (client.key_secret from 'magctl rig keys')")
     r.add_argument("--seed", type=seed, default=0, help="root seed (integer >= 0)")
+    r.add_argument("--engine", choices=("auto", "compiled", "interpreted"), default="auto",
+                   help="controller engine: one compiled call per frame (auto: when every block has a kernel; "
+                        "compiled before the coils are activated) or the interpreted blocks")
     r.add_argument("--quiet", action="store_true")
     add_json(r)
     r.set_defaults(func=cmd_run, parser=r)
@@ -226,7 +229,7 @@ def cmd_run(args) -> int:
                 "security": "curve" if args.curve_server_key else "null"}
     runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not (args.rig == "sim" and args.fast),
                       max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,
-                      rig_description=desc)
+                      rig_description=desc, engine=args.engine)
     try:
         report = runtime.run()
     finally:

@@ -6,7 +6,7 @@ buffers by dtype (parameters, state, next state, outputs, the diagram's inputs),
 source that calls every leaf's kernel in the schedule's order — feedthrough outputs first, then the
 updates of the blocks without feedthrough, then the new state; a leaf of period ``r`` base ticks
 runs when ``tick % r == 0`` and holds its outputs in between — and compiles it with numba. The
-source is written to ``$MAGCTL_CACHE/compiled`` (or ``~/.cache/magctl/compiled``) under a hash of
+source is written to :func:`cache_dir` under a hash of
 its text, so numba's on-disk cache serves the next run; parameters are data, not code, so two
 diagrams that differ only in their gains share the compiled code.
 
@@ -41,7 +41,11 @@ class NotCompilable(MagctlError):
 
 
 def cache_dir() -> Path:
-    """Where generated sources (and numba's cache of them) live."""
+    """Where generated sources (and numba's cache of them) live: ``$MAGCTL_COMPILED_CACHE``, else
+    ``compiled`` under ``$MAGCTL_CACHE`` or ``~/.cache/magctl``."""
+    own = os.environ.get("MAGCTL_COMPILED_CACHE")
+    if own:
+        return Path(own)
     root = os.environ.get("MAGCTL_CACHE")
     return (Path(root) if root else Path.home() / ".cache" / "magctl") / "compiled"
 
@@ -144,8 +148,8 @@ class CompiledDiagram:
         sched, kernels = self.schedule, self.kernels
         state, outs, ext = _Layout(), _Layout(), _Layout()
         pbufs: dict[str, list] = {g: [] for g in GROUPS.values()}
-        self.state_slots = [[state.add(v.dtype, max(v.size, 1)) for _, v in compiled_vars(lf.block)]
-                            for lf in sched.leaves]
+        self.vars = [compiled_vars(lf.block) for lf in sched.leaves]
+        self.state_slots = [[state.add(v.dtype, max(v.size, 1)) for _, v in variables] for variables in self.vars]
         self.out_slots = [{p: outs.add(port.dtype, port_width(port)) for p, port in lf.block.outputs.items()}
                           for lf in sched.leaves]
         self.ext_slots = {name: ext.add(port.dtype, port_width(port)) for name, port in sched.inputs.items()}
@@ -295,7 +299,8 @@ class CompiledDiagram:
         sched = self.schedule
         S = self.state_layout.buffers(batch)
         for i, lf in enumerate(sched.leaves):
-            for slot, arr in zip(self.state_slots[i], pack_state(lf.block, state["leaves"][i], batch), strict=True):
+            packed = pack_state(lf.block, state["leaves"][i], batch, self.vars[i])
+            for slot, arr in zip(self.state_slots[i], packed, strict=True):
                 S[slot.group][batch * slot.offset:batch * (slot.offset + slot.width)] = arr.ravel()
         N = {g: v.copy() for g, v in S.items()}
         O = self.out_layout.buffers(batch)
@@ -336,7 +341,7 @@ class CompiledDiagram:
         for i, lf in enumerate(sched.leaves):
             arrays = [buf["S"][s.group][batch * s.offset:batch * (s.offset + s.width)].reshape(batch, s.width)
                       for s in self.state_slots[i]]
-            leaves.append(unpack_state(lf.block, arrays, state["leaves"][i]))
+            leaves.append(unpack_state(lf.block, arrays, state["leaves"][i], self.vars[i]))
         return leaves
 
     def outputs_of(self, buf: dict, batch: int, i: int) -> dict[str, np.ndarray]:

@@ -92,20 +92,21 @@ def compiled_vars(block: Block) -> list[tuple[tuple[str, ...], StateVar]]:
     return out
 
 
-def pack_state(block: Block, state: dict, batch: int) -> list[np.ndarray]:
-    """``state`` as the kernel's arrays: one ``(B, n)`` array per entry of :func:`compiled_vars`."""
+def pack_state(block: Block, state: dict, batch: int, variables=None) -> list[np.ndarray]:
+    """``state`` as the kernel's arrays: one ``(B, n)`` array per entry of :func:`compiled_vars` (or of
+    ``variables``, that list computed once)."""
     arrays = []
-    for keys, var in compiled_vars(block):
+    for keys, var in (compiled_vars(block) if variables is None else variables):
         value = np.asarray(state_get(state, keys), dtype=var.dtype)
         rows = value.reshape(value.shape[0], -1) if var.batched else value.reshape(1, -1)
         arrays.append(np.array(np.broadcast_to(rows, (batch, max(var.size, 1))), dtype=var.dtype))
     return arrays
 
 
-def unpack_state(block: Block, arrays: Sequence[np.ndarray], like: dict) -> dict:
+def unpack_state(block: Block, arrays: Sequence[np.ndarray], like: dict, variables=None) -> dict:
     """The kernel's arrays back into a state dict shaped as ``like`` (streams and the rest kept from it)."""
     state = like
-    for (keys, var), arr in zip(compiled_vars(block), arrays, strict=True):
+    for (keys, var), arr in zip(compiled_vars(block) if variables is None else variables, arrays, strict=True):
         if var.batched:
             value = arr.reshape((arr.shape[0], *var.shape)).copy()
         else:

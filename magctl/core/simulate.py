@@ -13,6 +13,7 @@ a slice of a larger experiment).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -188,7 +189,7 @@ def simulate(
     state: dict | None = None,
     check_finite: bool = True,
     check_every: int = 64,
-    engine: str = "interpreted",
+    engine: str | None = None,
 ) -> SimResult:
     """Simulate ``batch`` trials of ``diagram`` for ``steps`` base periods.
 
@@ -215,13 +216,15 @@ def simulate(
         Scan recorded signals for NaN/inf every ``check_every`` steps and raise
         :class:`NonFiniteSignalError` naming the producing block and port, the
         consuming inputs and the first step; ``partial`` holds what ran before.
-    engine : {"interpreted", "compiled", "auto"}
+    engine : {"interpreted", "compiled", "auto"}, optional
         ``"compiled"`` runs the diagram's generated, numba-compiled loop (:mod:`magctl.core.compiled`;
         every leaf needs a kernel, else :class:`~magctl.core.compiled.NotCompilable` names the block);
         ``"auto"`` does so when it can and interprets otherwise. Same results either way (to
         floating-point reassociation), trial by trial. A compiled run scans for non-finite values once,
-        after its last step.
+        after its last step. Default: ``$MAGCTL_ENGINE``, else ``"interpreted"``.
     """
+    if engine is None:
+        engine = os.environ.get("MAGCTL_ENGINE") or "interpreted"
     if engine not in ENGINES:
         raise ValueError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
     sched = diagram.schedule

@@ -32,7 +32,9 @@ from typing import Any
 import numpy as np
 
 from magctl.config import load_file, models_dir
-from magctl.rig.interface import Lifecycle, Rig, RigError
+from magctl.core.compiled import NotCompilable
+from magctl.core.errors import MagctlError
+from magctl.rig.interface import Lifecycle, Observation, Rig, RigError
 from magctl.rig.log import RunLogWriter, descriptor_fields, limits_to_doc, models_snapshot
 from magctl.rig.tasks import Controller, Task, build_task
 
@@ -92,8 +94,9 @@ class Runtime:
 
     def __init__(self, rig: Rig, task: str, options: dict | None = None, *, log_path=None, realtime: bool = True,
                  max_ticks: int | None = None, duration: float | None = None, seed: int = 0, params_path=None,
-                 quiet: bool = False, rig_description: dict | None = None):
+                 quiet: bool = False, rig_description: dict | None = None, engine: str = "auto"):
         self.rig, self.task_name, self.options = rig, task, dict(options or {})
+        self.engine = engine
         self.log_path = None if log_path is None else Path(log_path)
         self.realtime, self.max_ticks, self.duration, self.seed = realtime, max_ticks, duration, seed
         self.params_path = Path(params_path) if params_path else models_dir() / "rig.toml"
@@ -131,6 +134,29 @@ class Runtime:
         print(f"[{t:6.1f} s] {final['status']}{extra}  robot ({robot}) µm  spheres {spheres} µm",
               file=sys.stderr, flush=True)
 
+    def _prepare_engine(self) -> None:
+        """Compile the task's controller before the coils are live, so the first frame does not wait on numba.
+
+        The compiled code depends on the controller's structure only (its numbers are data), so a
+        controller built for a stand-in first observation compiles and runs the code the real one
+        will use; errors are left for the real build, after activation, to report.
+        """
+        if self.engine == "interpreted":
+            return
+        n = self.rig.n_spheres
+        obs = Observation(t=0.0, frame=0, robot_est=np.array([1.0e-3, 1.0e-3]), heading_est=0.0,
+                          spheres_est=np.array([[2.0e-3 + 0.6e-3 * i, 1.5e-3] for i in range(n)]).reshape(n, 2),
+                          lost=False)
+        try:
+            ctrl = Controller(build_task(self.task_name, obs, self.options, self.params), seed=self.seed,
+                              engine=self.engine)
+            ctrl.step(obs)
+        except NotCompilable:
+            if self.engine == "compiled":
+                raise
+        except MagctlError:
+            pass
+
     def _models_snapshot(self) -> dict[str, str]:
         """Every parameter file of the models folder, with rig.toml as actually used by this run."""
         files = models_snapshot(models_dir())
@@ -146,6 +172,7 @@ class Runtime:
         rig = self.rig
         if rig.state is Lifecycle.UNCONFIGURED:
             rig.configure()
+        self._prepare_engine()
         rig.activate()
         writer = None
         old_handlers = self._install_signals()
@@ -155,7 +182,7 @@ class Runtime:
         try:
             first = rig.read()
             task = build_task(self.task_name, first, self.options, self.params)
-            ctrl = Controller(task, seed=self.seed)
+            ctrl = Controller(task, seed=self.seed, engine=self.engine)
             if self.log_path is not None:
                 writer = RunLogWriter(self.log_path)
                 writer.start(task=task.name, options=task.options, seed=self.seed, rig=self.rig_description,

@@ -28,8 +28,10 @@ from magctl.config import UNITS, Params, load_model, split_unit
 from magctl.control.push.common import SIDE_MODELS, task_parameters
 from magctl.control.servo import default_servo_setting, servo_params, servo_settings
 from magctl.control.status import STATUS_NAMES, Status
+from magctl.core.compiled import NotCompilable
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
+from magctl.core.simulate import ENGINES
 from magctl.loops import COMMAND, OBSERVATION, controller, default_goal, sphere_count
 from magctl.rig.interface import Command, Observation
 
@@ -116,22 +118,48 @@ class Controller:
     """A task diagram stepped with B = 1, one frame per observation.
 
     ``step(obs)`` returns the field command and the task's other outputs; ``reset()``
-    restores the initial state (the runtime calls it on every activation).
+    restores the initial state (the runtime calls it on every activation). With ``engine``
+    ``"compiled"`` or ``"auto"`` a diagram whose blocks all have kernels runs as one compiled call
+    per frame (:meth:`magctl.core.compiled.CompiledDiagram.stepper`), with the same commands.
     """
 
-    def __init__(self, task: Task, seed: int = 0):
-        self.task, self.seed = task, seed
+    def __init__(self, task: Task, seed: int = 0, engine: str = "auto"):
+        if engine not in ENGINES:
+            raise TaskError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
+        self.task, self.seed, self.engine = task, seed, engine
         self.diagram = task.diagram
         self._inputs = list(self.diagram.inputs)
+        self._compiled = None
+        if engine != "interpreted":
+            try:
+                self._compiled = self.diagram.compile()
+            except NotCompilable:
+                if engine == "compiled":
+                    raise
         self.reset()
 
+    @property
+    def compiled(self) -> bool:
+        """Whether frames run as one compiled call."""
+        return self._compiled is not None
+
     def reset(self) -> None:
-        self.state = self.diagram.initial_state(1, seed=self.seed)
+        state = self.diagram.initial_state(1, seed=self.seed)
+        self._stepper = None if self._compiled is None else self._compiled.stepper(state, 1)
+        self._state = state
+
+    @property
+    def state(self) -> dict:
+        """The controller's state after the last frame."""
+        return self._state if self._stepper is None else self._stepper.state
 
     def step(self, obs: Observation) -> tuple[Command, dict[str, np.ndarray]]:
         signals = obs.controller_inputs()
         u = {n: signals[n] for n in self._inputs}
-        outs, self.state = self.diagram.step(self.state, u)
+        if self._stepper is not None:
+            outs = self._stepper.step(u)
+        else:
+            outs, self._state = self.diagram.step(self._state, u)
         cmd = Command(np.array(outs["b_static"][0], dtype=float), float(outs["b_osc"][0]), float(outs["freq"][0]))
         return cmd, outs
 
