@@ -142,6 +142,7 @@ class CompiledDiagram:
             self.kernels.append(k)
         self._generate()
         self._module = None
+        self._drawn: dict[int, tuple] = {}
 
     # --- layout and source ------------------------------------------------------------------------
     def _generate(self) -> None:
@@ -315,6 +316,11 @@ class CompiledDiagram:
         return {"S": S, "N": N, "O": O, "X": self.ext_layout.buffers(batch), "ran": ran}
 
     def _noise(self, state: dict, batch: int, steps: int) -> tuple[np.ndarray, tuple]:
+        """Every noisy leaf's draws for the positions the next ``steps`` ticks can reach.
+
+        Draws are kept with their stream (keyed by the stream object, which a run's successive states
+        share) and extended by doubling, so a run simulated in chunks draws each position once.
+        """
         bases = np.zeros(len(self.schedule.leaves), dtype=np.int64)
         arrays = []
         for i in self.noisy:
@@ -324,10 +330,19 @@ class CompiledDiagram:
             if rng is None:
                 raise NotCompilable(f"block {lf.path!r} draws noise but its state has no stream")
             pos = np.asarray(leaf_state[k.position]).reshape(-1)
-            base = int(pos.min())
-            count = int(pos.max()) - base + steps + 1
-            bases[i] = base
-            arrays.append(tuple(stream_draws(rng, k.noise, base, count)))
+            lo, hi = int(pos.min()), int(pos.max()) + steps + 1
+            drawn = self._drawn.get(id(rng))
+            if drawn is None or drawn[0] is not rng or drawn[1] > lo or drawn[1] + drawn[2][0].shape[1] < hi:
+                extend = drawn is not None and drawn[0] is rng
+                start = min(lo, drawn[1]) if extend else lo
+                count = 2 * (hi - start) if extend else hi - start
+                drawn = (rng, start, stream_draws(rng, k.noise, start, count))
+                self._drawn[id(rng)] = drawn
+                while len(self._drawn) > 16:      # the streams of the last few runs only
+                    self._drawn.pop(next(iter(self._drawn)))
+            bases[i] = drawn[1]
+            arrays.append(tuple(drawn[2]))
+            rng.compiled_position = max(rng.compiled_position, hi)
         return bases, tuple(arrays)
 
     def _args(self, buf: dict, batch: int, bases, noise) -> tuple:

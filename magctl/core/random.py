@@ -59,6 +59,9 @@ class TrialStreams:
         self.chunk = int(chunk)
         self._buffers: dict[tuple, list] = {}
         self._memo: dict[tuple, list] = {}
+        self.compiled_position = 0
+        """Positions the compiled engine has drawn from these streams' seed sequences (it does not
+        move the generators, so the memo cannot start after them)."""
 
     @classmethod
     def for_block(cls, seed: int, trials: Sequence[int], path: str, chunk: int = 256) -> TrialStreams:
@@ -103,6 +106,10 @@ class TrialStreams:
         key = (kind, shape)
         entry = self._memo.get(key)
         if entry is None:
+            if self.compiled_position and at > 0:
+                raise MagctlError(
+                    f"random stream asked for step {at} after the compiled engine drew its steps up to "
+                    f"{self.compiled_position}; continue it with engine='compiled'")
             entry = self._memo[key] = [at, self._refill(kind, shape), None]
         off = at - entry[0]
         if 0 <= off < self.chunk:

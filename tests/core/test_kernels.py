@@ -120,3 +120,43 @@ def test_engine_name_is_checked():
     d = wrapped(Gain("g", 2.0))
     with pytest.raises(ValueError, match="engine 'fast'"):
         simulate(d, 3, inputs={"u": 1.0}, engine="fast")
+
+
+def test_a_run_in_chunks_is_the_run_in_one_on_either_engine():
+    from magctl.core.errors import MagctlError
+    from magctl.testing import b1_diagram
+
+    d = b1_diagram()
+    ref = simulate(d, 600, batch=3, seed=4)
+    state, parts = None, []
+    for k, engine in enumerate(("interpreted", "compiled", "compiled", "interpreted")):
+        r = simulate(d, 150, batch=3, seed=4, state=state, engine=engine)
+        state = r.final_state
+        parts.append(r["y"])
+        assert r.t[0] == pytest.approx(150 * k * d.dt)
+    np.testing.assert_allclose(np.concatenate(parts, axis=1), ref["y"], rtol=RTOL, atol=0)
+    assert state["tick"] == ref.final_state["tick"] == 600
+    # the interpreted streams cannot start after positions only the compiled engine has drawn
+    first = simulate(d, 20, batch=3, seed=4, engine="compiled")
+    with pytest.raises(MagctlError, match="continue it with engine='compiled'"):
+        simulate(d, 10, batch=3, seed=4, state=first.final_state)
+
+
+def test_the_compiled_stepper_is_the_interpreted_step():
+    from magctl.core.linear import PI, Delay, Integrator
+
+    d = Diagram("loop", [PI("pi", 1.2, 0.4, shape=(2,), limit=1.0), Integrator("x", shape=(2,), out_unit="1"),
+                         Delay("d", 2, shape=(2,))],
+                [("pi.u", "x.u"), ("x.y", "d.u")], inputs={"e": "pi.e"}, outputs={"y": "d.y", "sat": "pi.saturated"})
+    state = d.initial_state(2, seed=0)
+    stepper = d.compile().stepper(state, 2)
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        e = rng.standard_normal((2, 2))
+        ref, state = d.step(state, {"e": e})
+        got = stepper.step({"e": e})
+        for name in ref:
+            assert_close(ref[name], got[name], name)
+    for a, b in zip(state["leaves"], stepper.state["leaves"], strict=True):
+        for key in a:
+            assert_close(a[key], b[key], key)
