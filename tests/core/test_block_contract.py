@@ -167,6 +167,7 @@ def _variants() -> dict:
     from magctl.plant.fluid.params import sphere_params
     from magctl.plant.robot import StickSlipRobot
     from magctl.plant.sphere import Spheres
+    from magctl.plant.standin import KinematicRobot, StandinTracker
     from magctl.sensing.camera import Camera
     from magctl.sensing.tracker import Tracker
 
@@ -177,6 +178,8 @@ def _variants() -> dict:
         "Tracker, raw, NaN on loss": lambda: Tracker("tracker", n_spheres=1, mode="raw", on_loss="nan"),
         "Servo, basic PI": lambda: Servo("servo", anti_windup=False, constant_speed=True),
         "StickSlipRobot, no variability": lambda: StickSlipRobot("robot", variability=False),
+        "KinematicRobot, steer input": lambda: KinematicRobot("robot", start=(1e-3, 1e-3), steer_input=True),
+        "StandinTracker, sphere loss": lambda: StandinTracker("tracker", 2, 1.6e-3, sphere_loss=(0.3, np.inf)),
         # eq 4-5 and 9 as printed, with adhesion, sticky patches and release scatter drawn at step 0
         "Spheres, paper drag, adhesion, scattered": lambda: Spheres(
             SPHERES, compiled=False, drag_mode="paper",

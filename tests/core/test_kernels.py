@@ -94,6 +94,41 @@ def test_kernel_variants_match_the_numpy_form(name):
     compare_engines(block, {})
 
 
+def test_standin_spheres_kernel_side_pass_release_and_separation():
+    """The stand-in spheres' paths the factory's straight push does not reach: a side pass (eq 22; also
+    with a scale per trial), a release with its per-trial draw when the robot backs off, and spheres
+    pushed into each other."""
+    from magctl.plant.standin import StandinSpheres
+
+    um = 1e-6
+    spheres = [[1.4e-3, 1.5e-3], [1.62e-3, 1.5e-3], [2.0e-3, 1.9e-3]]
+
+    def make(scale):
+        return StandinSpheres("spheres", spheres, 250 * um, release_mean=300 * um, release_std=75 * um,
+                              side_range=600 * um, sphere_radius=105 * um, start_robot=(1.0e-3, 1.5e-3),
+                              side_scale=scale)
+
+    def robot(rng, k):     # ahead along +x, then back, then aside; each trial a little off the line
+        x = 1.0e-3 + 1e-4 * k if k < 20 else (2.9e-3 - 1e-4 * (k - 20) if k < 30 else 1.9e-3)
+        y = 1.5e-3 + (0.0 if k < 30 else 1e-4 * (k - 30))
+        return np.array([[x, y + 10 * um * b] for b in range(BATCH)])
+
+    block = make(1.3)
+    compare_engines(block, {"position": robot})
+    d = wrapped(block)
+    u = input_series(block, {"position": robot})
+    ref = simulate(d, STEPS, batch=BATCH, seed=11, inputs=u, check_finite=False)
+    assert ref["releases"][:, -1].min() >= 1 and len(set(ref["last_release"][:, -1])) == BATCH   # drawn per trial
+    assert np.abs(ref["spheres"][:, -1, 2] - np.array(spheres[2])).max() > 1e-5                   # side pass
+    # one scale per trial: row b's (a trial run alone would take the first, in either engine)
+    d = wrapped(make([1.0, 0.7, 1.3]))
+    ref = simulate(d, STEPS, batch=BATCH, seed=11, inputs=u, check_finite=False)
+    got = simulate(d, STEPS, batch=BATCH, seed=11, inputs=u, check_finite=False, engine="compiled")
+    for name in ("spheres", "contact", "releases", "last_release"):
+        assert_close(ref[name], got[name], name)
+    assert len({round(float(x), 9) for x in ref["spheres"][:, 16, 2, 0]}) == BATCH      # passed, scaled
+
+
 def test_a_block_without_kernel_is_named_and_the_auto_engine_interprets():
     from magctl.core.block import Block
     from magctl.core.linear import Gain
