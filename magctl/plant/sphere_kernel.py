@@ -6,7 +6,10 @@ by the arithmetic. This module runs the same frame — flow look-up in the robot
 map, inertia-free move ``V_p = k U`` (eq 4), gap balance (eq 8–9; in the ``accurate`` mode
 with Brenner's and Goren & O'Neill's wall factors, ``Spheres._gap_rate``), non-penetration of
 the footprint and between spheres — as one numba-compiled loop over trials, spheres
-and sub-steps, with the same operations in the same order per trial.
+and sub-steps, with the same operations in the same order per trial. One trial's frame is
+:func:`trial_frame`; the batch frame :func:`sphere_frame` calls it for every trial, and the block's
+kernel for the compiled engine (:func:`spheres_output`, :func:`spheres_update`, the convention of
+:mod:`magctl.core.kernel`) calls it for the trial it is given.
 
 Off the flow map it sums the flow's far-field point forces (``RobotFlow.points/forces``)
 as Blake Stokeslets — singular ones (``eps = 0``) for the boundary-element flow — as the
@@ -38,8 +41,6 @@ from magctl.plant.fluid.wall_drag import (
 )
 
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
-frame_jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-"""The frame's larger functions, compiled as calls (inlining them into every caller only lengthens compilation)."""
 
 # a push-out pass counts a centre as touching below this fraction of R (the array form's tolerance)
 _TOUCH = 1.0 - 1e-9
@@ -259,11 +260,8 @@ def _separate(xy, b, radius, iterations, cx, cy):
                 k += 1
 
 
-@frame_jit
-def trial_frame(b, xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps,
-                viscosity, height, x0, y0, dx, dy, ab2, y1, radius, reach, box_x, box_y, sink_rate, held_rate,
-                adhesion_range, k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact, table,
-                cx, cy, scratch):
+@jit
+def trial_frame(b, xy, gap, mult, pos, vel, turn, frame, flow, footprint, table, work):
     """One frame of ``n_sub`` sub-steps for trial ``b``'s spheres, in place; returns whether some
     sphere touched the robot. Every sub-step: the flow at each centre (map in the robot frame, or
     the Stokeslets off it), the inertia-free move ``V_p = k U`` of eq 4 with the mobility capped at
@@ -272,9 +270,18 @@ def trial_frame(b, xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx,
 
     ``xy (B, 2N)`` centres ``(x₀, y₀, x₁, …)`` [m], ``gap (B, N)`` δ [m], ``mult (B, N)`` mobility
     multipliers; ``pos, vel, turn`` the robot's position, held velocity and ``e^{iθ}`` as complex
-    numbers; ``cx, cy`` (one per sphere pair) and ``scratch (8,)`` work arrays. The rest as
-    :func:`sphere_frame`.
+    numbers. The other arguments of :func:`sphere_frame` come in tuples (few arguments, so that the
+    call can be inlined): ``frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate,
+    adhesion_range, k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact)``,
+    ``flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)``, ``footprint = (x0, y0,
+    dx, dy, ab2, y1)``, the wall ``table``, and ``work = (cx, cy, scratch)``: work arrays, one
+    correction per sphere pair and ``(8,)`` for :func:`wall_functions`.
     """
+    (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
+     roughness, inv_lambda_contact, flow_push_contact) = frame
+    flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height = flow
+    x0, y0, dx, dy, ab2, y1 = footprint
+    cx, cy, scratch = work
     n = gap.shape[1]
     back = turn.conjugate()
     vb = vel * back
@@ -370,11 +377,13 @@ def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, d
     cx = np.empty(npair)
     cy = np.empty(npair)
     scratch = np.empty(8)
+    frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
+             roughness, inv_lambda_contact, flow_push_contact)
+    flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)
+    footprint = (x0, y0, dx, dy, ab2, y1)
+    work = (cx, cy, scratch)
     for b in range(batch):
-        contact[b] = trial_frame(b, xy, gap, mult, pos[b], vel[b], turn[b], n_sub, tau, flat, gx, gy, dgx, dgy,
-                                 points, forces, eps, viscosity, height, x0, y0, dx, dy, ab2, y1, radius, reach,
-                                 box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
-                                 roughness, inv_lambda_contact, flow_push_contact, table, cx, cy, scratch)
+        contact[b] = trial_frame(b, xy, gap, mult, pos[b], vel[b], turn[b], frame, flow, footprint, table, work)
     return contact
 
 
@@ -409,8 +418,10 @@ def spheres_update(b, params, state, next_state, inputs, base, noise):
     turn = complex(np.cos(h), np.sin(h))
     pos = complex(position[b, 0], position[b, 1])
     vel = complex(velocity[b, 0], velocity[b, 1])
+    frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
+             roughness, inv_lambda_contact, flow_push_contact)
+    flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)
+    footprint = (x0, y0, dx, dy, ab2, y1)
     table = (knots, coef, signs, near_lo, near_hi, far_lo, far_hi)
-    ncontact[b, 0] = trial_frame(b, nxy, ngap, nmult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dgy, points,
-                                 forces, eps, viscosity, height, x0, y0, dx, dy, ab2, y1, radius, reach, box_x,
-                                 box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode, roughness,
-                                 inv_lambda_contact, flow_push_contact, table, cx, cy, scratch)
+    ncontact[b, 0] = trial_frame(b, nxy, ngap, nmult, pos, vel, turn, frame, flow, footprint, table,
+                                 (cx, cy, scratch))
