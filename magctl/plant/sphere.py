@@ -351,22 +351,40 @@ class Spheres(Block):
             return self._update_arrays(state, u)
         return self.compiled_frame(state, u)
 
+    def _frame_args(self) -> tuple:
+        """The arguments of :func:`~magctl.plant.sphere_kernel.trial_frame` after the robot's motion,
+        up to the wall table: sub-steps, flow, footprint and the balance's constants."""
+        flat, dgx, dgy = self.flow._flat_maps()
+        return (self.params.substeps, self.dt / self.params.substeps, flat, self.flow.gx, self.flow.gy, dgx, dgy,
+                self.flow.points, self.flow.forces, self.flow.eps, self.flow.viscosity, self.flow.height,
+                *self._edges, self.radius, self.reach, self._box[0], self._box[1], self.buoyant_weight / self.zeta,
+                (self.buoyant_weight + self.pull_off) / self.zeta, self.params.adhesion_range, self._k_contact,
+                self.mode == "paper", self.roughness, self._inv_lambda_contact, self._flow_push_contact)
+
     def compiled_frame(self, state, u) -> dict:
         """One frame by :func:`~magctl.plant.sphere_kernel.sphere_frame`: the next state."""
-        z = _complex(state["xy"])
+        batch = state["xy"].shape[0]
+        xy = np.array(state["xy"], float).reshape(batch, 2 * self.n)
         gap = state["gap"].copy()
         mult = state["mobility"]
         heading = np.asarray(u["heading"], float)
-        flat, dgx, dgy = self.flow._flat_maps()
         contact = sphere_frame(
-            z, gap, mult, _complex(np.asarray(u["position"], float)),
+            xy, gap, mult, _complex(np.asarray(u["position"], float)),
             _complex(np.asarray(u["velocity"], float)), np.cos(heading) + 1j * np.sin(heading),
-            self.params.substeps, self.dt / self.params.substeps, flat, self.flow.gx, self.flow.gy, dgx, dgy,
-            self.flow.points, self.flow.forces, self.flow.eps, self.flow.viscosity, self.flow.height,
-            *self._edges, self.radius, self.reach, self._box[0], self._box[1], self.buoyant_weight / self.zeta,
-            (self.buoyant_weight + self.pull_off) / self.zeta, self.params.adhesion_range, self._k_contact,
-            self.mode == "paper", self.roughness, self._inv_lambda_contact, self._flow_push_contact, self._wall)
-        return {"xy": np.stack([z.real, z.imag], axis=-1), "gap": gap, "mobility": mult, "contact": contact}
+            *self._frame_args(), self._wall)
+        return {"xy": xy.reshape(batch, self.n, 2), "gap": gap, "mobility": mult, "contact": contact}
+
+    def kernel(self):
+        """The compiled engine's form (:func:`~magctl.plant.sphere_kernel.spheres_update`): the same
+        sub-steps as :meth:`compiled_frame`, one trial per call. Solves the flow if not yet done."""
+        from magctl.core.kernel import Kernel
+        from magctl.plant import sphere_kernel as k
+
+        pairs = max(self.n * (self.n - 1) // 2, 1)
+        work = (np.zeros(pairs), np.zeros(pairs), np.zeros(8))     # scratch, rewritten by every call
+        params = tuple(np.ascontiguousarray(a) if isinstance(a, np.ndarray) else a
+                       for a in (*self._frame_args(), *self._wall, *work))
+        return Kernel(output=k.spheres_output, update=k.spheres_update, params=params)
 
     def _update_arrays(self, state, u):
         """One frame in numpy array operations (the reference form of the compiled frame)."""

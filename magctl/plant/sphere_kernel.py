@@ -6,7 +6,10 @@ by the arithmetic. This module runs the same frame — flow look-up in the robot
 map, inertia-free move ``V_p = k U`` (eq 4), gap balance (eq 8–9; in the ``accurate`` mode
 with Brenner's and Goren & O'Neill's wall factors, ``Spheres._gap_rate``), non-penetration of
 the footprint and between spheres — as one numba-compiled loop over trials, spheres
-and sub-steps, with the same operations in the same order per trial.
+and sub-steps, with the same operations in the same order per trial. One trial's frame is
+:func:`trial_frame`; the batch frame :func:`sphere_frame` calls it for every trial, and the block's
+kernel for the compiled engine (:func:`spheres_output`, :func:`spheres_update`, the convention of
+:mod:`magctl.core.kernel`) calls it for the trial it is given.
 
 Off the flow map it sums the flow's far-field point forces (``RobotFlow.points/forces``)
 as Blake Stokeslets — singular ones (``eps = 0``) for the boundary-element flow — as the
@@ -37,46 +40,69 @@ from magctl.plant.fluid.wall_drag import (
     smoothstep,
 )
 
+jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+
 # a push-out pass counts a centre as touching below this fraction of R (the array form's tolerance)
 _TOUCH = 1.0 - 1e-9
 
 
-@numba.njit(cache=True, nogil=True)
+@jit
+def _stokeslet_term(f0, f1, f2, r0, r1, r2, b0, b1, b2, d3, w_direct, ib, ib3, ib5, c_g, h):
+    """One unit motion's share of a Blake Stokeslet at ``r`` (from the point) and ``big`` (from its image):
+    the increments of ``(u_x, u_y, u_z)`` and the image's extra vertical term."""
+    g0, g1, g2 = f0, f1, -f2                             # the mirrored force
+    rf = r0 * f0 + r1 * f1 + r2 * f2
+    rrf = b0 * f0 + b1 * f1 + b2 * f2
+    rrg = b0 * g0 + b1 * g1 + b2 * g2
+    w_r = rf / d3
+    w_big = -rrf * ib3 + 6 * h * (b2 - h) * ib5 * rrg - 2 * h * ib3 * g2
+    return (w_direct * f0 - ib * f0 + c_g * g0 + w_r * r0 + w_big * b0,
+            w_direct * f1 - ib * f1 + c_g * g1 + w_r * r1 + w_big * b1,
+            w_direct * f2 - ib * f2 + c_g * g2 + w_r * r2 + w_big * b2,
+            2 * h * ib3 * rrg)
+
+
+@jit
 def _stokeslet_flow(px, py, pz, vbx, vby, points, forces, eps, viscosity):
     """Flow at robot-frame ``(px, py, pz)`` summed over the flow's far-field (regularised) Blake Stokeslets
     (``magctl.plant.fluid.stokes.regularized_blake_velocity``, term by term), for body velocity
     ``(vbx, vby)`` as the combination of the two unit motions."""
     e2 = eps * eps
-    u = np.zeros((2, 3))
+    ux0 = uy0 = uz0 = ux1 = uy1 = uz1 = 0.0
     for m in range(points.shape[0]):
         h = points[m, 2]
-        r = (px - points[m, 0], py - points[m, 1], pz - h)
-        big = (r[0], r[1], pz + h)                       # from the image point (y1, y2, -h)
-        r2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-        big2 = big[0] * big[0] + big[1] * big[1] + big[2] * big[2]
-        d3 = (r2 + e2) ** 1.5
+        r0, r1, r2 = px - points[m, 0], py - points[m, 1], pz - h
+        b0, b1, b2 = r0, r1, pz + h                      # from the image point (y1, y2, -h)
+        r2s = r0 * r0 + r1 * r1 + r2 * r2
+        big2 = b0 * b0 + b1 * b1 + b2 * b2
+        d3 = (r2s + e2) ** 1.5
         ib = 1.0 / np.sqrt(big2)
         ib3 = ib * ib * ib
         ib5 = ib3 * ib * ib
-        w_direct = (r2 + 2 * e2) / d3
-        c_g = 2 * h * (h - big[2]) * ib3
-        for k in range(2):
-            f = (forces[k, m, 0], forces[k, m, 1], forces[k, m, 2])
-            g = (f[0], f[1], -f[2])                      # the mirrored force
-            rf = r[0] * f[0] + r[1] * f[1] + r[2] * f[2]
-            rrf = big[0] * f[0] + big[1] * f[1] + big[2] * f[2]
-            rrg = big[0] * g[0] + big[1] * g[1] + big[2] * g[2]
-            w_r = rf / d3
-            w_big = -rrf * ib3 + 6 * h * (big[2] - h) * ib5 * rrg - 2 * h * ib3 * g[2]
-            for i in range(3):
-                u[k, i] += w_direct * f[i] - ib * f[i] + c_g * g[i] + w_r * r[i] + w_big * big[i]
-            u[k, 2] += 2 * h * ib3 * rrg
+        w_direct = (r2s + 2 * e2) / d3
+        c_g = 2 * h * (h - b2) * ib3
+        a0, a1, a2, extra = _stokeslet_term(forces[0, m, 0], forces[0, m, 1], forces[0, m, 2], r0, r1, r2,
+                                            b0, b1, b2, d3, w_direct, ib, ib3, ib5, c_g, h)
+        ux0 += a0
+        uy0 += a1
+        uz0 += a2
+        uz0 += extra
+        a0, a1, a2, extra = _stokeslet_term(forces[1, m, 0], forces[1, m, 1], forces[1, m, 2], r0, r1, r2,
+                                            b0, b1, b2, d3, w_direct, ib, ib3, ib5, c_g, h)
+        ux1 += a0
+        uy1 += a1
+        uz1 += a2
+        uz1 += extra
     scale = 8.0 * np.pi * viscosity
-    return ((vbx * u[0, 0] + vby * u[1, 0]) / scale, (vbx * u[0, 1] + vby * u[1, 1]) / scale,
-            (vbx * u[0, 2] + vby * u[1, 2]) / scale)
+    return ((vbx * ux0 + vby * ux1) / scale, (vbx * uy0 + vby * uy1) / scale, (vbx * uz0 + vby * uz1) / scale)
 
 
-@numba.njit(cache=True, nogil=True)
+@jit
+def _bilinear(flat, c, nx, j, w00, w01, w10, w11):
+    return w00 * flat[c, j] + w01 * flat[c + 1, j] + w10 * flat[c + nx, j] + w11 * flat[c + nx + 1, j]
+
+
+@jit
 def _flow_at(x, y, vbx, vby, flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height):
     """Flow ``(u_x, u_y, u_z)`` at robot-frame ``(x, y)`` for body velocity ``(vbx, vby)``: bilinear
     in the map, summed directly beyond it (``RobotFlow.lookup_components``)."""
@@ -90,13 +116,16 @@ def _flow_at(x, y, vbx, vby, flat, gx, gy, dgx, dgy, points, forces, eps, viscos
     sx, sy = 1 - tx, 1 - ty
     w00, w01, w10, w11 = sx * sy, tx * sy, sx * ty, tx * ty
     c = iy * nx + ix
-    out = np.empty(6)
-    for j in range(6):
-        out[j] = w00 * flat[c, j] + w01 * flat[c + 1, j] + w10 * flat[c + nx, j] + w11 * flat[c + nx + 1, j]
-    return out[0] * vbx + out[3] * vby, out[1] * vbx + out[4] * vby, out[2] * vbx + out[5] * vby
+    m0 = _bilinear(flat, c, nx, 0, w00, w01, w10, w11)
+    m1 = _bilinear(flat, c, nx, 1, w00, w01, w10, w11)
+    m2 = _bilinear(flat, c, nx, 2, w00, w01, w10, w11)
+    m3 = _bilinear(flat, c, nx, 3, w00, w01, w10, w11)
+    m4 = _bilinear(flat, c, nx, 4, w00, w01, w10, w11)
+    m5 = _bilinear(flat, c, nx, 5, w00, w01, w10, w11)
+    return m0 * vbx + m3 * vby, m1 * vbx + m4 * vby, m2 * vbx + m5 * vby
 
 
-@numba.njit(cache=True, nogil=True)
+@jit
 def _paper_mobility(radius, gap, roughness):
     """V_p/U of eq 4 with eq 5 (``magctl.plant.fluid.wall_drag.paper_mobility``) at one gap."""
     h = radius + gap + roughness
@@ -110,7 +139,7 @@ def _paper_mobility(radius, gap, roughness):
     return -f_shear / (f_trans + rot * f_rot)
 
 
-@numba.njit(cache=True, nogil=True)
+@jit
 def wall_functions(d, table, out):
     """The accurate mode's eight functions ``(f_t, f_r, t_t, t_r, f_s, t_s, λ, g)`` at one δ/a = ``d``
     into ``out (8,)``, with the steps of ``magctl.plant.fluid.wall_drag._evaluate`` for one gap:
@@ -154,7 +183,7 @@ def wall_functions(d, table, out):
             out[j] = blend(w, far[j], out[j])
 
 
-@numba.njit(cache=True, nogil=True)
+@jit
 def accurate_state(radius, gap, roughness, table, out):
     """V_p/U, λ and g of a sphere at gap δ in the ``accurate`` mode, at δ/a = (δ + ε)/R
     (``wall_drag.accurate_mobility`` and ``wall_drag.normal_factors``: the free-sphere force and
@@ -167,7 +196,7 @@ def accurate_state(radius, gap, roughness, table, out):
     return (-f_s * t_r + f_r * half * t_s) / det, out[6], out[7]
 
 
-@numba.njit(cache=True, nogil=True)
+@jit
 def _push_out_point(px, py, x0, y0, dx, dy, ab2, y1, radius, iterations):
     """One circle centre (robot frame) moved off the polygon: up to ``iterations`` passes of
     nearest-edge projection, as ``magctl.plant.sphere._push_out``. Returns ``x, y, touched``."""
@@ -196,19 +225,17 @@ def _push_out_point(px, py, x0, y0, dx, dy, ab2, y1, radius, iterations):
     return px, py, touched
 
 
-@numba.njit(cache=True, nogil=True)
-def _separate(z, radius, iterations):
-    """Overlapping spheres of one trial ``z (N,)`` pushed apart half each (``separate_spheres``)."""
-    n = z.shape[0]
-    npair = n * (n - 1) // 2
-    cx = np.empty(npair)
-    cy = np.empty(npair)
+@jit
+def _separate(xy, b, radius, iterations, cx, cy):
+    """Overlapping spheres of trial ``b`` pushed apart half each (``separate_spheres``): centres
+    ``xy[b] = (x₀, y₀, x₁, y₁, …)``, updated in place; ``cx, cy`` hold a pass's corrections (one per pair)."""
+    n = xy.shape[1] // 2
     for _ in range(iterations):
         any_overlap = False
         k = 0
         for i in range(n):
             for j in range(i + 1, n):
-                ddx, ddy = z[j].real - z[i].real, z[j].imag - z[i].imag
+                ddx, ddy = xy[b, 2 * j] - xy[b, 2 * i], xy[b, 2 * j + 1] - xy[b, 2 * i + 1]
                 dist = np.sqrt(ddx * ddx + ddy * ddy)
                 overlap = 2 * radius - dist
                 if dist > 1e-12:
@@ -226,22 +253,94 @@ def _separate(z, radius, iterations):
         k = 0
         for i in range(n):
             for j in range(i + 1, n):
-                z[i] = complex(z[i].real - cx[k], z[i].imag - cy[k])
-                z[j] = complex(z[j].real + cx[k], z[j].imag + cy[k])
+                xy[b, 2 * i] = xy[b, 2 * i] - cx[k]
+                xy[b, 2 * i + 1] = xy[b, 2 * i + 1] - cy[k]
+                xy[b, 2 * j] = xy[b, 2 * j] + cx[k]
+                xy[b, 2 * j + 1] = xy[b, 2 * j + 1] + cy[k]
                 k += 1
 
 
-@numba.njit(cache=True, nogil=True)
-def sphere_frame(z, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps,
+@jit
+def trial_frame(b, xy, gap, mult, pos, vel, turn, frame, flow, footprint, table, work):
+    """One frame of ``n_sub`` sub-steps for trial ``b``'s spheres, in place; returns whether some
+    sphere touched the robot. Every sub-step: the flow at each centre (map in the robot frame, or
+    the Stokeslets off it), the inertia-free move ``V_p = k U`` of eq 4 with the mobility capped at
+    the free-sphere limit 1, the gap balance of eq 8–9, then non-penetration of the footprint and
+    between spheres (``Spheres._update_arrays``, the same operations in the same order).
+
+    ``xy (B, 2N)`` centres ``(x₀, y₀, x₁, …)`` [m], ``gap (B, N)`` δ [m], ``mult (B, N)`` mobility
+    multipliers; ``pos, vel, turn`` the robot's position, held velocity and ``e^{iθ}`` as complex
+    numbers. The other arguments of :func:`sphere_frame` come in tuples (few arguments, so that the
+    call can be inlined): ``frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate,
+    adhesion_range, k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact)``,
+    ``flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)``, ``footprint = (x0, y0,
+    dx, dy, ab2, y1)``, the wall ``table``, and ``work = (cx, cy, scratch)``: work arrays, one
+    correction per sphere pair and ``(8,)`` for :func:`wall_functions`.
+    """
+    (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
+     roughness, inv_lambda_contact, flow_push_contact) = frame
+    flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height = flow
+    x0, y0, dx, dy, ab2, y1 = footprint
+    cx, cy, scratch = work
+    n = gap.shape[1]
+    back = turn.conjugate()
+    vb = vel * back
+    touched = False
+    for k in range(n_sub):
+        p_mid = pos + vel * (k + 0.5) * tau
+        p_end = pos + vel * (k + 1.0) * tau
+        for i in range(n):
+            zi = complex(xy[b, 2 * i], xy[b, 2 * i + 1])
+            gi = gap[b, i]
+            rel = (zi - p_mid) * back
+            ux, uy, uz = _flow_at(rel.real, rel.imag, vb.real, vb.imag, flat, gx, gy, dgx, dgy,
+                                  points, forces, eps, viscosity, height)
+            settle = held_rate if gi <= adhesion_range else sink_rate
+            # mobility (eq 4) and gap rate (eq 8-9) at the gap the sub-step starts from
+            if paper_mode:
+                k_now = k_contact if gi <= 0 else _paper_mobility(radius, gi, roughness)
+                rate = uz - settle
+            elif gi <= 0:    # accurate mode on the glass: (g U_z − settling) / λ at δ = 0
+                k_now = k_contact
+                rate = (flow_push_contact * uz - settle) * inv_lambda_contact
+            else:            # accurate mode, lifted: the tabulated functions at (δ + ε)/R
+                k_now, lam, push = accurate_state(radius, gi, roughness, table, scratch)
+                rate = (push * uz - settle) * (1.0 / lam)
+            # capped at the free-sphere limit 1
+            zi += min(k_now * mult[b, i], 1.0) * (complex(ux, uy) * turn) * tau
+            xy[b, 2 * i] = zi.real
+            xy[b, 2 * i + 1] = zi.imag
+            gap[b, i] = max(gi + rate * tau, 0.0)
+        for i in range(n):
+            d = complex(xy[b, 2 * i], xy[b, 2 * i + 1]) - p_end
+            if abs(d) >= reach:
+                continue
+            rel = d * back
+            if not (abs(rel.real) < box_x and abs(rel.imag) < box_y):
+                continue
+            rx, ry, hit = _push_out_point(rel.real, rel.imag, x0, y0, dx, dy, ab2, y1, radius, 3)
+            if hit:
+                zi = p_end + complex(rx, ry) * turn
+                xy[b, 2 * i] = zi.real
+                xy[b, 2 * i + 1] = zi.imag
+                touched = True
+        if n > 1:
+            _separate(xy, b, radius, 3, cx, cy)
+    return touched
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps,
                  viscosity, height,
                  x0, y0, dx, dy, ab2, y1, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range,
                  k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact, table):
-    """Advance every trial's spheres by one frame of ``n_sub`` sub-steps, in place.
+    """Advance every trial's spheres by one frame of ``n_sub`` sub-steps, in place (:func:`trial_frame`
+    per trial).
 
     Parameters
     ----------
-    z : complex (B, N)
-        Sphere centres ``x + iy`` [m]; overwritten.
+    xy : float (B, 2N)
+        Sphere centres ``(x₀, y₀, x₁, y₁, …)`` [m]; overwritten.
     gap : float (B, N)
         Gaps δ [m]; overwritten.
     mult : float (B, N)
@@ -272,54 +371,57 @@ def sphere_frame(z, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dg
     contact : bool (B,)
         Some sphere touched the robot during the frame.
     """
-    batch, n = z.shape
+    batch, n = gap.shape
     contact = np.zeros(batch, np.bool_)
-    zb = np.empty(n, np.complex128)
-    gb = np.empty(n)
+    npair = max(n * (n - 1) // 2, 1)
+    cx = np.empty(npair)
+    cy = np.empty(npair)
     scratch = np.empty(8)
+    frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
+             roughness, inv_lambda_contact, flow_push_contact)
+    flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)
+    footprint = (x0, y0, dx, dy, ab2, y1)
+    work = (cx, cy, scratch)
     for b in range(batch):
-        back = turn[b].conjugate()
-        vb = vel[b] * back
-        for i in range(n):
-            zb[i] = z[b, i]
-            gb[i] = gap[b, i]
-        touched = False
-        for k in range(n_sub):
-            p_mid = pos[b] + vel[b] * (k + 0.5) * tau
-            p_end = pos[b] + vel[b] * (k + 1.0) * tau
-            for i in range(n):
-                rel = (zb[i] - p_mid) * back
-                ux, uy, uz = _flow_at(rel.real, rel.imag, vb.real, vb.imag, flat, gx, gy, dgx, dgy,
-                                      points, forces, eps, viscosity, height)
-                settle = held_rate if gb[i] <= adhesion_range else sink_rate
-                # mobility (eq 4) and gap rate (eq 8-9) at the gap the sub-step starts from
-                if paper_mode:
-                    k_now = k_contact if gb[i] <= 0 else _paper_mobility(radius, gb[i], roughness)
-                    rate = uz - settle
-                elif gb[i] <= 0:    # accurate mode on the glass: (g U_z − settling) / λ at δ = 0
-                    k_now = k_contact
-                    rate = (flow_push_contact * uz - settle) * inv_lambda_contact
-                else:               # accurate mode, lifted: the tabulated functions at (δ + ε)/R
-                    k_now, lam, push = accurate_state(radius, gb[i], roughness, table, scratch)
-                    rate = (push * uz - settle) * (1.0 / lam)
-                # capped at the free-sphere limit 1
-                zb[i] += min(k_now * mult[b, i], 1.0) * (complex(ux, uy) * turn[b]) * tau
-                gb[i] = max(gb[i] + rate * tau, 0.0)
-            for i in range(n):
-                d = zb[i] - p_end
-                if abs(d) >= reach:
-                    continue
-                rel = d * back
-                if not (abs(rel.real) < box_x and abs(rel.imag) < box_y):
-                    continue
-                rx, ry, hit = _push_out_point(rel.real, rel.imag, x0, y0, dx, dy, ab2, y1, radius, 3)
-                if hit:
-                    zb[i] = p_end + complex(rx, ry) * turn[b]
-                    touched = True
-            if n > 1:
-                _separate(zb, radius, 3)
-        for i in range(n):
-            z[b, i] = zb[i]
-            gap[b, i] = gb[i]
-        contact[b] = touched
+        contact[b] = trial_frame(b, xy, gap, mult, pos[b], vel[b], turn[b], frame, flow, footprint, table, work)
     return contact
+
+
+# --- the block's kernel (magctl.core.kernel convention: one trial per call) ----------------------------------
+@jit
+def spheres_output(b, params, state, outputs):
+    """``Spheres.output``: the centres and the contact flag of the state."""
+    xy, gap, mult, contact = state
+    spheres, touching = outputs
+    for i in range(xy.shape[1]):
+        spheres[b, i] = xy[b, i]
+    touching[b, 0] = contact[b, 0]
+
+
+@jit
+def spheres_update(b, params, state, next_state, inputs, base, noise):
+    """``Spheres.update``: one frame of trial ``b`` by :func:`trial_frame` (the heading's ``e^{iθ}`` as
+    ``Spheres.compiled_frame`` forms it). No draws: the mobility multipliers are drawn at step 0."""
+    (n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height, x0, y0, dx, dy, ab2, y1,
+     radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode, roughness,
+     inv_lambda_contact, flow_push_contact, knots, coef, signs, near_lo, near_hi, far_lo, far_hi,
+     cx, cy, scratch) = params
+    xy, gap, mult, contact = state
+    nxy, ngap, nmult, ncontact = next_state
+    position, heading, velocity = inputs
+    for i in range(xy.shape[1]):
+        nxy[b, i] = xy[b, i]
+    for i in range(gap.shape[1]):
+        ngap[b, i] = gap[b, i]
+        nmult[b, i] = mult[b, i]
+    h = heading[b, 0]
+    turn = complex(np.cos(h), np.sin(h))
+    pos = complex(position[b, 0], position[b, 1])
+    vel = complex(velocity[b, 0], velocity[b, 1])
+    frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
+             roughness, inv_lambda_contact, flow_push_contact)
+    flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)
+    footprint = (x0, y0, dx, dy, ab2, y1)
+    table = (knots, coef, signs, near_lo, near_hi, far_lo, far_hi)
+    ncontact[b, 0] = trial_frame(b, nxy, ngap, nmult, pos, vel, turn, frame, flow, footprint, table,
+                                 (cx, cy, scratch))

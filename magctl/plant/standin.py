@@ -44,6 +44,7 @@ from magctl import FRAME_PERIOD_S
 from magctl.config import load_model
 from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import MagctlError
+from magctl.core.kernel import Kernel
 from magctl.core.ports import Port
 from magctl.plant.robot import ROBOT_INPUTS, steady_speed
 
@@ -152,6 +153,12 @@ class KinematicRobot(Block):
         # new arrays: the outputs handed out this frame stay untouched
         return {"x": state["x"] + self.dt * v, "h": np.where(steer, heading, state["h"]), "v": v}
 
+    def kernel(self):
+        from magctl.plant import standin_kernels as k
+
+        update = k.kinematic_robot_steer_update if "steer" in self.inputs else k.kinematic_robot_update
+        return Kernel(output=k.kinematic_robot_output, update=update, params=(float(self.dt),))
+
     def jacobians(self, state, u):
         """Exact ``(A, B, C, D)`` of trial 0 for :func:`magctl.core.linearize.linearize_diagram`.
 
@@ -209,6 +216,14 @@ class FieldGait(Block):
         speed = np.where(on, steady_speed(self.robot, b_xy, u["b_osc_delivered"], u["freq_delivered"]), 0.0)
         return {"speed": speed, "heading": np.arctan2(bs[:, 1], bs[:, 0]), "steer": on}
 
+    def kernel(self):
+        from magctl.plant import standin_kernels as k
+
+        p = self.robot
+        # the products _stickslip forms from the parameters alone, formed the same way
+        return Kernel(step=k.field_gait_step, params=(p.pitch_drag_ratio * p.turn_drag, p.moment,
+                                                      p.slip_efficiency * p.length, float(np.cos(p.break_angle))))
+
 
 class StraightToTarget(Block):
     """The ideal servo of the attempt maps: straight to ``target`` at ``min(speed_cap, v_max)``.
@@ -241,6 +256,11 @@ class StraightToTarget(Block):
         d = u["target"] - u["position"]
         cap = np.where(u["speed_cap"] > 0, np.minimum(u["speed_cap"], self.v_max), 0.0)
         return {"speed": np.minimum(cap, _norm(d) / self.dt), "heading": np.arctan2(d[:, 1], d[:, 0])}
+
+    def kernel(self):
+        from magctl.plant import standin_kernels as k
+
+        return Kernel(step=k.straight_to_target_step, params=(self.v_max, float(self.dt)))
 
 
 # --- the spheres ------------------------------------------------------------------------------------------
@@ -413,6 +433,16 @@ class StandinSpheres(Block):
                 "last_release": np.where(started, amount, state["last_release"]), "rng": state["rng"],
                 "k": state["k"] + 1}
 
+    def kernel(self):
+        from magctl.plant import standin_kernels as k
+
+        n = self.start.shape[0]
+        params = (n, self.contact_distance, self.release_mean, self.release_std, self.side_range, self.SIDE_A,
+                  self.SIDE_K, np.array(self.side_scale, float).reshape(-1), 2.0 * self.sphere_radius,
+                  float(_STRAIGHT), np.zeros(max(n, 1), bool))
+        return Kernel(output=k.standin_spheres_output, update=k.standin_spheres_update, params=params,
+                      noise=(("standard_normal", ()),), position="k")
+
     def _separate(self, s: np.ndarray, driven: np.ndarray) -> np.ndarray:
         n, gap = s.shape[1], 2.0 * self.sphere_radius
         if n < 2 or gap <= 0:
@@ -505,6 +535,15 @@ class StandinTracker(Block):
         s = np.full_like(u["spheres"], np.nan) if _within(t, self.sphere_loss) else u["spheres"].copy()
         return {"r": p.copy(), "h": u["heading"].copy(), "v": (p - state["r"]) / self.dt, "s": s, "lost": lost,
                 "k": k}
+
+    def kernel(self):
+        from magctl.plant import standin_kernels as k
+
+        black = self.blackout or (0.0, 0.0)
+        loss = self.sphere_loss or (0.0, 0.0)
+        return Kernel(output=k.standin_tracker_output, update=k.standin_tracker_update,
+                      params=(float(self.dt), self.half_width, self.blackout is not None, *black,
+                              self.sphere_loss is not None, *loss))
 
 
 def _within(t: float, window) -> bool:

@@ -16,6 +16,7 @@ Blocks are discovered by walking ``magctl`` with pkgutil: a new block class with
 from __future__ import annotations
 
 import copy
+import dataclasses
 import importlib
 import inspect
 import pkgutil
@@ -163,7 +164,10 @@ def _variants() -> dict:
     """Other configurations of the same classes, whose code paths differ enough to be run too."""
     from magctl.control.servo import Servo
     from magctl.core.linear import PI
+    from magctl.plant.fluid.params import sphere_params
     from magctl.plant.robot import StickSlipRobot
+    from magctl.plant.sphere import Spheres
+    from magctl.plant.standin import KinematicRobot, StandinTracker
     from magctl.sensing.camera import Camera
     from magctl.sensing.tracker import Tracker
 
@@ -174,6 +178,12 @@ def _variants() -> dict:
         "Tracker, raw, NaN on loss": lambda: Tracker("tracker", n_spheres=1, mode="raw", on_loss="nan"),
         "Servo, basic PI": lambda: Servo("servo", anti_windup=False, constant_speed=True),
         "StickSlipRobot, no variability": lambda: StickSlipRobot("robot", variability=False),
+        "KinematicRobot, steer input": lambda: KinematicRobot("robot", start=(1e-3, 1e-3), steer_input=True),
+        "StandinTracker, sphere loss": lambda: StandinTracker("tracker", 2, 1.6e-3, sphere_loss=(0.3, np.inf)),
+        # eq 4-5 and 9 as printed, with adhesion, sticky patches and release scatter drawn at step 0
+        "Spheres, paper drag, adhesion, scattered": lambda: Spheres(
+            SPHERES, compiled=False, drag_mode="paper",
+            params=dataclasses.replace(sphere_params(), adhesion=True, sticky_probability=0.5, release_scatter=0.3)),
     }
 
 

@@ -94,6 +94,101 @@ def test_kernel_variants_match_the_numpy_form(name):
     compare_engines(block, {})
 
 
+def test_standin_spheres_kernel_side_pass_release_and_separation():
+    """The stand-in spheres' paths the factory's straight push does not reach: a side pass (eq 22; also
+    with a scale per trial), a release with its per-trial draw when the robot backs off, and spheres
+    pushed into each other."""
+    from magctl.plant.standin import StandinSpheres
+
+    um = 1e-6
+    spheres = [[1.4e-3, 1.5e-3], [1.62e-3, 1.5e-3], [2.0e-3, 1.9e-3]]
+
+    def make(scale):
+        return StandinSpheres("spheres", spheres, 250 * um, release_mean=300 * um, release_std=75 * um,
+                              side_range=600 * um, sphere_radius=105 * um, start_robot=(1.0e-3, 1.5e-3),
+                              side_scale=scale)
+
+    def robot(rng, k):     # ahead along +x, then back, then aside; each trial a little off the line
+        x = 1.0e-3 + 1e-4 * k if k < 20 else (2.9e-3 - 1e-4 * (k - 20) if k < 30 else 1.9e-3)
+        y = 1.5e-3 + (0.0 if k < 30 else 1e-4 * (k - 30))
+        return np.array([[x, y + 10 * um * b] for b in range(BATCH)])
+
+    block = make(1.3)
+    compare_engines(block, {"position": robot})
+    d = wrapped(block)
+    u = input_series(block, {"position": robot})
+    ref = simulate(d, STEPS, batch=BATCH, seed=11, inputs=u, check_finite=False)
+    assert ref["releases"][:, -1].min() >= 1 and len(set(ref["last_release"][:, -1])) == BATCH   # drawn per trial
+    assert np.abs(ref["spheres"][:, -1, 2] - np.array(spheres[2])).max() > 1e-5                   # side pass
+    # one scale per trial: row b's (a trial run alone would take the first, in either engine)
+    d = wrapped(make([1.0, 0.7, 1.3]))
+    ref = simulate(d, STEPS, batch=BATCH, seed=11, inputs=u, check_finite=False)
+    got = simulate(d, STEPS, batch=BATCH, seed=11, inputs=u, check_finite=False, engine="compiled")
+    for name in ("spheres", "contact", "releases", "last_release"):
+        assert_close(ref[name], got[name], name)
+    assert len({round(float(x), 9) for x in ref["spheres"][:, 16, 2, 0]}) == BATCH      # passed, scaled
+
+
+def _field_command(steps: int) -> dict[str, np.ndarray]:
+    """A plausible field command: ahead along +x (onto the sphere), back along −x, then up +y; the
+    rocking field held, the frequency (the speed) stepped."""
+    k = np.arange(steps)
+    phi = np.where(k < 120, 0.0, np.where(k < 200, np.pi, np.pi / 2))
+    b_static = 1e-3 * np.stack([np.cos(phi), np.sin(phi)], axis=-1)
+    freq = np.where(k % 100 < 50, 20.0, 12.0)
+    batch = BATCH
+    return {"b_static": np.broadcast_to(b_static, (batch, steps, 2)).copy(),
+            "b_osc": np.full((batch, steps), 1.45e-3), "freq": np.broadcast_to(freq, (batch, steps)).copy()}
+
+
+def _compare_diagram(d, inputs, steps, record):
+    ref = simulate(d, steps, batch=BATCH, seed=5, inputs=inputs, record=record, check_finite=False)
+    got = simulate(d, steps, batch=BATCH, seed=5, inputs=inputs, record=record, check_finite=False,
+                   engine="compiled")
+    for name in record:
+        assert_close(ref[name], got[name], name)
+    return ref
+
+
+def test_the_standin_chain_compiles_and_agrees_with_the_interpreted_engine():
+    """Field gait → kinematic robot → stand-in spheres → stand-in tracker, the delivered field as the
+    diagram's inputs: 300 frames of a push, a release and a turn, the same in both engines."""
+    from magctl.loops import Scene, Variability, plant
+
+    scene = Scene(robot=(1e-3, 1.8e-3), spheres=[[1.6e-3, 1.8e-3]])
+    rig = plant(scene, Variability(release_scatter=0.3), kind="standin")
+    field = ("b_static_delivered", "b_osc_delivered", "freq_delivered")
+    d = Diagram("chain", [b for name, b in rig.blocks.items() if name != "coils"],
+                [c for c in rig.connections if not c[0].startswith("coils.")],
+                inputs={p: f"gait.{p}" for p in field},
+                outputs={"robot_est": "tracker.robot_est", "spheres_est": "tracker.spheres_est"})
+    steps = 300
+    cmd = _field_command(steps)
+    u = {"b_static_delivered": cmd["b_static"], "b_osc_delivered": cmd["b_osc"], "freq_delivered": cmd["freq"]}
+    record = ["gait.speed", "gait.heading", "robot.position", "spheres.spheres", "spheres.releases",
+              "spheres.last_release", "tracker.robot_est", "tracker.spheres_est", "tracker.lost"]
+    ref = _compare_diagram(d, u, steps, record)
+    assert ref["spheres.releases"][:, -1].min() >= 1                   # pushed, then released
+    assert np.ptp(ref["spheres.spheres"][0, :, 0, 0]) > 1e-4           # the sphere moved
+
+
+def test_the_standin_rig_plant_compiles_and_agrees_with_the_interpreted_engine():
+    """``magctl.loops.plant(scene, kind="standin")`` with one sphere, 300 frames of a field command."""
+    from magctl.loops import Scene, plant
+
+    scene = Scene(robot=(1e-3, 1.8e-3), spheres=[[1.6e-3, 1.8e-3]])
+    d = plant(scene, kind="standin")
+    missing = [name for name, b in d.blocks.items() if b.kernel() is None]
+    if missing:
+        pytest.skip(f"blocks {missing} have no kernel yet")
+    steps = 300
+    record = ["coils.b_static_delivered", "gait.speed", "robot.position", "spheres.spheres", "tracker.robot_est",
+              "tracker.spheres_est", "tracker.lost"]
+    ref = _compare_diagram(d, _field_command(steps), steps, record)
+    assert np.ptp(ref["robot.position"][0, :, 0]) > 1e-3                # the field moved the robot
+    assert np.ptp(ref["spheres.spheres"][0, :, 0, 0]) > 1e-4            # which pushed the sphere
+
+
 def test_a_block_without_kernel_is_named_and_the_auto_engine_interprets():
     from magctl.core.block import Block
     from magctl.core.linear import Gain
