@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magctl.core.block import as_batch
+from magctl.core.block import as_batch, state_get
 from magctl.core.diagram import EXTERNAL, Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.kernel import Kernel, compiled_vars, pack_state, port_width, stream_draws, unpack_state
@@ -314,11 +314,13 @@ class CompiledDiagram:
         arrays = []
         for i in self.noisy:
             lf, k = self.schedule.leaves[i], self.kernels[i]
-            leaf_state = state["leaves"][i]
-            rng = leaf_state.get("rng")
+            # the position may sit in a member's state ("robot.k"): its stream is that state's "rng"
+            *sub, key = k.position.split(".")
+            owner = state_get(state["leaves"][i], tuple(sub))
+            rng = owner.get("rng")
             if rng is None:
                 raise NotCompilable(f"block {lf.path!r} draws noise but its state has no stream")
-            pos = np.asarray(leaf_state[k.position]).reshape(-1)
+            pos = np.asarray(owner[key]).reshape(-1)
             base = int(pos.min())
             count = int(pos.max()) - base + steps + 1
             bases[i] = base

@@ -55,7 +55,8 @@ class Kernel:
         ``(kind, shape)`` of each noise draw per position, in the order the block draws them
         (kinds of :class:`~magctl.core.random.TrialStreams`: ``"standard_normal"``, ``"random"``).
     position : str
-        State entry holding the stream position of the next draw (with ``noise``).
+        State entry holding the stream position of the next draw (with ``noise``); a dotted path
+        (``"robot.k"``) names an entry of a nested state, whose ``"rng"`` entry is then the stream.
     in_place : bool
         The functions read every state element before writing the same element of the next
         state, so the engine may pass the state arrays as the next state too (no copy per step).
