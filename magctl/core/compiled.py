@@ -144,7 +144,7 @@ class CompiledDiagram:
         sched, kernels = self.schedule, self.kernels
         state, outs, ext = _Layout(), _Layout(), _Layout()
         pbufs: dict[str, list] = {g: [] for g in GROUPS.values()}
-        self.state_slots = [[state.add(v.dtype, max(v.size, 1)) for _, v in compiled_vars(lf.block)]
+        self.state_slots = [[state.add(v.dtype, v.size) for _, v in compiled_vars(lf.block)]
                             for lf in sched.leaves]
         self.out_slots = [{p: outs.add(port.dtype, port_width(port)) for p, port in lf.block.outputs.items()}
                           for lf in sched.leaves]

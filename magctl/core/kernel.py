@@ -99,7 +99,7 @@ def pack_state(block: Block, state: dict, batch: int) -> list[np.ndarray]:
     for keys, var in compiled_vars(block):
         value = np.asarray(state_get(state, keys), dtype=var.dtype)
         rows = value.reshape(value.shape[0], -1) if var.batched else value.reshape(1, -1)
-        arrays.append(np.array(np.broadcast_to(rows, (batch, max(var.size, 1))), dtype=var.dtype))
+        arrays.append(np.array(np.broadcast_to(rows, (batch, var.size)), dtype=var.dtype))
     return arrays
 
 
@@ -119,7 +119,7 @@ def unpack_state(block: Block, arrays: Sequence[np.ndarray], like: dict) -> dict
 
 def port_width(port) -> int:
     """Elements of one trial's value on ``port`` (1 for a scalar)."""
-    return max(int(np.prod(port.shape, dtype=int)), 1)
+    return int(np.prod(port.shape, dtype=int))
 
 
 def stream_draws(rng: TrialStreams, draws: Sequence[tuple[str, tuple]], start: int, count: int) -> list[np.ndarray]:

@@ -120,3 +120,16 @@ def test_engine_name_is_checked():
     d = wrapped(Gain("g", 2.0))
     with pytest.raises(ValueError, match="engine 'fast'"):
         simulate(d, 3, inputs={"u": 1.0}, engine="fast")
+
+
+def test_zero_size_values_have_empty_slots():
+    """A port or state entry with no elements (no spheres: shape (0, 2)) compiles into an empty slot."""
+    from magctl.core.linear import Constant, Gain
+
+    d = Diagram("d", [Constant("none", np.zeros((0, 2)), shape=(0, 2)), Gain("g", 2.0, shape=(0, 2)),
+                      Gain("h", 3.0)],
+                [("none.y", "g.u")], inputs={"x": "h.u"}, outputs={"y": "g.y", "z": "h.y"})
+    got = simulate(d, 3, batch=2, inputs={"x": 1.5}, engine="compiled")
+    assert got["y"].shape == (2, 3, 0, 2)
+    assert np.all(got["z"] == 4.5)
+
