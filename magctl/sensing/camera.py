@@ -245,7 +245,8 @@ class Camera(Block):
                   float(fov_w), float(fov_h))
         noise = (("standard_normal", (3 + 2 * self.n_spheres,)), ("random", (1,)))
         if self.latency:
-            return Kernel(output=k.camera_output, update=k.camera_update, params=params, noise=noise, position="k")
+            update = {1: k.camera_update_1, 2: k.camera_update_2}.get(self.latency, k.camera_update)
+            return Kernel(output=k.camera_output, update=update, params=params, noise=noise, position="k")
         return Kernel(step=k.camera_step, params=params, noise=noise, position="k")
 
     def _sample(self, state, u):

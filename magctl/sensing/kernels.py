@@ -126,20 +126,58 @@ def _shift_pipeline(b, state, next_state, pos, head, sph):
 
 
 @jit
-def camera_update(b, params, state, next_state, inputs, base, noise):
-    """``Camera.update`` with latency: the pipeline moves on, and the frame now oldest is measured at
-    stream position ``k + 1`` (the measurement the next output delivers)."""
-    pos, head, sph = inputs
+def _copy_row(b, src, dst):
+    for i in range(src.shape[1]):
+        dst[b, i] = src[b, i]
+
+
+@jit
+def _measure_oldest(b, params, state, next_state, base, noise):
+    """The frame now oldest in the next state measured at stream position ``k + 1``; ``k`` advanced."""
     normal, uniform = noise
-    k = state[0]
-    k1 = k[b, 0] + 1
-    shift_pipeline(b, state, next_state, pos, head, sph)
-    # the frame delivered next: the oldest of the next state
+    k1 = state[0][b, 0] + 1
     spos, shead, ssph, sfull = next_state[1], next_state[2], next_state[3], next_state[4]
     valid = _measure(params, b, sfull[b, 0], spos[b, 0], spos[b, 1], shead[b, 0], ssph, normal, uniform, k1, base,
                      state[-4], state[-3], state[-2], next_state[-4], next_state[-3], next_state[-2])
     next_state[-1][b, 0] = valid
     next_state[0][b, 0] = k1
+
+
+@jit
+def camera_update_1(b, params, state, next_state, inputs, base, noise):
+    """``Camera.update`` with a latency of 1 frame: the input is the frame delivered next (then measured at
+    stream position ``k + 1``)."""
+    pos, head, sph = inputs
+    _copy_row(b, pos, next_state[1])
+    _copy_row(b, head, next_state[2])
+    _copy_row(b, sph, next_state[3])
+    next_state[4][b, 0] = True
+    _measure_oldest(b, params, state, next_state, base, noise)
+
+
+@jit
+def camera_update_2(b, params, state, next_state, inputs, base, noise):
+    """``Camera.update`` with a latency of 2 frames: frame 2 ← frame 1 ← the input, then the new frame 2
+    measured at stream position ``k + 1``."""
+    pos, head, sph = inputs
+    _copy_row(b, state[5], next_state[1])
+    _copy_row(b, state[6], next_state[2])
+    _copy_row(b, state[7], next_state[3])
+    next_state[4][b, 0] = state[8][b, 0]
+    _copy_row(b, pos, next_state[5])
+    _copy_row(b, head, next_state[6])
+    _copy_row(b, sph, next_state[7])
+    next_state[8][b, 0] = True
+    _measure_oldest(b, params, state, next_state, base, noise)
+
+
+@jit
+def camera_update(b, params, state, next_state, inputs, base, noise):
+    """``Camera.update`` with any latency: the pipeline moves on (:func:`shift_pipeline`, a call), and the
+    frame now oldest is measured at stream position ``k + 1`` (the measurement the next output delivers)."""
+    pos, head, sph = inputs
+    shift_pipeline(b, state, next_state, pos, head, sph)
+    _measure_oldest(b, params, state, next_state, base, noise)
 
 
 # --- blackout ------------------------------------------------------------------------------------------
