@@ -35,6 +35,12 @@ from magctl.core.kernel import Kernel, compiled_vars, pack_state, port_width, st
 GROUPS = {"float64": "F", "int64": "I", "bool": "B"}
 """Buffer of each dtype."""
 
+JIT = '@numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)'
+"""Decorator of the generated functions. Without numba's reference counting (``_nrt=False``): they and the
+kernels inlined into them only take views of the buffers they are given and never allocate, and the counts
+numba would keep on every array a kernel names cost atomic operations each call that its pruning cannot
+remove from kernels with loops and branches (two to four times the time of the step)."""
+
 
 class NotCompilable(MagctlError):
     """A diagram the compiled engine cannot run; the message names the block and why."""
@@ -226,7 +232,7 @@ class CompiledDiagram:
                 "import numba", "import numpy as np"]
         head += [f"from {mod} import {qual} as {alias}" for alias, (mod, qual) in sorted(imports.items())]
         args = "B, PF, PI, PB, SF, SI, SB, NF, NI, NB, OF, OI, OB, XF, XI, XB, BASES, NOISE, RAN"
-        lines = head + ["", "", "@numba.njit(cache=True, nogil=True, error_model=\"numpy\")",
+        lines = head + ["", "", JIT,
                         f"def run_steps(T, tick0, EXT, RECIDX, RECF, RECI, RECB, {args}):"]
         lines += _indent(views, 1)
         lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 1)
@@ -238,7 +244,7 @@ class CompiledDiagram:
                       f"                x_{name}[b, c] = EXT[{e}][b, k, c]"]
         lines += _indent(tick_lines, 3)
         lines += _indent(self._record_lines(), 3)
-        lines += ["    return 0", "", "", "@numba.njit(cache=True, nogil=True, error_model=\"numpy\")",
+        lines += ["    return 0", "", "", JIT,
                   f"def step_once(tick, {args}):"]
         lines += _indent(views, 1)
         lines += ["    for b in range(B):"]
