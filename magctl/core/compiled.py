@@ -27,13 +27,19 @@ from pathlib import Path
 
 import numpy as np
 
-from magctl.core.block import as_batch
+from magctl.core.block import as_batch, state_get
 from magctl.core.diagram import EXTERNAL, Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.kernel import Kernel, compiled_vars, pack_state, port_width, stream_draws, unpack_state
 
 GROUPS = {"float64": "F", "int64": "I", "bool": "B"}
 """Buffer of each dtype."""
+
+JIT = '@numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)'
+"""Decorator of the generated functions. Without numba's reference counting (``_nrt=False``): they and the
+kernels inlined into them only take views of the buffers they are given and never allocate, and the counts
+numba would keep on every array a kernel names cost atomic operations each call that its pruning cannot
+remove from kernels with loops and branches (two to four times the time of the step)."""
 
 
 class NotCompilable(MagctlError):
@@ -150,7 +156,7 @@ class CompiledDiagram:
         state, outs, ext = _Layout(), _Layout(), _Layout()
         pbufs: dict[str, list] = {g: [] for g in GROUPS.values()}
         self.vars = [compiled_vars(lf.block) for lf in sched.leaves]
-        self.state_slots = [[state.add(v.dtype, max(v.size, 1)) for _, v in variables] for variables in self.vars]
+        self.state_slots = [[state.add(v.dtype, v.size) for _, v in variables] for variables in self.vars]
         self.out_slots = [{p: outs.add(port.dtype, port_width(port)) for p, port in lf.block.outputs.items()}
                           for lf in sched.leaves]
         self.ext_slots = {name: ext.add(port.dtype, port_width(port)) for name, port in sched.inputs.items()}
@@ -231,7 +237,7 @@ class CompiledDiagram:
                 "import numba", "import numpy as np"]
         head += [f"from {mod} import {qual} as {alias}" for alias, (mod, qual) in sorted(imports.items())]
         args = "B, PF, PI, PB, SF, SI, SB, NF, NI, NB, OF, OI, OB, XF, XI, XB, BASES, NOISE, RAN"
-        lines = head + ["", "", "@numba.njit(cache=True, nogil=True, error_model=\"numpy\")",
+        lines = head + ["", "", JIT,
                         f"def run_steps(T, tick0, EXT, RECIDX, RECF, RECI, RECB, {args}):"]
         lines += _indent(views, 1)
         lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 1)
@@ -243,7 +249,7 @@ class CompiledDiagram:
                       f"                x_{name}[b, c] = EXT[{e}][b, k, c]"]
         lines += _indent(tick_lines, 3)
         lines += _indent(self._record_lines(), 3)
-        lines += ["    return 0", "", "", "@numba.njit(cache=True, nogil=True, error_model=\"numpy\")",
+        lines += ["    return 0", "", "", JIT,
                   f"def step_once(tick, {args}):"]
         lines += _indent(views, 1)
         lines += ["    for b in range(B):"]
@@ -325,11 +331,13 @@ class CompiledDiagram:
         arrays = []
         for i in self.noisy:
             lf, k = self.schedule.leaves[i], self.kernels[i]
-            leaf_state = state["leaves"][i]
-            rng = leaf_state.get("rng")
+            # the position may sit in a member's state ("robot.k"): its stream is that state's "rng"
+            *sub, key = k.position.split(".")
+            owner = state_get(state["leaves"][i], tuple(sub))
+            rng = owner.get("rng")
             if rng is None:
                 raise NotCompilable(f"block {lf.path!r} draws noise but its state has no stream")
-            pos = np.asarray(leaf_state[k.position]).reshape(-1)
+            pos = np.asarray(owner[key]).reshape(-1)
             lo, hi = int(pos.min()), int(pos.max()) + steps + 1
             drawn = self._drawn.get(id(rng))
             if drawn is None or drawn[0] is not rng or drawn[1] > lo or drawn[1] + drawn[2][0].shape[1] < hi:

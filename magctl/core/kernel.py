@@ -55,7 +55,8 @@ class Kernel:
         ``(kind, shape)`` of each noise draw per position, in the order the block draws them
         (kinds of :class:`~magctl.core.random.TrialStreams`: ``"standard_normal"``, ``"random"``).
     position : str
-        State entry holding the stream position of the next draw (with ``noise``).
+        State entry holding the stream position of the next draw (with ``noise``); a dotted path
+        (``"robot.k"``) names an entry of a nested state, whose ``"rng"`` entry is then the stream.
     in_place : bool
         The functions read every state element before writing the same element of the next
         state, so the engine may pass the state arrays as the next state too (no copy per step).
@@ -99,7 +100,7 @@ def pack_state(block: Block, state: dict, batch: int, variables=None) -> list[np
     for keys, var in (compiled_vars(block) if variables is None else variables):
         value = np.asarray(state_get(state, keys), dtype=var.dtype)
         rows = value.reshape(value.shape[0], -1) if var.batched else value.reshape(1, -1)
-        arrays.append(np.array(np.broadcast_to(rows, (batch, max(var.size, 1))), dtype=var.dtype))
+        arrays.append(np.array(np.broadcast_to(rows, (batch, var.size)), dtype=var.dtype))
     return arrays
 
 
@@ -119,7 +120,7 @@ def unpack_state(block: Block, arrays: Sequence[np.ndarray], like: dict, variabl
 
 def port_width(port) -> int:
     """Elements of one trial's value on ``port`` (1 for a scalar)."""
-    return max(int(np.prod(port.shape, dtype=int)), 1)
+    return int(np.prod(port.shape, dtype=int))
 
 
 def stream_draws(rng: TrialStreams, draws: Sequence[tuple[str, tuple]], start: int, count: int) -> list[np.ndarray]:

@@ -30,6 +30,7 @@ import numpy as np
 from magctl import FRAME_PERIOD_S
 from magctl.core.batched import rows_times
 from magctl.core.block import Block, StateVar
+from magctl.core.kernel import Kernel
 from magctl.core.ports import Port
 from magctl.plant._coilfield import Coil, CoilAllocation, CoilSet, load_coils
 
@@ -95,6 +96,19 @@ class CoilActuator(Block):
 
     def initial_state(self, batch, rng=None):
         return {"i": np.zeros((batch, len(self.coils.coils)))}
+
+    def kernel_params(self) -> tuple:
+        """The parameters of :func:`magctl.plant.kernels.coil_field` (allocation, limits, RL weights)."""
+        zc = np.arange(self.pinv.shape[0])[self._zc]
+        a = self.allocation
+        return (a.per_tesla_xy, a.clamp_currents, self.coils.current_limit, self._inv_imax, zc.astype(np.int64),
+                self._imax_z, self._vmax_z, self._r_z, self._r2, self._two_pi_l, self._inv_pz, self._vclip,
+                np.broadcast_to(self._vmax_over_r, self.decay.shape), self.avg_weight, self.decay, self._A_xy)
+
+    def kernel(self):
+        from magctl.plant import kernels as k
+
+        return Kernel(step=k.coils_step, params=self.kernel_params())
 
     def deliver(self, b_static, b_osc, freq):
         """Steady-state delivered field for a command held long enough for the RL transients to end.

@@ -22,6 +22,7 @@ from magctl.core.batched import rows_times
 from magctl.core.block import Block, StateVar, substate
 from magctl.core.diagram import Diagram
 from magctl.core.errors import ParameterError
+from magctl.core.kernel import Kernel
 from magctl.core.ports import Port
 from magctl.plant._coilfield import CoilSet, load_coils
 from magctl.plant._stickslip import StickSlipParams, load_robot, speed
@@ -131,6 +132,17 @@ class Drive(Block):
         f = np.interp(sp, self._v_table, self._f_table)
         return np.where(sp > 0.0, f, 0.0)
 
+    def kernel_params(self) -> tuple:
+        """The parameters of :func:`magctl.plant.kernels.drive_command` (the inverse speed table, limits, fields)."""
+        s = self.settings
+        return (np.ascontiguousarray(self._v_table), np.ascontiguousarray(self._f_table), float(s.max_speed),
+                float(s.static_field), float(s.osc_field))
+
+    def kernel(self):
+        from magctl.plant import kernels as k
+
+        return Kernel(step=k.drive_step, params=self.kernel_params())
+
     def output(self, state, u):
         s = self.settings
         sp = np.minimum(np.maximum(u["speed"], 0.0), s.max_speed)
@@ -209,6 +221,15 @@ class ActuatedRobot(Block):
     def set_pose(self, state, position=None, heading=None):
         """A copy of ``state`` with the robot at ``position`` and ``heading`` (see :meth:`StickSlipRobot.set_pose`)."""
         return {**state, "robot": self.robot.set_pose(state["robot"], position, heading)}
+
+    def kernel(self):
+        from magctl.plant import kernels as k
+
+        params = (*self.drive.kernel_params(), *self.coils.kernel_params(), *self.robot.kernel_params())
+        if self.robot.cv > 0:
+            return Kernel(output=k.actuated_output, update=k.actuated_update_noisy, params=params,
+                          noise=(("standard_normal", ()),), position="robot.k")
+        return Kernel(output=k.actuated_output, update=k.actuated_update, params=params)
 
     def output(self, state, u):
         out = self.robot.output(state["robot"], u)

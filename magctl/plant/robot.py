@@ -23,6 +23,7 @@ from magctl import FRAME_PERIOD_S
 from magctl.core.batched import rows_times
 from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import WiringError
+from magctl.core.kernel import Kernel
 from magctl.core.ports import Port
 from magctl.plant._stickslip import (
     StickSlipParams,
@@ -124,6 +125,18 @@ class StickSlipRobot(Block):
         return new
 
     # --- behaviour -----------------------------------------------------------------------
+    def kernel_params(self) -> tuple:
+        """The parameters of :func:`magctl.plant.kernels.robot_advance`."""
+        return (self.dt, self._half_rate, self._pitch_c, self._cos0, self._eta_l, self._simpson, float(self.cv))
+
+    def kernel(self):
+        from magctl.plant import kernels as k
+
+        if self.cv > 0:
+            return Kernel(output=k.robot_output, update=k.robot_update_noisy, params=self.kernel_params(),
+                          noise=(("standard_normal", ()),), position="k")
+        return Kernel(output=k.robot_output, update=k.robot_update, params=self.kernel_params())
+
     def output(self, state, u):
         return {"position": state["pos"], "heading": state["psi"], "velocity": state["vel"], "tilt": state["tilt"]}
 

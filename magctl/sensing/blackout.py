@@ -6,6 +6,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.core.block import Block, StateVar
+from magctl.core.kernel import Kernel
 from magctl.core.ports import DIMENSIONLESS, Port
 
 
@@ -31,6 +32,12 @@ class Blackout(Block):
 
     def initial_state(self, batch, rng=None):
         return {"k": 0}
+
+    def kernel(self):
+        from magctl.sensing import kernels as k
+
+        t0, t1 = self.window if self.window is not None else (0.0, 0.0)
+        return Kernel(step=k.blackout_step, params=(self.window is not None, t0, t1, self.dt))
 
     def output(self, state, u):
         w = self.window

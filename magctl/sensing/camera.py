@@ -30,6 +30,7 @@ from magctl import FRAME_PERIOD_S
 from magctl.config import Params, load_model
 from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import ParameterError
+from magctl.core.kernel import Kernel
 from magctl.core.ports import DIMENSIONLESS, Port
 
 MODES = ("positions", "images")
@@ -232,6 +233,21 @@ class Camera(Block):
             if L:
                 st |= self._measure(st, self._sample(st, None), 0)
         return st
+
+    def kernel(self):
+        """Positions mode: :mod:`magctl.sensing.kernels` (images mode renders frames: no kernel)."""
+        if self.mode != "positions":
+            return None
+        from magctl.sensing import kernels as k
+
+        fov_w, fov_h = self.field_of_view
+        params = (self.n_spheres, self.pixel, self.pixel * self.sigma_px, self.sigma_heading, self.p_drop,
+                  float(fov_w), float(fov_h))
+        noise = (("standard_normal", (3 + 2 * self.n_spheres,)), ("random", (1,)))
+        if self.latency:
+            update = {1: k.camera_update_1, 2: k.camera_update_2}.get(self.latency, k.camera_update)
+            return Kernel(output=k.camera_output, update=update, params=params, noise=noise, position="k")
+        return Kernel(step=k.camera_step, params=params, noise=noise, position="k")
 
     def _sample(self, state, u):
         """The true plant state of the frame delivered now, and whether one exists."""

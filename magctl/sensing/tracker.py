@@ -35,10 +35,13 @@ from magctl import FRAME_PERIOD_S
 from magctl.config import Params
 from magctl.core.block import Block, StateVar
 from magctl.core.errors import ParameterError
+from magctl.core.kernel import Kernel
 from magctl.core.ports import DIMENSIONLESS, Port
 from magctl.sensing.camera import camera_params
 
 MODES = ("raw", "kalman", "particle")
+START_VELOCITY_VAR = (4e-4) ** 2
+"""Velocity variance of a track's first estimate, m²/s²: up to the robot's top speed, 400 µm/s (paper §IV-C)."""
 
 
 def cv_model(dt: float, accel_noise: float):
@@ -148,6 +151,18 @@ class Tracker(Block):
         return self.mode == "particle"
 
     # --- Kalman / raw --------------------------------------------------------------------------
+    def kernel(self):
+        """Raw and Kalman modes: :func:`magctl.sensing.kernels.tracker_step` (particle mode has no kernel)."""
+        if self.mode == "particle":
+            return None
+        from magctl.sensing import kernels as k
+
+        ahead = self.predict_frames * self.dt if self.mode == "kalman" else 0.0
+        params = (self.mode == "kalman", self.on_loss == "nan", self.n_spheres, self.dt, float(self.R),
+                  np.ascontiguousarray(self.F), np.ascontiguousarray(self.Q), START_VELOCITY_VAR, self.max_coast,
+                  ahead)
+        return Kernel(step=k.tracker_step, params=params)
+
     def _posterior(self, state, u):
         """State after this frame's measurement (fresh arrays; ``state`` is not modified)."""
         valid = np.asarray(u["valid"], dtype=bool)
@@ -178,7 +193,7 @@ class Tracker(Block):
         x0[..., 0] = z
         P0 = np.zeros_like(P)
         P0[..., 0, 0] = self.R
-        P0[..., 1, 1] = (4e-4) ** 2  # up to the robot's top speed, 400 µm/s (paper §IV-C)
+        P0[..., 1, 1] = START_VELOCITY_VAR
         xn = np.where(start, x0, np.where(init[:, None, None, None], xn, x))
         Pn = np.where(start, P0, np.where(init[:, None, None, None], Pn, P))
         return xn, Pn, init | valid
