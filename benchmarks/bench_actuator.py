@@ -1,7 +1,7 @@
 """Cost per 30 Hz frame of the plant front half (drive → coils → robot).
 
 Measured both as the three-block diagram and as the fused ``ActuatedRobot`` block, through
-``magctl.core.simulate``, for B = 1 (rig) and per trial for B = 100 and B = 10 000 (Monte Carlo).
+``magctl.core.simulation``, for B = 1 (rig) and per trial for B = 100 and B = 10 000 (Monte Carlo).
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ _WHERE = {
     "GaussianNoise": "nonlinear", "NormSaturation": "nonlinear", "clip_norm": "nonlinear",
     "Port": "ports", "port": "ports",
     "TrialStreams": "random", "trial_seed_sequence": "random",
-    "SimResult": "simulate", "simulate": "simulate",
+    "SimResult": "simulation", "simulate": "simulation",
 }
 
 __all__ = sorted(_WHERE)

@@ -129,7 +129,7 @@ def _kernel_name(fn) -> tuple[str, str]:
 class CompiledDiagram:
     """A diagram compiled into one generated step and one generated simulation loop.
 
-    Build it with :func:`compile_diagram` (``Diagram.compile()``); :func:`magctl.core.simulate.simulate`
+    Build it with :func:`compile_diagram` (``Diagram.compile()``); :func:`magctl.core.simulation.simulate`
     uses it with ``engine="compiled"``, and :meth:`stepper` gives the one-call-per-frame form the rig
     runs.
     """

@@ -31,7 +31,7 @@ from magctl.control.status import STATUS_NAMES, Status
 from magctl.core.compiled import NotCompilable
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
-from magctl.core.simulate import ENGINES
+from magctl.core.simulation import ENGINES
 from magctl.loops import COMMAND, OBSERVATION, controller, default_goal, sphere_count
 from magctl.rig.interface import Command, Observation
 

@@ -247,7 +247,7 @@ def step_report(servo, *, delay_frames: int, step: float, steps: int = 450, star
     tracker around the kinematic robot, so saturation, the integral clamp and pixel
     quantisation are included; the linear model has none of them.
     """
-    from magctl.core.simulate import simulate
+    from magctl.core.simulation import simulate
 
     start = np.asarray(start, dtype=float)
     target = start + np.array([step, 0.0])

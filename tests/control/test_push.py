@@ -22,7 +22,7 @@ from magctl.control.push.side import SidePushTask
 from magctl.control.status import Status
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
-from magctl.core.simulate import simulate
+from magctl.core.simulation import simulate
 from magctl.loops import Scene, closed_loop, controller, geometry, plant
 from magctl.plant.standin import KinematicRobot, StandinSpheres, StandinTracker, StraightToTarget, standin_params
 from magctl.stability import iteration as S

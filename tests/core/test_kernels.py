@@ -16,7 +16,7 @@ from test_block_contract import BATCH, BLOCKS, FACTORIES, VARIANTS, _build, _ran
 from magctl.core.block import STREAM, flat_state_vars, state_get
 from magctl.core.compiled import NotCompilable
 from magctl.core.diagram import Diagram
-from magctl.core.simulate import simulate
+from magctl.core.simulation import simulate
 
 STEPS = 40
 RTOL = 1e-12

@@ -11,7 +11,7 @@ import pytest
 from magctl import FRAME_PERIOD_S as T
 from magctl.config import load_model
 from magctl.core.random import TrialStreams
-from magctl.core.simulate import simulate
+from magctl.core.simulation import simulate
 from magctl.loops import Scene, plant
 from magctl.plant.robot import load_robot, steady_speed
 from magctl.plant.standin import (

@@ -15,7 +15,7 @@ from magctl.cli import build_parser
 from magctl.control.learning import front_push_law, side_push_law
 from magctl.control.push.common import ExpSideModel, LinSideModel, side_model
 from magctl.core.errors import MagctlError
-from magctl.core.simulate import simulate
+from magctl.core.simulation import simulate
 from magctl.stability import iteration as S
 
 UM = 1e-6

@@ -12,7 +12,7 @@ from magctl.control.push.side import SidePushTask
 from magctl.control.status import Status
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
-from magctl.core.simulate import simulate
+from magctl.core.simulation import simulate
 from magctl.plant.standin import KinematicRobot, StandinSpheres, StandinTracker, StraightToTarget, standin_params
 from magctl.stability import iteration as S
 from magctl.stability import switched as W
