@@ -113,6 +113,16 @@ def _param_expr(value, pbufs: dict[str, list], name: str) -> str:
     return f"P{g}[{start}:{start + arr.size}].reshape(({shape},))"
 
 
+def _param_value(value):
+    """A kernel parameter as ``run_steps`` takes it: a contiguous array, or a Python scalar."""
+    if isinstance(value, np.ndarray) and value.ndim > 0:
+        return np.ascontiguousarray(value)
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    arr = np.asarray(value)
+    return int(arr) if arr.dtype.kind in "iu" else float(arr) if arr.dtype.kind == "f" else value
+
+
 def _tuple(items: list[str]) -> str:
     if not items:
         return "()"
@@ -165,6 +175,7 @@ class CompiledDiagram:
                        for lf, k in zip(sched.leaves, kernels, strict=True)]
         dt = {"F": np.float64, "I": np.int64, "B": np.bool_}
         self.params = {g: np.asarray(v, dtype=dt[g]) if v else np.zeros(1, dtype=dt[g]) for g, v in pbufs.items()}
+        self.param_tuples = tuple(tuple(_param_value(v) for v in k.params) for k in kernels)
         self.noisy = [i for i, k in enumerate(kernels) if k.noise]
 
         imports, views = {}, []
@@ -173,7 +184,7 @@ class CompiledDiagram:
                 if fn is not None:
                     mod, qual = _kernel_name(fn)
                     imports[f"k{i}_{role}"] = (mod, qual)
-            views.append(f"p{i} = {param_exprs[i]}")
+            views.append(f"p{i} = PARAMS")
             for v, slot in enumerate(self.state_slots[i]):
                 views.append(f"s{i}_{v} = {slot.view('S')}")
                 if not k.in_place:
@@ -237,9 +248,15 @@ class CompiledDiagram:
                 "import numba", "import numpy as np"]
         head += [f"from {mod} import {qual} as {alias}" for alias, (mod, qual) in sorted(imports.items())]
         args = "B, PF, PI, PB, SF, SI, SB, NF, NI, NB, OF, OI, OB, XF, XI, XB, BASES, NOISE, RAN"
+        # run_steps takes the parameters as built tuples (views made in Python: faster loops); step_once,
+        # called once per frame, rebuilds them from the flat buffers (fewer arguments to unbox per call)
+        run_views = [f"p{v.split(' ')[0][1:]} = PT[{v.split(' ')[0][1:]}]" if v.endswith("= PARAMS") else v
+                     for v in views]
+        step_views = [f"{v.split(' ')[0]} = {param_exprs[int(v.split(' ')[0][1:])]}" if v.endswith("= PARAMS")
+                      else v for v in views]
         lines = head + ["", "", JIT,
-                        f"def run_steps(T, tick0, EXT, RECIDX, RECF, RECI, RECB, {args}):"]
-        lines += _indent(views, 1)
+                        f"def run_steps(T, tick0, EXT, RECIDX, RECF, RECI, RECB, PT, {args}):"]
+        lines += _indent(run_views, 1)
         lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 1)
         lines += ["    for b in range(B):"]
         lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 2)
@@ -251,7 +268,7 @@ class CompiledDiagram:
         lines += _indent(self._record_lines(), 3)
         lines += ["    return 0", "", "", JIT,
                   f"def step_once(tick, {args}):"]
-        lines += _indent(views, 1)
+        lines += _indent(step_views, 1)
         lines += ["    for b in range(B):"]
         lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 2)
         lines += _indent(tick_lines, 2)
@@ -400,7 +417,7 @@ class CompiledDiagram:
                      for g, d in (("F", np.float64), ("I", np.int64), ("B", np.bool_)))
         ext_arrays = tuple(np.ascontiguousarray(np.asarray(ext[name], dtype=sched.inputs[name].dtype).reshape(
             batch, steps, -1)) for name in self.ext_slots)
-        self.module().run_steps(steps, int(state["tick"]), ext_arrays, rec_index, *recs,
+        self.module().run_steps(steps, int(state["tick"]), ext_arrays, rec_index, *recs, self.param_tuples,
                                 *self._args(buf, batch, bases, noise))
         held = list(state["held"])
         for i in self.multirate:
