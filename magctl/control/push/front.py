@@ -20,7 +20,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.control.learning import LearningLaw, front_push_law
-from magctl.control.push.common import FINISHED, PushTask, around, arrived, sphere_radii, with_defaults
+from magctl.control.push.common import FINISHED, START, PushTask, around, arrived, sphere_radii, with_defaults
 from magctl.core.batched import norm, unit
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
@@ -156,16 +156,17 @@ class FrontPushTask(PushTask, Block):
             go_on = self._finish_attempt(new, meas, done)
             new["law"] = self.law.update_where(new["law"], {"e": e}, go_on)
             self._begin(new, go_on, r, spheres)
-        self._targets(new, r, s)
+        self._targets(new, r, s, ok)
 
-    def _targets(self, new, r, s):
-        ph = new["phase"]
+    def _targets(self, new, r, s, ok):
+        """The servo target and speed cap of the phase, for the trials in ``ok`` (the others keep theirs)."""
+        ph = np.where(ok, new["phase"], START)
         tgt = new["target"]
         tgt = np.where((ph == APPROACH)[:, None], around(r, s, new["p_ri"], self.clearance), tgt)
         tgt = np.where((ph == PUSH)[:, None], new["stand"], tgt)
         tgt = np.where(((ph == RETRACT) | (ph == SETTLE))[:, None], new["back"], tgt)
         new["target"] = tgt
-        new["speed"] = np.where(ph == PUSH, self.push_speed, self.travel_speed)
+        new["speed"] = np.where(ok, np.where(ph == PUSH, self.push_speed, self.travel_speed), new["speed"])
 
 
 class FrontAssemblyTask(FrontPushTask):

@@ -25,7 +25,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.control.learning import LearningLaw, side_push_law
-from magctl.control.push.common import FINISHED, PushTask, around, arrived, side_model, with_defaults
+from magctl.control.push.common import FINISHED, START, PushTask, around, arrived, side_model, with_defaults
 from magctl.core.batched import cross, norm, perp, unit
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
@@ -167,8 +167,9 @@ class SidePushTask(PushTask, Block):
             # eq 18 bracket as printed; the law's gain carries the sign
             new["law"] = self.law.update_where(new["law"], {"e": d_act - new["d_des"]}, go_on)
             self._begin(new, go_on, r, spheres)
-        ph = new["phase"]
+        # the servo target and speed cap of the phase, for the trials in ok (the others keep theirs)
+        ph = np.where(ok, new["phase"], START)
         tgt = np.where((ph == REPOSITION)[:, None], around(r, s, new["start"], self.clearance), new["target"])
         tgt = np.where(((ph == PASS) | (ph == SETTLE))[:, None], new["end"], tgt)
         new["target"] = tgt
-        new["speed"] = np.where(ph == PASS, self.pass_speed, self.travel_speed)
+        new["speed"] = np.where(ok, np.where(ph == PASS, self.pass_speed, self.travel_speed), new["speed"])
