@@ -96,6 +96,21 @@ class FrontPushTask(PushTask, Block):
         ins, outs = self._ports(n_spheres)
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
 
+    def kernel(self):
+        """The compiled frame (:func:`magctl.control.push.kernels.front_step`)."""
+        from magctl.control.push import kernels as k
+        from magctl.core.kernel import Kernel
+
+        if not self._kernel_law_ok():
+            return None
+        return Kernel(step=k.front_step, params=self._front_kernel_params())
+
+    def _front_kernel_params(self) -> tuple:
+        radii = getattr(self, "radii", (0.0, 0.0))
+        return self._kernel_params(PUSH_TOL=self.push_tol, CONTACT=self.contact, APPROACH=self.approach,
+                                   RETRACT=self.retract, PUSH_SPEED=self.push_speed, R0=radii[0], R1=radii[1],
+                                   EPS_AS=getattr(self, "eps_as", 0.0))
+
     # --- geometry: which point the sphere must reach and when the task is done ------------------
     def _geometry(self, new, r, spheres):
         """Moved sphere ``s``, goal point, pushing direction ``u`` and the eq 12 test."""

@@ -94,6 +94,41 @@ class SidePushTask(PushTask, Block):
         outs.append(Port("gap", (), "m"))
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
 
+    def kernel(self):
+        """The compiled frame (:func:`magctl.control.push.kernels.side_step`); None for a model of another kind."""
+        from magctl.control.push import kernels as k
+        from magctl.core.kernel import Kernel
+
+        params = self._side_kernel_params()
+        if params is None or not self._kernel_law_ok():
+            return None
+        return Kernel(step=k.side_step, params=params)
+
+    def _side_kernel_params(self) -> tuple | None:
+        """``(fp, ip, gain, gaps, log displacements, rates)``: the model as a kind code and its parameters."""
+        from magctl.control.push import kernels as k
+        from magctl.control.push.common import ExpSideModel, LinSideModel, TabulatedSideModel
+
+        m = self.model
+        table = (np.zeros(2), np.zeros(2), np.zeros(1))
+        if type(m) is ExpSideModel:
+            kind, m0, m1 = k.MODEL_EXP, m.amplitude, m.rate
+        elif type(m) is LinSideModel:
+            kind, m0, m1 = k.MODEL_LIN, m.intercept, m.slope_
+        elif type(m) is TabulatedSideModel:
+            kind, m0, m1 = k.MODEL_TABLE, 0.0, 0.0
+            table = tuple(np.ascontiguousarray(a, dtype=float) for a in m._tab())
+        else:
+            return None
+        radii = getattr(self, "radii", (0.0, 0.0))
+        fp, ip, gain = self._kernel_params(
+            MIN_GAP=self.min_gap, D_MAX=self.d_max, BEHIND=self.behind, AHEAD=self.ahead,
+            PASS_SPEED=self.pass_speed, FIXED_GAP=0.0 if self.fixed_gap is None else self.fixed_gap,
+            THETA_N=getattr(self, "theta_n", 0.0), M0=m0, M1=m1, R0=radii[0], R1=radii[1],
+            EPS_AS=getattr(self, "eps_as", 0.0))
+        ip[[k.MODEL, k.FIXED]] = kind, self.fixed_gap is not None
+        return (fp, ip, gain, *table)
+
     # --- geometry ---------------------------------------------------------------------------------
     def _geometry(self, new, r, spheres):
         """Moved sphere, distance still to go, pushing direction, side of the motion line, eq 12."""
