@@ -31,6 +31,13 @@ class ArrivalStatus(Block):
         status = np.where(lost, Status.TRACKING_LOST, np.where(arrived, Status.CONVERGED, Status.RUNNING))
         return {"status": status.astype(np.int64)}
 
+    def kernel(self):
+        """The compiled status (:func:`magctl.control.kernels.arrival_status_step`)."""
+        from magctl.control import kernels as k
+        from magctl.core.kernel import Kernel
+
+        return Kernel(step=k.arrival_status_step)
+
 
 class Patrol(Block):
     """Cycle through waypoints forever: the target moves on when the robot is within ``tol`` of it.
@@ -62,4 +69,10 @@ class Patrol(Block):
         lap = state["lap"] + (arrived & (i == 0))
         return {"i": i, "lap": lap}
 
+    def kernel(self):
+        """The compiled patrol (:func:`magctl.control.kernels.patrol_output`, ``patrol_update``)."""
+        from magctl.control import kernels as k
+        from magctl.core.kernel import Kernel
 
+        return Kernel(output=k.patrol_output, update=k.patrol_update,
+                      params=(np.ascontiguousarray(self.waypoints), self.tol))

@@ -78,6 +78,14 @@ class LearningLaw(Block):
     def update(self, state, u):
         return {"x": state["x"] + self.gain * u["e"]}
 
+    def kernel(self):
+        """The compiled integrator (:func:`magctl.control.kernels.law_output`, ``law_update``)."""
+        from magctl.control import kernels as k
+        from magctl.core.kernel import Kernel
+
+        return Kernel(output=k.law_output, update=k.law_update,
+                      params=(np.atleast_1d(np.asarray(self.gain, dtype=float)).copy(),))
+
     def update_where(self, state, u, mask) -> dict:
         """The next state with only the trials in ``mask`` advanced (those that just finished an attempt)."""
         return {"x": np.where(mask, state["x"] + self.gain * u["e"], state["x"])}

@@ -157,3 +157,13 @@ class Servo(Block):
 
     def update(self, state, u):
         return self.step(state, u)[1]
+
+    def kernel(self):
+        """The compiled law (:func:`magctl.control.kernels.servo_step` and its variants by optional inputs)."""
+        from magctl.control import kernels as k
+        from magctl.core.kernel import Kernel
+
+        step = {(False, False): k.servo_step, (True, False): k.servo_cap_step, (False, True): k.servo_hold_step,
+                (True, True): k.servo_cap_hold_step}[("speed_cap" in self.inputs, "hold" in self.inputs)]
+        return Kernel(step=step, params=(self.kp, self.ki, self.speed_max, self.arrive_tol, self.anti_windup,
+                                         self.constant_speed, float(self.dt)))

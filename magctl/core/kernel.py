@@ -16,7 +16,9 @@ function is called for one trial ``b`` with tuples of such arrays:
 * no feedthrough: ``output(b, params, state, outputs)`` (its outputs need no input), then
   ``update(b, params, state, next_state, inputs, base, noise)``.
 
-``params`` is the kernel's tuple of parameters; ``state`` and ``next_state`` follow
+Kernel functions allocate nothing (no ``np.empty``, no copies, no lists): the engine compiles them
+without numba's reference-counted runtime, which a kernel holding many arrays would otherwise pay an
+atomic count for at every use. ``params`` is the kernel's tuple of parameters; ``state`` and ``next_state`` follow
 ``flat_state_vars(block.state_vars())`` (random streams left out); ``inputs`` and ``outputs`` follow
 the block's port order; ``noise`` holds one array per declared draw (an empty tuple without).
 

@@ -162,6 +162,7 @@ def _build(name):
 
 def _variants() -> dict:
     """Other configurations of the same classes, whose code paths differ enough to be run too."""
+    from magctl.control.push.side import SidePushTask
     from magctl.control.servo import Servo
     from magctl.core.linear import PI
     from magctl.plant.fluid.params import sphere_params
@@ -181,6 +182,11 @@ def _variants() -> dict:
                                                                drop_probability=0.3, position_noise_px=0.5),
         "Tracker, raw, NaN on loss": lambda: Tracker("tracker", n_spheres=1, mode="raw", on_loss="nan"),
         "Servo, basic PI": lambda: Servo("servo", anti_windup=False, constant_speed=True),
+        "Servo, no optional inputs": lambda: Servo("servo"),
+        "SidePushTask, eq 22 model": lambda: SidePushTask("side", goal=(2.5e-3, 1.5e-3), model="exp",
+                                                          arrive_tol=500 * UM, settle_frames=1),
+        "SidePushTask, fixed gap": lambda: SidePushTask("side", goal=(2.5e-3, 1.5e-3), fixed_gap=500 * UM,
+                                                        arrive_tol=500 * UM, settle_frames=1),
         "StickSlipRobot, no variability": lambda: StickSlipRobot("robot", variability=False),
         "KinematicRobot, steer input": lambda: KinematicRobot("robot", start=(1e-3, 1e-3), steer_input=True),
         "StandinTracker, sphere loss": lambda: StandinTracker("tracker", 2, 1.6e-3, sphere_loss=(0.3, np.inf)),

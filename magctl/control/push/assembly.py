@@ -154,6 +154,16 @@ class FrontThenSideAssemblyTask(Block):
     def update(self, state, u):
         return self.step(state, u)[1]
 
+    def kernel(self):
+        """The compiled frame (:func:`magctl.control.push.kernels.front_then_side_step`): both stages' kernels."""
+        from magctl.control.push import kernels as k
+        from magctl.core.kernel import Kernel
+
+        side = self.side._side_kernel_params()
+        if side is None or not (self.front._kernel_law_ok() and self.side._kernel_law_ok()):
+            return None
+        return Kernel(step=k.front_then_side_step, params=(*self.front._front_kernel_params(), *side))
+
 
 def _select(mask: np.ndarray, a: dict, b: dict) -> dict:
     """Per trial, ``a``'s entries where ``mask`` holds and ``b``'s elsewhere (nested dicts alike)."""

@@ -375,6 +375,28 @@ class PushTask:
             new["status"] = np.where(mask, code, new["status"])
             new["target"] = np.where(mask[:, None], r, new["target"])
 
+    def _kernel_params(self, **task: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The float and int parameter arrays and the law's gain of the compiled kernels
+        (:mod:`magctl.control.push.kernels`); ``task`` sets the task's own float entries by name."""
+        from magctl.control.push import kernels as k
+
+        fp = np.zeros(k.N_FP)
+        ip = np.zeros(k.N_IP, dtype=np.int64)
+        fp[[k.EPS, k.CLEARANCE, k.ARRIVE_TOL, k.TRAVEL_SPEED, k.WORKSPACE]] = (
+            self.eps, self.clearance, self.arrive_tol, self.travel_speed, self.workspace)
+        for name, value in task.items():
+            fp[getattr(k, name)] = value
+        idx = self.sphere_indices
+        ip[[k.MAX_ATTEMPTS, k.SETTLE_FRAMES, k.MAX_LOST, k.TIMEOUT, k.I0, k.I1, k.PAIR]] = (
+            self.max_attempts, self.settle_frames, self.max_lost_frames, self.phase_timeout_frames,
+            idx[0], idx[-1], len(idx) > 1)
+        return fp, ip, np.atleast_1d(np.asarray(self.law.gain, dtype=float)).copy()
+
+    def _kernel_law_ok(self) -> bool:
+        from magctl.control.learning import LearningLaw
+
+        return type(self.law) is LearningLaw
+
     def _spheres_found(self, new, spheres) -> np.ndarray:
         idx = list(self.sphere_indices)
         s = spheres[:, idx]

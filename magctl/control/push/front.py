@@ -20,7 +20,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.control.learning import LearningLaw, front_push_law
-from magctl.control.push.common import FINISHED, PushTask, around, arrived, sphere_radii, with_defaults
+from magctl.control.push.common import FINISHED, START, PushTask, around, arrived, sphere_radii, with_defaults
 from magctl.core.batched import norm, unit
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
@@ -96,6 +96,21 @@ class FrontPushTask(PushTask, Block):
         ins, outs = self._ports(n_spheres)
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
 
+    def kernel(self):
+        """The compiled frame (:func:`magctl.control.push.kernels.front_step`)."""
+        from magctl.control.push import kernels as k
+        from magctl.core.kernel import Kernel
+
+        if not self._kernel_law_ok():
+            return None
+        return Kernel(step=k.front_step, params=self._front_kernel_params())
+
+    def _front_kernel_params(self) -> tuple:
+        radii = getattr(self, "radii", (0.0, 0.0))
+        return self._kernel_params(PUSH_TOL=self.push_tol, CONTACT=self.contact, APPROACH=self.approach,
+                                   RETRACT=self.retract, PUSH_SPEED=self.push_speed, R0=radii[0], R1=radii[1],
+                                   EPS_AS=getattr(self, "eps_as", 0.0))
+
     # --- geometry: which point the sphere must reach and when the task is done ------------------
     def _geometry(self, new, r, spheres):
         """Moved sphere ``s``, goal point, pushing direction ``u`` and the eq 12 test."""
@@ -156,16 +171,17 @@ class FrontPushTask(PushTask, Block):
             go_on = self._finish_attempt(new, meas, done)
             new["law"] = self.law.update_where(new["law"], {"e": e}, go_on)
             self._begin(new, go_on, r, spheres)
-        self._targets(new, r, s)
+        self._targets(new, r, s, ok)
 
-    def _targets(self, new, r, s):
-        ph = new["phase"]
+    def _targets(self, new, r, s, ok):
+        """The servo target and speed cap of the phase, for the trials in ``ok`` (the others keep theirs)."""
+        ph = np.where(ok, new["phase"], START)
         tgt = new["target"]
         tgt = np.where((ph == APPROACH)[:, None], around(r, s, new["p_ri"], self.clearance), tgt)
         tgt = np.where((ph == PUSH)[:, None], new["stand"], tgt)
         tgt = np.where(((ph == RETRACT) | (ph == SETTLE))[:, None], new["back"], tgt)
         new["target"] = tgt
-        new["speed"] = np.where(ph == PUSH, self.push_speed, self.travel_speed)
+        new["speed"] = np.where(ok, np.where(ph == PUSH, self.push_speed, self.travel_speed), new["speed"])
 
 
 class FrontAssemblyTask(FrontPushTask):

@@ -25,7 +25,7 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.control.learning import LearningLaw, side_push_law
-from magctl.control.push.common import FINISHED, PushTask, around, arrived, side_model, with_defaults
+from magctl.control.push.common import FINISHED, START, PushTask, around, arrived, side_model, with_defaults
 from magctl.core.batched import cross, norm, perp, unit
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
@@ -93,6 +93,41 @@ class SidePushTask(PushTask, Block):
         ins, outs = self._ports(n_spheres)
         outs.append(Port("gap", (), "m"))
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
+
+    def kernel(self):
+        """The compiled frame (:func:`magctl.control.push.kernels.side_step`); None for a model of another kind."""
+        from magctl.control.push import kernels as k
+        from magctl.core.kernel import Kernel
+
+        params = self._side_kernel_params()
+        if params is None or not self._kernel_law_ok():
+            return None
+        return Kernel(step=k.side_step, params=params)
+
+    def _side_kernel_params(self) -> tuple | None:
+        """``(fp, ip, gain, gaps, log displacements, rates)``: the model as a kind code and its parameters."""
+        from magctl.control.push import kernels as k
+        from magctl.control.push.common import ExpSideModel, LinSideModel, TabulatedSideModel
+
+        m = self.model
+        table = (np.zeros(2), np.zeros(2), np.zeros(1))
+        if type(m) is ExpSideModel:
+            kind, m0, m1 = k.MODEL_EXP, m.amplitude, m.rate
+        elif type(m) is LinSideModel:
+            kind, m0, m1 = k.MODEL_LIN, m.intercept, m.slope_
+        elif type(m) is TabulatedSideModel:
+            kind, m0, m1 = k.MODEL_TABLE, 0.0, 0.0
+            table = tuple(np.ascontiguousarray(a, dtype=float) for a in m._tab())
+        else:
+            return None
+        radii = getattr(self, "radii", (0.0, 0.0))
+        fp, ip, gain = self._kernel_params(
+            MIN_GAP=self.min_gap, D_MAX=self.d_max, BEHIND=self.behind, AHEAD=self.ahead,
+            PASS_SPEED=self.pass_speed, FIXED_GAP=0.0 if self.fixed_gap is None else self.fixed_gap,
+            THETA_N=getattr(self, "theta_n", 0.0), M0=m0, M1=m1, R0=radii[0], R1=radii[1],
+            EPS_AS=getattr(self, "eps_as", 0.0))
+        ip[[k.MODEL, k.FIXED]] = kind, self.fixed_gap is not None
+        return (fp, ip, gain, *table)
 
     # --- geometry ---------------------------------------------------------------------------------
     def _geometry(self, new, r, spheres):
@@ -167,8 +202,9 @@ class SidePushTask(PushTask, Block):
             # eq 18 bracket as printed; the law's gain carries the sign
             new["law"] = self.law.update_where(new["law"], {"e": d_act - new["d_des"]}, go_on)
             self._begin(new, go_on, r, spheres)
-        ph = new["phase"]
+        # the servo target and speed cap of the phase, for the trials in ok (the others keep theirs)
+        ph = np.where(ok, new["phase"], START)
         tgt = np.where((ph == REPOSITION)[:, None], around(r, s, new["start"], self.clearance), new["target"])
         tgt = np.where(((ph == PASS) | (ph == SETTLE))[:, None], new["end"], tgt)
         new["target"] = tgt
-        new["speed"] = np.where(ph == PASS, self.pass_speed, self.travel_speed)
+        new["speed"] = np.where(ok, np.where(ph == PASS, self.pass_speed, self.travel_speed), new["speed"])

@@ -1,0 +1,473 @@
+"""Compiled kernels of the push tasks: the shared frame of :class:`~magctl.control.push.common.PushTask` and
+each task's attempt-level state machine, one trial at a time.
+
+Every push task's state starts with the 8 common entries (``phase``, ``status``, ``attempt``, ``frames``,
+``lost_frames``, ``target``, ``speed``, ``law.x``) followed by 7 of its own; a kernel copies the state to the
+next state, then works on the next state only (so the engine may pass the same arrays). The frame is
+:func:`frame_begin` (lost-frame count, failures: ``PushTask._frame`` up to ``_step``), the task's own
+``_step`` on a trial that is running, tracked and has its spheres, then :func:`frame_end` (the outputs).
+
+Parameters come as a float array ``fp`` and an int array ``ip`` indexed by the constants below, the law's
+gain (length 1, or one per trial) and, for the side push, the tabulated model's arrays. Side-push models
+(``F`` of eq 17) are a kind code: :data:`MODEL_EXP` (eq 22, ``fp[M0]`` = A, ``fp[M1]`` = k),
+:data:`MODEL_LIN` (eq 23, slope, intercept) or :data:`MODEL_TABLE` (gaps, log displacements, rates).
+The arithmetic is the numpy form's, element by element (``norm``, ``unit``, ``cross``, ``rotate`` of
+:mod:`magctl.core.batched`, :func:`~magctl.control.push.common.around`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+
+from magctl.control.kernels import law_gain, nan_max, nan_min
+
+jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+
+# status codes (magctl.control.status.Status) and phases (common.py, front.py, side.py)
+RUNNING, CONVERGED, ATTEMPT_LIMIT, TRACKING_LOST, SPHERE_LOST, STALLED = 0, 1, 2, 3, 4, 5
+START, FINISHED = 0, 99
+F_APPROACH, F_PUSH, F_RETRACT, F_SETTLE = 1, 2, 3, 4
+S_REPOSITION, S_PASS, S_SETTLE = 1, 2, 3
+SIDE_PHASE_OFFSET = 10
+
+# int parameters
+MAX_ATTEMPTS, SETTLE_FRAMES, MAX_LOST, TIMEOUT, I0, I1, PAIR, MODEL, FIXED = range(9)
+N_IP = 9
+# float parameters: common, then front, then side
+EPS, CLEARANCE, ARRIVE_TOL, TRAVEL_SPEED, WORKSPACE, R0, R1, EPS_AS = range(8)
+PUSH_TOL, CONTACT, APPROACH, RETRACT, PUSH_SPEED = range(8, 13)
+MIN_GAP, D_MAX, BEHIND, AHEAD, PASS_SPEED, FIXED_GAP, THETA_N, M0, M1 = range(13, 22)
+N_FP = 22
+
+MODEL_EXP, MODEL_LIN, MODEL_TABLE = 0, 1, 2
+
+AROUND_STEP = math.pi / 4
+TWO_PI = 2 * math.pi
+
+
+# --- planar helpers (magctl.core.batched) -------------------------------------------------------------
+@jit
+def norm2(x, y):
+    """``norm``: ``sqrt(x² + y²)``."""
+    return math.sqrt(x * x + y * y)
+
+
+@jit
+def unit2(x, y):
+    """``unit``: the vector over its norm, ``(1, 0)`` where the norm is not positive."""
+    n = norm2(x, y)
+    if n > 0:
+        return x / n, y / n
+    return 1.0, 0.0
+
+
+@jit
+def arrived(r0, r1, t0, t1, tol):
+    """``arrived``: robot within ``tol`` of the target."""
+    return norm2(r0 - t0, r1 - t1) < tol
+
+
+@jit
+def sign(x):
+    """``np.sign`` of a float (NaN stays NaN)."""
+    if x > 0:
+        return 1.0
+    if x < 0:
+        return -1.0
+    return x
+
+
+@jit
+def around(r0, r1, o0, o1, t0, t1, clearance):
+    """``around``: the next waypoint from the robot to the target keeping ``clearance`` from the obstacle
+    (``π/4`` further round the ``1.08·clearance`` circle where the segment is blocked)."""
+    d0 = t0 - r0
+    d1 = t1 - r1
+    rel0 = o0 - r0
+    rel1 = o1 - r1
+    dd = d0 * d0 + d1 * d1
+    t = nan_min(nan_max((rel0 * d0 + rel1 * d1) / (dd if dd > 0 else 1.0), 0.0), 1.0)
+    closest = norm2(r0 + t * d0 - o0, r1 + t * d1 - o1)
+    if not (closest < clearance and norm2(t0 - o0, t1 - o1) >= clearance):
+        return t0, t1
+    a_r = math.atan2(r1 - o1, r0 - o0)
+    a_t = math.atan2(t1 - o1, t0 - o0)
+    diff = (a_t - a_r + math.pi) % TWO_PI - math.pi
+    a = a_r + sign(diff) * nan_min(abs(diff), AROUND_STEP)
+    rad = 1.08 * clearance
+    return o0 + rad * math.cos(a), o1 + rad * math.sin(a)
+
+
+@jit
+def _cp(b, src, dst):
+    for i in range(src.shape[1]):
+        dst[b, i] = src[b, i]
+
+
+@jit
+def copy_task_state(b, st, nx):
+    """The next state = the state (a push task's 15 entries)."""
+    _cp(b, st[0], nx[0])
+    _cp(b, st[1], nx[1])
+    _cp(b, st[2], nx[2])
+    _cp(b, st[3], nx[3])
+    _cp(b, st[4], nx[4])
+    _cp(b, st[5], nx[5])
+    _cp(b, st[6], nx[6])
+    _cp(b, st[7], nx[7])
+    _cp(b, st[8], nx[8])
+    _cp(b, st[9], nx[9])
+    _cp(b, st[10], nx[10])
+    _cp(b, st[11], nx[11])
+    _cp(b, st[12], nx[12])
+    _cp(b, st[13], nx[13])
+    _cp(b, st[14], nx[14])
+
+
+# --- the frame shared by every push task (PushTask._frame, _fail, _enter, _finish_attempt) -----------------
+@jit
+def spheres_found(b, fp, ip, goal, sp):
+    """``_spheres_found``: the pushed sphere finite and within ``workspace`` of the goal, or (assemblies) both
+    spheres finite and within ``workspace`` of each other."""
+    i = 2 * ip[I0]
+    s0 = sp[b, i]
+    s1 = sp[b, i + 1]
+    if ip[PAIR]:
+        j = 2 * ip[I1]
+        q0 = sp[b, j]
+        q1 = sp[b, j + 1]
+        if not (math.isfinite(s0) and math.isfinite(s1) and math.isfinite(q0) and math.isfinite(q1)):
+            return False
+        return norm2(s0 - q0, s1 - q1) < fp[WORKSPACE]
+    if not (math.isfinite(s0) and math.isfinite(s1)):
+        return False
+    return not (norm2(s0 - goal[b, 0], s1 - goal[b, 1]) > fp[WORKSPACE])
+
+
+@jit
+def fail(b, status, target, code, r0, r1):
+    """``_fail``: end the trial with ``code``, holding the robot where it is."""
+    status[b, 0] = code
+    target[b, 0] = r0
+    target[b, 1] = r1
+
+
+@jit
+def enter(b, phase, frames, ph):
+    """``_enter``: phase ``ph`` from frame 0."""
+    phase[b, 0] = ph
+    frames[b, 0] = 0
+
+
+@jit
+def finish_attempt(b, ip, status, attempt, converged):
+    """``_finish_attempt``: count the attempt; converged or the limit ends the trial. True: the trial goes on."""
+    attempt[b, 0] += 1
+    if converged:
+        status[b, 0] = CONVERGED
+        return False
+    if attempt[b, 0] >= ip[MAX_ATTEMPTS]:
+        status[b, 0] = ATTEMPT_LIMIT
+        return False
+    return True
+
+
+@jit
+def frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost, found):
+    """``_frame`` before ``_step``: lost-frame count, then TRACKING_LOST, SPHERE_LOST, STALLED.
+    True: the trial is running and tracked (its ``_step`` runs)."""
+    running = status[b, 0] == RUNNING
+    lost_frames[b, 0] = lost_frames[b, 0] + 1 if (running and lost) else 0
+    if running:
+        frames[b, 0] += 1
+    if running and lost_frames[b, 0] > ip[MAX_LOST]:
+        fail(b, status, target, TRACKING_LOST, r0, r1)
+    if status[b, 0] == RUNNING and not lost and not found:
+        fail(b, status, target, SPHERE_LOST, r0, r1)
+    if status[b, 0] == RUNNING and frames[b, 0] > ip[TIMEOUT]:
+        fail(b, status, target, STALLED, r0, r1)
+    return status[b, 0] == RUNNING and not lost
+
+
+@jit
+def frame_end(b, phase, status, attempt, target, speed, lawx, r0, r1):
+    """``_frame`` after ``_step``: FINISHED phase, the outputs (target, NaN → robot; speed cap 0 when done)."""
+    done = status[b, 0] != RUNNING
+    if done:
+        phase[b, 0] = FINISHED
+    t0 = target[b, 0]
+    t1 = target[b, 1]
+    return (r0 if math.isnan(t0) else t0, r1 if math.isnan(t1) else t1, 0.0 if done else speed[b, 0],
+            status[b, 0], attempt[b, 0], phase[b, 0], lawx[b, 0])
+
+
+@jit
+def write_outputs(b, outputs, out):
+    """The 6 outputs every push task has: target, speed_cap, status, attempt, phase, correction."""
+    outputs[0][b, 0] = out[0]
+    outputs[0][b, 1] = out[1]
+    outputs[1][b, 0] = out[2]
+    outputs[2][b, 0] = out[3]
+    outputs[3][b, 0] = out[4]
+    outputs[4][b, 0] = out[5]
+    outputs[5][b, 0] = out[6]
+
+
+# --- front push (front.py) -------------------------------------------------------------------------------
+@jit
+def front_geometry(b, fp, ip, goal, sp):
+    """``_geometry``: sphere, goal point, unit pushing direction and eq 12 (front push), or for the front
+    assembly the contact point of sphere 2 and eq 21."""
+    i = 2 * ip[I0]
+    s0 = sp[b, i]
+    s1 = sp[b, i + 1]
+    if ip[PAIR]:
+        j = 2 * ip[I1]
+        q0 = sp[b, j]
+        q1 = sp[b, j + 1]
+        v0, v1 = unit2(q0 - s0, q1 - s1)
+        rs = fp[R0] + fp[R1]
+        done = norm2(q0 - s0, q1 - s1) <= rs + fp[EPS_AS]
+        return s0, s1, q0 - rs * v0, q1 - rs * v1, v0, v1, done
+    g0 = goal[b, 0]
+    g1 = goal[b, 1]
+    u0, u1 = unit2(g0 - s0, g1 - s1)
+    return s0, s1, g0, g1, u0, u1, norm2(g0 - s0, g1 - s1) < fp[EPS]
+
+
+@jit
+def front_frame(b, fp, ip, gain, st, r0, r1, sp, lost):
+    """One frame of :class:`~magctl.control.push.front.FrontPushTask` (and the front assembly) on the next state
+    ``st``: approach → push (eq 10, 11) → retract → settle → eq 12 / eq 13. Returns the outputs."""
+    phase, status, attempt, frames, lost_frames, target, speed, lawx, goal, u, p_ri, p_o, g_line, stand, back = st
+    found = spheres_found(b, fp, ip, goal, sp)
+    if frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost, found):
+        ph = phase[b, 0]
+        s0, s1, g0, g1, u0, u1, done = front_geometry(b, fp, ip, goal, sp)
+        begin = False
+        if ph == START:
+            if done:
+                status[b, 0] = CONVERGED
+            else:
+                begin = True
+        elif ph == F_APPROACH:
+            if arrived(r0, r1, p_ri[b, 0], p_ri[b, 1], fp[ARRIVE_TOL]):
+                enter(b, phase, frames, F_PUSH)
+        elif ph == F_PUSH:
+            if norm2(s0 - p_o[b, 0], s1 - p_o[b, 1]) < fp[PUSH_TOL] or \
+                    arrived(r0, r1, stand[b, 0], stand[b, 1], fp[ARRIVE_TOL]):
+                back[b, 0] = r0 - fp[RETRACT] * u[b, 0]
+                back[b, 1] = r1 - fp[RETRACT] * u[b, 1]
+                enter(b, phase, frames, F_RETRACT)
+        elif ph == F_RETRACT:
+            if arrived(r0, r1, back[b, 0], back[b, 1], fp[ARRIVE_TOL]):
+                enter(b, phase, frames, F_SETTLE)
+        elif ph == F_SETTLE:
+            if frames[b, 0] >= ip[SETTLE_FRAMES]:
+                e = (g_line[b, 0] - s0) * u[b, 0] + (g_line[b, 1] - s1) * u[b, 1]
+                if finish_attempt(b, ip, status, attempt, done):
+                    lawx[b, 0] = lawx[b, 0] + law_gain(gain, b) * e   # eq 13
+                    begin = True
+        if begin:  # _begin: the attempt's line, P_o = P_g + δu (eq 10), P_ri and where the robot stands
+            delta = lawx[b, 0]
+            po0 = g0 + delta * u0
+            po1 = g1 + delta * u1
+            u[b, 0] = u0
+            u[b, 1] = u1
+            g_line[b, 0] = g0
+            g_line[b, 1] = g1
+            p_ri[b, 0] = s0 - fp[APPROACH] * u0
+            p_ri[b, 1] = s1 - fp[APPROACH] * u1
+            p_o[b, 0] = po0
+            p_o[b, 1] = po1
+            stand[b, 0] = po0 - fp[CONTACT] * u0
+            stand[b, 1] = po1 - fp[CONTACT] * u1
+            enter(b, phase, frames, F_APPROACH)
+        ph = phase[b, 0]  # _targets
+        if ph == F_APPROACH:
+            t0, t1 = around(r0, r1, s0, s1, p_ri[b, 0], p_ri[b, 1], fp[CLEARANCE])
+            target[b, 0] = t0
+            target[b, 1] = t1
+        elif ph == F_PUSH:
+            target[b, 0] = stand[b, 0]
+            target[b, 1] = stand[b, 1]
+        elif ph == F_RETRACT or ph == F_SETTLE:
+            target[b, 0] = back[b, 0]
+            target[b, 1] = back[b, 1]
+        speed[b, 0] = fp[PUSH_SPEED] if ph == F_PUSH else fp[TRAVEL_SPEED]
+    return frame_end(b, phase, status, attempt, target, speed, lawx, r0, r1)
+
+
+@jit
+def front_step(b, params, state, next_state, inputs, outputs, base, noise):
+    """:class:`~magctl.control.push.front.FrontPushTask` / ``FrontAssemblyTask`` step."""
+    fp, ip, gain = params
+    robot, sp, lost = inputs
+    copy_task_state(b, state, next_state)
+    out = front_frame(b, fp, ip, gain, next_state, robot[b, 0], robot[b, 1], sp, lost[b, 0])
+    write_outputs(b, outputs, out)
+
+
+# --- side push (side.py, assembly.py) ----------------------------------------------------------------------
+@jit
+def side_geometry(b, fp, ip, goal, sp, r0, r1):
+    """``_geometry``: sphere, distance still to go, pushing direction and side of the robot, eq 12 (side
+    push); for the assembly the adjusted line at ``θ_n``, the gap still to close and eq 21."""
+    i = 2 * ip[I0]
+    s0 = sp[b, i]
+    s1 = sp[b, i + 1]
+    if ip[PAIR]:
+        j = 2 * ip[I1]
+        q0 = sp[b, j]
+        q1 = sp[b, j + 1]
+        v0, v1 = unit2(q0 - s0, q1 - s1)
+        side = 1.0 if v0 * (r1 - s1) - v1 * (r0 - s0) >= 0 else -1.0
+        angle = side * fp[THETA_N]
+        c = math.cos(angle)
+        s = math.sin(angle)
+        sep = norm2(q0 - s0, q1 - s1)
+        to_close = nan_max(sep - fp[R0] - fp[R1], 0.0)
+        done = sep <= fp[R0] + fp[R1] + fp[EPS_AS]
+        return s0, s1, to_close, c * v0 - s * v1, s * v0 + c * v1, side, done
+    d0 = goal[b, 0] - s0
+    d1 = goal[b, 1] - s1
+    u0, u1 = unit2(d0, d1)
+    side = 1.0 if u0 * (r1 - s1) - u1 * (r0 - s0) >= 0 else -1.0
+    dist = norm2(d0, d1)
+    return s0, s1, dist, u0, u1, side, dist < fp[EPS]
+
+
+@jit
+def model_gap(fp, ip, tg, tld, trate, ds):
+    """``F(D_s)`` of eq 17: eq 22 (``−ln(D_s/A)/k``), eq 23 (affine) or the tabulated model; ``D_s ≤ 0`` (and
+    NaN) gives an infinite gap for eq 22 and the table."""
+    kind = ip[MODEL]
+    if kind == MODEL_LIN:
+        return fp[M0] + fp[M1] * ds
+    if kind == MODEL_EXP:
+        if ds > 0:
+            return -math.log(ds / fp[M0]) / fp[M1]
+        return math.inf
+    if not ds > 0:
+        return math.inf
+    x = math.log(ds)
+    k = 0  # searchsorted(-ld, -x) − 1, clipped to the segments
+    for m in range(tld.shape[0]):
+        if tld[m] > x:
+            k += 1
+    k = min(max(k - 1, 0), tg.shape[0] - 2)
+    return tg[k] + (x - tld[k]) / trate[k]
+
+
+@jit
+def side_frame(b, fp, ip, gain, tg, tld, trate, st, r0, r1, sp, lost):
+    """One frame of :class:`~magctl.control.push.side.SidePushTask` (and the side-push assembly) on the next
+    state ``st``: reposition → pass → settle → eq 12 (eq 21) / eq 18. Returns the outputs and the gap output."""
+    phase, status, attempt, frames, lost_frames, target, speed, lawx, goal, u, p0, start, end, d_des, gap = st
+    found = spheres_found(b, fp, ip, goal, sp)
+    if frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost, found):
+        ph = phase[b, 0]
+        s0, s1, dist, u0, u1, side, done = side_geometry(b, fp, ip, goal, sp, r0, r1)
+        begin = False
+        if ph == START:
+            if done:
+                status[b, 0] = CONVERGED
+            else:
+                begin = True
+        elif ph == S_REPOSITION:
+            if arrived(r0, r1, start[b, 0], start[b, 1], fp[ARRIVE_TOL]):
+                enter(b, phase, frames, S_PASS)
+        elif ph == S_PASS:
+            if arrived(r0, r1, end[b, 0], end[b, 1], fp[ARRIVE_TOL]):
+                enter(b, phase, frames, S_SETTLE)
+        elif ph == S_SETTLE:
+            if frames[b, 0] >= ip[SETTLE_FRAMES]:
+                d_act = (s0 - p0[b, 0]) * u[b, 0] + (s1 - p0[b, 1]) * u[b, 1]
+                if finish_attempt(b, ip, status, attempt, done):
+                    lawx[b, 0] = lawx[b, 0] + law_gain(gain, b) * (d_act - d_des[b, 0])   # eq 18
+                    begin = True
+        if begin:  # _begin: eq 16 (bounded), eq 17, the motion line; no pass for an infinite gap
+            dd = nan_min(dist, fp[D_MAX])
+            if ip[FIXED]:
+                g = fp[FIXED_GAP]
+            else:
+                g = nan_max(model_gap(fp, ip, tg, tld, trate, dd + lawx[b, 0]), fp[MIN_GAP])
+            finite = math.isfinite(g)
+            gg = g if finite else 0.0
+            n0 = side * -u1 * gg
+            n1 = side * u0 * gg
+            u[b, 0] = u0
+            u[b, 1] = u1
+            p0[b, 0] = s0
+            p0[b, 1] = s1
+            start[b, 0] = s0 - fp[BEHIND] * u0 + n0
+            start[b, 1] = s1 - fp[BEHIND] * u1 + n1
+            if finite:
+                end[b, 0] = s0 + fp[AHEAD] * u0 + n0
+                end[b, 1] = s1 + fp[AHEAD] * u1 + n1
+            else:
+                end[b, 0] = r0
+                end[b, 1] = r1
+            d_des[b, 0] = dd
+            gap[b, 0] = g
+            enter(b, phase, frames, S_REPOSITION if finite else S_SETTLE)
+        ph = phase[b, 0]
+        if ph == S_REPOSITION:
+            t0, t1 = around(r0, r1, s0, s1, start[b, 0], start[b, 1], fp[CLEARANCE])
+            target[b, 0] = t0
+            target[b, 1] = t1
+        elif ph == S_PASS or ph == S_SETTLE:
+            target[b, 0] = end[b, 0]
+            target[b, 1] = end[b, 1]
+        speed[b, 0] = fp[PASS_SPEED] if ph == S_PASS else fp[TRAVEL_SPEED]
+    g = gap[b, 0]
+    return frame_end(b, phase, status, attempt, target, speed, lawx, r0, r1), 0.0 if math.isinf(g) else g
+
+
+@jit
+def side_step(b, params, state, next_state, inputs, outputs, base, noise):
+    """:class:`~magctl.control.push.side.SidePushTask` / ``AssemblyTask`` step."""
+    fp, ip, gain, tg, tld, trate = params
+    robot, sp, lost = inputs
+    copy_task_state(b, state, next_state)
+    out, g = side_frame(b, fp, ip, gain, tg, tld, trate, next_state, robot[b, 0], robot[b, 1], sp, lost[b, 0])
+    write_outputs(b, outputs, out)
+    outputs[6][b, 0] = g
+
+
+# --- front push, then side-push assembly (assembly.py, Fig 15) ------------------------------------------
+@jit
+def front_then_side_step(b, params, state, next_state, inputs, outputs, base, noise):
+    """:class:`~magctl.control.push.assembly.FrontThenSideAssemblyTask`: the front stage every frame, the side
+    stage (advanced) only in stage 2, which starts the frame after the front stage hits its attempt limit."""
+    ffp, fip, fgain, sfp, sip, sgain, tg, tld, trate = params
+    robot, sp, lost = inputs
+    stage, = state[:1]
+    nstage, = next_state[:1]
+    fst = next_state[1:16]
+    sst = next_state[16:31]
+    copy_task_state(b, state[1:16], fst)
+    copy_task_state(b, state[16:31], sst)
+    r0 = robot[b, 0]
+    r1 = robot[b, 1]
+    in_side = stage[b, 0] == 2
+    f = front_frame(b, ffp, fip, fgain, fst, r0, r1, sp, lost[b, 0])
+    if in_side:
+        s, g = side_frame(b, sfp, sip, sgain, tg, tld, trate, sst, r0, r1, sp, lost[b, 0])
+        ph = s[5] + SIDE_PHASE_OFFSET if s[5] != FINISHED else s[5]
+        write_outputs(b, outputs, (s[0], s[1], s[2], s[3], f[4] + s[4], ph, s[6]))
+        outputs[6][b, 0] = g
+        outputs[7][b, 0] = 2
+        nstage[b, 0] = 2
+        return
+    write_outputs(b, outputs, f)
+    outputs[6][b, 0] = 0.0
+    outputs[7][b, 0] = 1
+    if f[3] == ATTEMPT_LIMIT:  # handover: stage 2 from the next frame
+        outputs[2][b, 0] = RUNNING
+        outputs[4][b, 0] = SIDE_PHASE_OFFSET
+        nstage[b, 0] = 2
+    else:
+        nstage[b, 0] = 1

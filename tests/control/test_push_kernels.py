@@ -1,0 +1,142 @@
+"""The controller's compiled kernels against its numpy form on closed push loops.
+
+* **controller only** — every push task with the PI servo behind it (the controller's blocks), fed the
+  tracker outputs an interpreted run of the closed stand-in loop recorded: both engines must give the
+  same outputs at every frame and the same final state (1e-12 relative, integers exactly), through
+  approaches, pushes, passes, settles, law updates and the front-then-side hand-over;
+* **closed loops** — the rig's loop and the ideal loop of ``test_push`` run by both engines (``"auto"``
+  compiles what has kernels); and ``magctl.loops.controller`` of every push task compiles when its
+  blocks have kernels.
+"""
+
+import numpy as np
+import pytest
+from test_push import EXACT, UM, ideal_loop, rig_loop
+
+from magctl.control.learning import front_push_law
+from magctl.control.push.assembly import AssemblyTask, FrontAssemblyTask, FrontThenSideAssemblyTask
+from magctl.control.push.common import TabulatedSideModel, side_model
+from magctl.control.push.front import FrontPushTask
+from magctl.control.push.side import SidePushTask
+from magctl.control.servo import Servo
+from magctl.core.block import STREAM, flat_state_vars, state_get
+from magctl.core.compiled import NotCompilable
+from magctl.core.diagram import Diagram
+from magctl.core.simulate import simulate
+from magctl.loops import PUSH_TASKS, controller
+
+RTOL = 1e-12
+ATOL = 1e-15
+"""Metres: 1e-12 of the millimetre workspace. ``around``'s waypoint ``o + 1.08·c·sin(a)`` can cancel to ~1e-19 m,
+where the last bit of numpy's vectorised ``arctan2`` (SVML on AVX-512, 1 ulp from libm's ``math.atan2`` in ~8 %
+of arguments) makes the relative error large; a closed-loop difference is that small in absolute terms."""
+ONE = [[0.0, 0.0]]
+PAIR = [[0.0, 0.0], [800 * UM, 0.0]]
+
+
+def _table_model():
+    m = side_model("exp")
+    gaps = np.linspace(300 * UM, 900 * UM, 7)
+    return TabulatedSideModel(tuple(gaps), tuple(m.displacement(gaps) * (1 + 0.1 * np.sin(gaps / UM / 97))))
+
+
+CASES = {
+    "front-push": lambda: (FrontPushTask(goal=(750 * UM, 0.0), kc=0.5, delta0=127 * UM, **EXACT), ONE, 900),
+    "front-push, one K_c per trial": lambda: (FrontPushTask(goal=(750 * UM, 0.0), law=front_push_law([0.3, 0.7, 1.2],
+                                                                                                   60 * UM),
+                                                        **EXACT), ONE, 900),
+    "front-assemble": lambda: (FrontAssemblyTask(kc=1.0, max_attempts=3, eps_as=10 * UM, **EXACT), PAIR, 900),
+    "side-push lin": lambda: (SidePushTask(goal=(300 * UM, 0.0), ks=0.9, model="lin", clearance=850 * UM,
+                                           **EXACT), ONE, 900),
+    "side-push exp": lambda: (SidePushTask(goal=(300 * UM, 0.0), ks=0.5, model="exp", clearance=850 * UM,
+                                           **EXACT), ONE, 900),
+    "side-push lin-fit": lambda: (SidePushTask(goal=(300 * UM, 0.0), ks=0.9, model="lin-fit", clearance=850 * UM,
+                                               **EXACT), ONE, 900),
+    "side-push table": lambda: (SidePushTask(goal=(300 * UM, 0.0), ks=0.7, model=_table_model(),
+                                             clearance=850 * UM, **EXACT), ONE, 900),
+    "side-push fixed gap": lambda: (SidePushTask(goal=(300 * UM, 0.0), fixed_gap=500 * UM, clearance=850 * UM,
+                                                 max_attempts=4, **EXACT), ONE, 900),
+    "assemble": lambda: (AssemblyTask(ks=0.9, model="lin", clearance=850 * UM, eps_as=10 * UM, **EXACT),
+                         [[0.0, 0.0], [500 * UM, 0.0]], 900),
+    "front-side-assemble": lambda: (FrontThenSideAssemblyTask(front_attempts=1, ks=0.9, model="lin",
+                                                              clearance=850 * UM, eps_as=10 * UM, **EXACT),
+                                    PAIR, 1500),
+}
+ROBOT0 = {"assemble": (-1e-3, 300 * UM)}
+
+
+def assert_same(a, b, where):
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.shape == b.shape, where
+    if a.dtype.kind == "f":
+        np.testing.assert_allclose(b, a, rtol=RTOL, atol=ATOL, equal_nan=True, err_msg=where)
+    else:
+        assert np.array_equal(a, b), where
+
+
+def controller_only(task) -> Diagram:
+    """``task`` → PI servo (the rig's controller without the drive), inputs as the tracker gives them."""
+    servo = Servo("servo", speed_cap_input=True, hold_input=True)
+    n = task.name
+    return Diagram("ctrl", [task, servo], [(f"{n}.target", "servo.target"), (f"{n}.speed_cap", "servo.speed_cap")],
+                   inputs={"robot_est": [f"{n}.robot_est", "servo.robot_est"], "spheres_est": [f"{n}.spheres_est"],
+                           "lost": [f"{n}.lost", "servo.hold"]},
+                   outputs={**{p: f"{n}.{p}" for p in task.outputs}, "speed": "servo.speed",
+                            "heading": "servo.heading"})
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_controller_kernels_match_on_recorded_tracker_outputs(case):
+    task, spheres, steps = CASES[case]()
+    assert task.kernel() is not None
+    loop = ideal_loop(task, ROBOT0.get(case, (-1e-3, 0.0)), spheres, blackout=(200.5 / 30, 215.5 / 30))
+    rec = ["tracker.robot_est", "tracker.spheres_est", "tracker.lost", f"{task.name}.attempt", f"{task.name}.status"]
+    run = simulate(loop, steps, batch=3, seed=5, record=rec, check_finite=False)
+    assert run[rec[3]][:, -1].max() >= 1  # attempts were made
+    inputs = {p: run[f"tracker.{p}"] for p in ("robot_est", "spheres_est", "lost")}
+    d = controller_only(task)
+    ref = simulate(d, steps, batch=3, seed=5, inputs=inputs, check_finite=False)
+    got = simulate(d, steps, batch=3, seed=5, inputs=inputs, check_finite=False, engine="compiled")
+    assert_same(ref[f"{task.name}.status"], run[f"{task.name}.status"], "replay")
+    for name in d.outputs:
+        assert_same(ref[name], got[name], f"{case}: {name}")
+    for i, block in enumerate((task, d.blocks["servo"])):
+        for keys, var in flat_state_vars(block.state_vars()):
+            if var.dtype != STREAM:
+                a, b = (state_get(r.final_state["leaves"][i], keys) for r in (ref, got))
+                assert_same(a, b, f"{case}: final {'.'.join(keys)}")
+
+
+@pytest.mark.parametrize("task,options", [("front-push", {"kc": 0.5, "delta0": 127 * UM}),
+                                          ("side-push", {"ks": 0.9, "model": "lin"}),
+                                          ("side-push", {"ks": 0.5, "model": "exp"}),
+                                          ("side-push", {"ks": 0.9, "model": "lin-fit"})])
+def test_rig_loop_engines_agree(task, options):
+    dia, _ = rig_loop(task, **options)
+    rec = ["controller/task.status", "controller/task.attempt", "controller/task.phase",
+           "controller/task.correction", "controller/task.target", "controller/servo.speed", "plant/robot.position"]
+    ref = simulate(dia, 400, batch=2, seed=3, record=rec)
+    got = simulate(dia, 400, batch=2, seed=3, record=rec, engine="auto")
+    for k in rec:
+        assert_same(ref[k], got[k], k)
+
+
+@pytest.mark.parametrize("case", ["assemble", "front-side-assemble"])
+def test_ideal_loop_engines_agree(case):
+    task, spheres, steps = CASES[case]()
+    loop = ideal_loop(task, ROBOT0.get(case, (-1e-3, 0.0)), spheres)
+    ref = simulate(loop, steps, batch=2, seed=3)
+    got = simulate(loop, steps, batch=2, seed=3, engine="auto")
+    for k in ref.signals:
+        assert_same(ref[k], got[k], k)
+
+
+@pytest.mark.parametrize("task", sorted(PUSH_TASKS))
+def test_the_push_controllers_compile(task):
+    goal = (750 * UM, 0.0) if task in ("front-push", "side-push") else None
+    d = controller(task, n_spheres=2 if goal is None else 1, goal=goal)
+    assert d.blocks["task"].kernel() is not None and d.blocks["servo"].kernel() is not None
+    try:
+        d.compile()
+    except NotCompilable as err:  # only the drive (a plant block) may lack a kernel
+        assert "'drive'" in str(err), err
