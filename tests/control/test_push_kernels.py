@@ -22,7 +22,7 @@ from magctl.control.servo import Servo
 from magctl.core.block import STREAM, flat_state_vars, state_get
 from magctl.core.compiled import NotCompilable
 from magctl.core.diagram import Diagram
-from magctl.core.simulate import simulate
+from magctl.core.simulation import simulate
 from magctl.loops import PUSH_TASKS, controller
 
 RTOL = 1e-12
