@@ -255,7 +255,7 @@ class CompiledDiagram:
         step_views = [f"{v.split(' ')[0]} = {param_exprs[int(v.split(' ')[0][1:])]}" if v.endswith("= PARAMS")
                       else v for v in views]
         lines = head + ["", "", JIT,
-                        f"def run_steps(T, tick0, EXT, RECIDX, RECF, RECI, RECB, PT, {args}):"]
+                        f"def run_steps(T, tick0, EXT, RECOFF, RECF, RECI, RECB, PT, {args}):"]
         lines += _indent(run_views, 1)
         lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 1)
         lines += ["    for b in range(B):"]
@@ -278,15 +278,16 @@ class CompiledDiagram:
         self.multirate = multirate
 
     def _record_lines(self) -> list[str]:
-        """Copy the recorded outputs into the record arrays, chosen at run time by ``RECIDX``."""
+        """Copy the recorded outputs into the record buffers (one per dtype, ``(B, T, width)``) at the columns
+        ``RECOFF`` gives (−1: not recorded), so what is recorded changes no type and compiles nothing."""
         lines = []
         for j, name in enumerate(self.record_names):
             src = self._rec_source[name]
             i, p = self._leaf_port(name)
             slot = self.out_slots[i][p]
-            lines += [f"if RECIDX[{j}] >= 0:",
+            lines += [f"if RECOFF[{j}] >= 0:",
                       f"    for c in range({slot.width}):",
-                      f"        REC{slot.group}[RECIDX[{j}]][b, k, c] = {src}[b, c]"]
+                      f"        REC{slot.group}[b, k, RECOFF[{j}] + c] = {src}[b, c]"]
         return lines
 
     def _leaf_port(self, name: str) -> tuple[int, str]:
@@ -402,28 +403,28 @@ class CompiledDiagram:
         sched = self.schedule
         buf = self._buffers(state, batch)
         bases, noise = self._noise(state, batch, steps)
-        rec_index = np.full(len(self.record_names), -1, dtype=np.int64)
-        groups: dict[str, list[np.ndarray]] = {g: [] for g in GROUPS.values()}
-        arrays = {}
+        rec_off = np.full(len(self.record_names), -1, dtype=np.int64)
+        width = {g: 0 for g in GROUPS.values()}
+        where = {}
         for name in record:
             i, p = self._leaf_port(name)
             slot = self.out_slots[i][p]
-            dtype = {"F": np.float64, "I": np.int64, "B": np.bool_}[slot.group]
-            arr = np.empty((batch, steps, slot.width), dtype=dtype)
-            rec_index[self.record_names.index(name)] = len(groups[slot.group])
-            groups[slot.group].append(arr)
-            arrays[name] = (arr, sched.leaves[i].block.outputs[p])
-        recs = tuple(tuple(groups[g]) if groups[g] else (np.zeros((0, 0, 0), dtype=d),)
+            rec_off[self.record_names.index(name)] = width[slot.group]
+            where[name] = (slot.group, width[slot.group], slot.width, sched.leaves[i].block.outputs[p])
+            width[slot.group] += slot.width
+        recs = tuple(np.empty((batch, steps, width[g]), dtype=d)
                      for g, d in (("F", np.float64), ("I", np.int64), ("B", np.bool_)))
+        by_group = dict(zip("FIB", recs, strict=True))
         ext_arrays = tuple(np.ascontiguousarray(np.asarray(ext[name], dtype=sched.inputs[name].dtype).reshape(
             batch, steps, -1)) for name in self.ext_slots)
-        self.module().run_steps(steps, int(state["tick"]), ext_arrays, rec_index, *recs, self.param_tuples,
+        self.module().run_steps(steps, int(state["tick"]), ext_arrays, rec_off, *recs, self.param_tuples,
                                 *self._args(buf, batch, bases, noise))
         held = list(state["held"])
         for i in self.multirate:
             held[i] = self.outputs_of(buf, batch, i)
         final = {"tick": int(state["tick"]) + steps, "leaves": self._unpack(buf, state, batch), "held": held}
-        out = {name: arr.reshape((batch, steps, *port.shape)) for name, (arr, port) in arrays.items()}
+        out = {name: by_group[g][:, :, off:off + w].reshape((batch, steps, *port.shape))
+               for name, (g, off, w, port) in where.items()}
         return out, final
 
     def stepper(self, state: dict, batch: int) -> Stepper:

@@ -41,6 +41,8 @@ from magctl.plant.fluid.wall_drag import (
 )
 
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+heavy = numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+"""A frame too large to inline: compiled once, called (inlining it would multiply compile time)."""
 
 # a push-out pass counts a centre as touching below this fraction of R (the array form's tolerance)
 _TOUCH = 1.0 - 1e-9
@@ -260,7 +262,7 @@ def _separate(xy, b, radius, iterations, cx, cy):
                 k += 1
 
 
-@jit
+@heavy
 def trial_frame(b, xy, gap, mult, pos, vel, turn, frame, flow, footprint, table, work):
     """One frame of ``n_sub`` sub-steps for trial ``b``'s spheres, in place; returns whether some
     sphere touched the robot. Every sub-step: the flow at each centre (map in the robot frame, or

@@ -20,7 +20,6 @@ from magctl.control.push.front import FrontPushTask
 from magctl.control.push.side import SidePushTask
 from magctl.control.servo import Servo
 from magctl.core.block import STREAM, flat_state_vars, state_get
-from magctl.core.compiled import NotCompilable
 from magctl.core.diagram import Diagram
 from magctl.core.simulation import simulate
 from magctl.loops import PUSH_TASKS, controller
@@ -126,9 +125,17 @@ def test_ideal_loop_engines_agree(case):
     task, spheres, steps = CASES[case]()
     loop = ideal_loop(task, ROBOT0.get(case, (-1e-3, 0.0)), spheres)
     ref = simulate(loop, steps, batch=2, seed=3)
-    got = simulate(loop, steps, batch=2, seed=3, engine="auto")
+    got = simulate(loop, steps, batch=2, seed=3, engine="compiled")
+    moving = ref["servo.speed"] > 1e-9         # m/s: a step of more than 3e-11 m
+    for _lag in range(2):   # the robot's heading lags the command a frame, the tracker's two
+        moving = moving & np.concatenate([np.zeros_like(moving[:, :1]), moving[:, :-1]], axis=1)
     for k in ref.signals:
-        assert_same(ref[k], got[k], k)
+        if k.split(".")[-1].startswith("heading"):
+            # on its target the heading is the angle of a vanishing vector (a difference that cancels to
+            # ~1e-19 m), ±π/2 by a last-bit sign: compared where the robot really moves
+            assert_same(np.where(moving, ref[k], 0.0), np.where(moving, got[k], 0.0), k)
+        else:
+            assert_same(ref[k], got[k], k)
 
 
 @pytest.mark.parametrize("task", sorted(PUSH_TASKS))
@@ -136,7 +143,4 @@ def test_the_push_controllers_compile(task):
     goal = (750 * UM, 0.0) if task in ("front-push", "side-push") else None
     d = controller(task, n_spheres=2 if goal is None else 1, goal=goal)
     assert d.blocks["task"].kernel() is not None and d.blocks["servo"].kernel() is not None
-    try:
-        d.compile()
-    except NotCompilable as err:  # only the drive (a plant block) may lack a kernel
-        assert "'drive'" in str(err), err
+    assert d.compile().source  # task, servo and drive compile

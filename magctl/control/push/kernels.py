@@ -24,6 +24,8 @@ import numba
 from magctl.control.kernels import law_gain, nan_max, nan_min
 
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+heavy = numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+"""A frame too large to inline: compiled once, called (inlining it would multiply compile time)."""
 
 # status codes (magctl.control.status.Status) and phases (common.py, front.py, side.py)
 RUNNING, CONVERGED, ATTEMPT_LIMIT, TRACKING_LOST, SPHERE_LOST, STALLED = 0, 1, 2, 3, 4, 5
@@ -237,7 +239,7 @@ def front_geometry(b, fp, ip, goal, sp):
     return s0, s1, g0, g1, u0, u1, norm2(g0 - s0, g1 - s1) < fp[EPS]
 
 
-@jit
+@heavy
 def front_frame(b, fp, ip, gain, st, r0, r1, sp, lost):
     """One frame of :class:`~magctl.control.push.front.FrontPushTask` (and the front assembly) on the next state
     ``st``: approach → push (eq 10, 11) → retract → settle → eq 12 / eq 13. Returns the outputs."""
@@ -361,7 +363,7 @@ def model_gap(fp, ip, tg, tld, trate, ds):
     return tg[k] + (x - tld[k]) / trate[k]
 
 
-@jit
+@heavy
 def side_frame(b, fp, ip, gain, tg, tld, trate, st, r0, r1, sp, lost):
     """One frame of :class:`~magctl.control.push.side.SidePushTask` (and the side-push assembly) on the next
     state ``st``: reposition → pass → settle → eq 12 (eq 21) / eq 18. Returns the outputs and the gap output."""
