@@ -41,6 +41,7 @@ from magctl.control.status import Status
 from magctl.core import simulate
 from magctl.core.units import UM
 from magctl.loops import Experiment, geometry, push_loop
+from magctl.studies.trials import study_engine
 
 STATUS, ATTEMPT, PHASE = "controller/task.status", "controller/task.attempt", "controller/task.phase"
 CORRECTION, SPHERES, ROBOT = "controller/task.correction", "plant/spheres.spheres", "plant/robot.position"
@@ -78,7 +79,8 @@ def attempt_log(exp: Experiment, trials, seed: int, *, chunk_frames: int = 150) 
     state, done_frames = None, 0
     while done_frames < exp.max_frames:
         steps = min(chunk_frames, exp.max_frames - done_frames)
-        res = simulate(diagram, steps, batch=batch, seed=seed, trials=trials, record=RECORD, state=state)
+        res = simulate(diagram, steps, batch=batch, seed=seed, trials=trials, record=RECORD, state=state,
+                       engine=study_engine())
         state = res.final_state
         for k in RECORD:
             chunks[k].append(res[k])

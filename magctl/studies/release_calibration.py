@@ -32,6 +32,7 @@ from magctl.core import simulate
 from magctl.loops import Experiment, Variability, geometry, push_loop
 from magctl.plant.fluid.calibration import PAPER_RELEASE_EXPERIMENT
 from magctl.plant.fluid.params import sphere_params
+from magctl.studies.trials import study_engine
 
 PHASE, ATTEMPT = "controller/task.phase", "controller/task.attempt"
 SPHERES, ROBOT = "plant/spheres.spheres", "plant/robot.position"
@@ -86,7 +87,7 @@ def in_task_release(sphere_gap: float | None = None, *, trials: int = 16, seed: 
     if trials < 1:
         raise ValueError(f"trials must be >= 1, got {trials}")
     exp = release_experiment(sphere_gap, scatter=scatter)
-    res = simulate(push_loop(exp), FIRST_ATTEMPT_FRAMES, batch=trials, seed=seed,
+    res = simulate(push_loop(exp), FIRST_ATTEMPT_FRAMES, batch=trials, seed=seed, engine=study_engine(),
                    record=[PHASE, ATTEMPT, SPHERES, ROBOT])
     phase, attempt = res[PHASE], res[ATTEMPT]
     sphere, robot = res[SPHERES][:, :, 0], res[ROBOT]

@@ -8,6 +8,8 @@ fan out over local processes or a Dask cluster with identical results.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from magctl.control.status import Status
@@ -28,6 +30,12 @@ def task_error(kind: str, spheres: np.ndarray, goal: np.ndarray, radius: float) 
 STATUS, ATTEMPT, CORRECTION = "controller/task.status", "controller/task.attempt", "controller/task.correction"
 SPHERES, ROBOT, HEADING = "plant/spheres.spheres", "plant/robot.position", "plant/robot.heading"
 RECORD = [STATUS, ATTEMPT, SPHERES, ROBOT, HEADING, CORRECTION]
+
+
+def study_engine() -> str:
+    """The engine the studies' closed loops run on: ``$MAGCTL_ENGINE``, else ``"auto"`` (compiled when every
+    block has a kernel — the push loops do — with the interpreted engine's numbers)."""
+    return os.environ.get("MAGCTL_ENGINE") or "auto"
 
 
 def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 150,
@@ -63,7 +71,8 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
     done_frames = 0
     while done_frames < exp.max_frames:
         steps = min(chunk_frames, exp.max_frames - done_frames)
-        res = simulate(diagram, steps, batch=batch, seed=seed, trials=trials, record=RECORD, state=state)
+        res = simulate(diagram, steps, batch=batch, seed=seed, trials=trials, record=RECORD, state=state,
+                       engine=study_engine())
         state = res.final_state
         st, att = res[STATUS], res[ATTEMPT]
         err = task_error(exp.kind, res[SPHERES], g["goal"], radius)
