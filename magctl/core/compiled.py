@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magctl.core.block import as_batch, state_get
+from magctl.core.block import state_get
 from magctl.core.diagram import EXTERNAL, Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.kernel import Kernel, compiled_vars, pack_state, port_width, stream_draws, unpack_state
@@ -439,7 +439,8 @@ class Stepper:
     """One compiled tick per call, the state held in the compiled buffers (the rig's controller).
 
     ``step(u)`` takes the diagram inputs (``(B, *shape)`` or one trial's value) and returns the
-    exported outputs; ``state`` gives the diagram state as the interpreted engine holds it.
+    exported outputs as views of the engine's buffers: valid until the next step (copy what is kept).
+    ``state`` gives the diagram state as the interpreted engine holds it.
     """
 
     def __init__(self, compiled: CompiledDiagram, state: dict, batch: int):
@@ -449,29 +450,28 @@ class Stepper:
         self._tick = int(state["tick"])
         self._args = compiled._args(self._buf, self.batch, np.zeros(len(compiled.schedule.leaves), np.int64), ())
         self._fn = compiled.module().step_once
-        sched = compiled.schedule
-        self._ext = [(name, self._buf["X"][slot.group], slot, sched.inputs[name])
-                     for name, slot in compiled.ext_slots.items()]
-        self._out = []
-        for name, (i, p) in sched.outputs.items():
-            slot = compiled.out_slots[i][p]
-            port = sched.leaves[i].block.outputs[p]
-            view = self._buf["O"][slot.group][self.batch * slot.offset:self.batch * (slot.offset + slot.width)]
-            self._out.append((name, view.reshape((self.batch, *port.shape))))
+        sched, b = compiled.schedule, self.batch
+
+        def view(bufs: dict, slot: _Slot, shape: tuple) -> np.ndarray:
+            return bufs[slot.group][b * slot.offset:b * (slot.offset + slot.width)].reshape((b, *shape))
+
+        self._in = [(name, view(self._buf["X"], slot, sched.inputs[name].shape))
+                    for name, slot in compiled.ext_slots.items()]
+        self._out = {name: view(self._buf["O"], compiled.out_slots[i][p], sched.leaves[i].block.outputs[p].shape)
+                     for name, (i, p) in sched.outputs.items()}
 
     def step(self, u: dict | None = None) -> dict[str, np.ndarray]:
         u = u or {}
-        b = self.batch
-        for name, buf, slot, port in self._ext:
-            if name not in u:
-                raise MagctlError(f"compiled step: diagram input {name!r} needs a value")
-            value = u[name]
-            arr = value if isinstance(value, np.ndarray) and value.shape == (b, *port.shape) else \
-                as_batch(value, port, b)
-            buf[b * slot.offset:b * (slot.offset + slot.width)] = arr.reshape(-1)
+        for name, target in self._in:
+            try:
+                target[...] = u[name]
+            except KeyError:
+                raise MagctlError(f"compiled step: diagram input {name!r} needs a value") from None
+            except ValueError as err:
+                raise MagctlError(f"compiled step: diagram input {name!r}: {err}") from None
         self._fn(self._tick, *self._args)
         self._tick += 1
-        return {name: view.copy() for name, view in self._out}
+        return dict(self._out)
 
     @property
     def state(self) -> dict:

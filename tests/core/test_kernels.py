@@ -314,7 +314,8 @@ def test_the_generated_step_keeps_no_reference_counts_and_the_stepper_matches():
     assert "_nrt=False" in compiled.source
     speed = np.array([[1e-4], [3e-4], [2e-3]]) * np.ones((3, 6))
     stepper = compiled.stepper(d.initial_state(3), 3)
-    stepped = np.stack([stepper.step({"speed": speed[:, k], "heading": 0.3 * k})["currents"] for k in range(6)], 1)
+    stepped = np.stack([stepper.step({"speed": speed[:, k], "heading": 0.3 * k})["currents"].copy() for k in range(6)],
+                       1)   # the outputs are views, overwritten by the next step
     heading = np.broadcast_to(0.3 * np.arange(6), (3, 6))
     ref = simulate(d, 6, batch=3, inputs={"speed": speed, "heading": heading})
     assert_close(ref["currents"], stepped, "stepped currents")
