@@ -107,7 +107,8 @@ def drag_modes(quick: bool = False, roughness: float = 15.86e-6, repeats: int = 
                 return new
 
             with mock.patch.object(magctl.loops, "sphere_params", lambda _p=params: _p), \
-                    mock.patch.object(Spheres, "update", timed):
+                    mock.patch.object(Spheres, "update", timed), \
+                    mock.patch.dict("os.environ", {"MAGCTL_ENGINE": "interpreted"}):
                 in_task_release(roughness, trials=1)          # flow map and kernel, not timed
                 for batch in ((1, 16) if quick else (1, 16, 100)):
                     loop, block = np.inf, np.inf

@@ -146,6 +146,7 @@ def test_closed_loop_release_identical_in_both_forms(monkeypatch):
     array form give the same pull-back, overshoot, stop gap and retract per trial to 1e-12 m."""
     accurate = dataclasses.replace(sphere_params(), drag_mode="accurate")
     monkeypatch.setattr(magctl.loops, "sphere_params", lambda: accurate)
+    monkeypatch.setenv("MAGCTL_ENGINE", "interpreted")   # the block's two numpy-side forms, not its kernel
     lifted = []
     compiled_update = Spheres.update
 
