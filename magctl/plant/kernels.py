@@ -193,16 +193,22 @@ def robot_advance(rp, bs0, bs1, bosc, freq_in, psi, px, py, noisy, n):
 
 
 @jit
-def robot_output(b, params, state, outputs):
-    """``StickSlipRobot.output``: the pose, velocity and tilt held in the state."""
-    pos, psi, vel, tilt, k = state
-    op, oh, ov, ot = outputs
+def _pose_out(b, pos, psi, vel, tilt, op, oh, ov, ot):
+    """The robot's outputs from its state: position, heading, velocity, tilt."""
     op[b, 0] = pos[b, 0]
     op[b, 1] = pos[b, 1]
     oh[b, 0] = psi[b, 0]
     ov[b, 0] = vel[b, 0]
     ov[b, 1] = vel[b, 1]
     ot[b, 0] = tilt[b, 0]
+
+
+@jit
+def robot_output(b, params, state, outputs):
+    """``StickSlipRobot.output``: the pose, velocity and tilt held in the state."""
+    pos, psi, vel, tilt, k = state
+    op, oh, ov, ot = outputs
+    _pose_out(b, pos, psi, vel, tilt, op, oh, ov, ot)
 
 
 @jit
@@ -239,12 +245,7 @@ def actuated_output(b, params, state, outputs):
     """``ActuatedRobot.output``: the robot's outputs and the previous frame's ``saturated``."""
     i, pos, psi, vel, tilt, k, sat = state
     op, oh, ov, ot, osat = outputs
-    op[b, 0] = pos[b, 0]
-    op[b, 1] = pos[b, 1]
-    oh[b, 0] = psi[b, 0]
-    ov[b, 0] = vel[b, 0]
-    ov[b, 1] = vel[b, 1]
-    ot[b, 0] = tilt[b, 0]
+    _pose_out(b, pos, psi, vel, tilt, op, oh, ov, ot)
     osat[b, 0] = sat[b, 0]
 
 
