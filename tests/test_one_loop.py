@@ -74,6 +74,7 @@ CASES = [
     ("side", "side-push", {}, {}),
     ("side", "side-push", {"model": "exp", "ks": 0.5, "clearance_mm": 1.0, "servo": "paper"},
      {"model": "exp", "ks": 0.5, "clearance": 1e-3, "servo": "paper"}),
+    ("side", "side-push", {"learning": "curve", "model": "exp-fit"}, {"learning": "curve", "model": "exp-fit"}),
     ("assembly", "assemble", {}, {}),
     ("assembly", "assemble", {"theta_n_deg": 20.0, "eps_as_um": 10.0},
      {"theta_n": np.deg2rad(20.0), "eps_as": 10 * UM}),

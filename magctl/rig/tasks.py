@@ -26,6 +26,7 @@ import numpy as np
 
 from magctl.config import UNITS, Params, load_model, split_unit
 from magctl.control.push.common import SIDE_MODELS, task_parameters
+from magctl.control.push.side import LEARNING
 from magctl.control.servo import default_servo_setting, servo_params, servo_settings
 from magctl.control.status import STATUS_NAMES, Status
 from magctl.core.compiled import NotCompilable
@@ -222,6 +223,10 @@ def _option_value(task: str, key: str, raw, factor: float, unit: str, name: str)
     if name == "model":
         if raw not in SIDE_MODELS:
             raise TaskError(f"{task}: option model={raw!r} is not one of {', '.join(SIDE_MODELS)}")
+        return str(raw)
+    if name == "learning":
+        if raw not in LEARNING:
+            raise TaskError(f"{task}: option learning={raw!r} is not one of {', '.join(LEARNING)}")
         return str(raw)
     if name in ("goal", "target", "origin"):
         try:

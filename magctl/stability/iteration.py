@@ -31,6 +31,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from magctl.config import load_model
+from magctl.control.curve_learning import CurveLearningLaw
 from magctl.control.learning import ATTEMPT, LearningLaw, front_push_law, side_push_law
 from magctl.control.push.common import (
     ExpSideModel,
@@ -480,16 +481,20 @@ def front_attempts_identified(kc: float, delta0: float, trials: int = 20000, *, 
 # --- side pushing: nonlinear attempt map ---------------------------------------------------------
 def side_attempt_map(ks, e0, *, model="lin", plant=None, min_gap: float = MIN_GAP, eps: float = SIDE_EPS,
                      max_attempts: int = SIDE_MAX_ATTEMPTS, printed_sign: bool = False, noise_rel: float = 0.0,
-                     fixed_gap: float | None = None, seed: int = 0,
-                     law: LearningLaw | None = None) -> dict[str, np.ndarray]:
+                     fixed_gap: float | None = None, seed: int = 0, mobility_rel: float = 0.0,
+                     law: LearningLaw | CurveLearningLaw | None = None) -> dict[str, np.ndarray]:
     """Attempt-by-attempt side pushing (eq 16–18), vectorised over trials.
 
     Each attempt: ``D_s,des = min(|e|, D_max)`` with ``D_max = F_model⁻¹(min_gap)`` (eq 16,
     bounded as §V-B step 1 says); gap ``D_g = max(F_model(D_s,des + Δ), min_gap)`` (eq 17);
-    the sphere moves ``D_s,act = F_act⁻¹(D_g)·max(0, 1 + noise_rel·N(0,1))`` along the
-    direction it was pushed (towards the goal, from whichever side it now lies); ``Δ``
-    updates by eq 18 (sign as corrected unless ``printed_sign``). A trial stops once
-    ``|e| < ε_p`` (eq 12).
+    the sphere moves ``D_s,act = m·F_act⁻¹(D_g)·max(0, 1 + noise_rel·N(0,1))`` along the
+    direction it was pushed (towards the goal, from whichever side it now lies), with a
+    per-trial mobility ``m = max(0, 1 + mobility_rel·N(0,1))``; ``Δ`` updates by eq 18
+    (sign as corrected unless ``printed_sign``). A trial stops once ``|e| < ε_p`` (eq 12).
+
+    With ``law`` a :class:`~magctl.control.curve_learning.CurveLearningLaw` the attempt is the
+    curve-learning one of ``SidePushTask(learning="curve")``: ``D_s,des`` bounded by the
+    estimate at ``min_gap``, the gap from the estimate's inverse, the law fed ``(D_g, D_s,act)``.
 
     Parameters
     ----------
@@ -526,14 +531,19 @@ def side_attempt_map(ks, e0, *, model="lin", plant=None, min_gap: float = MIN_GA
     done = np.abs(e) < eps
     attempts[done] = 0
     err[:, 0] = e
+    learns_curve = isinstance(law, CurveLearningLaw)
+    mobility = np.ones(b) if not mobility_rel else np.maximum(0.0, 1.0 + mobility_rel * rng.standard_normal(b))
     for i in range(n):
         delta = law.output(st, {})["y"]
-        d_des = np.minimum(np.abs(e), d_max)
-        if fixed_gap is None:
-            gap = np.maximum(model.gap(d_des + delta), min_gap)
+        if learns_curve:  # the estimate's bound and inverse (SidePushTask with learning="curve")
+            d_des = np.minimum(np.abs(e), law.displacement(st, min_gap))
+            gap = law.gap(st, d_des, min_gap)
         else:
+            d_des = np.minimum(np.abs(e), d_max)
+            gap = np.maximum(model.gap(d_des + delta), min_gap)
+        if fixed_gap is not None:
             gap = np.full(b, float(fixed_gap))
-        d_act = plant.displacement(gap)
+        d_act = mobility * plant.displacement(gap)
         if noise_rel:
             d_act = d_act * np.maximum(0.0, 1.0 + noise_rel * rng.standard_normal(b))
         active = ~done
@@ -541,7 +551,10 @@ def side_attempt_map(ks, e0, *, model="lin", plant=None, min_gap: float = MIN_GA
         corr[:, i] = np.where(active, delta, np.nan)
         e = np.where(active, e - np.sign(e) * d_act, e)
         err[:, i + 1] = np.where(active, e, np.nan)
-        st = law.update_where(st, {"e": d_act - d_des}, active)
+        if learns_curve:
+            st = law.update_where(st, {"gap": gap, "displacement": d_act}, active)
+        else:
+            st = law.update_where(st, {"e": d_act - d_des}, active)
         hit = active & (np.abs(e) < eps)
         attempts[hit] = i + 1
         done |= hit

@@ -55,3 +55,6 @@ def test_rig_options_take_every_side_model_and_the_fig15_task():
     assert "front_attempts" in task_options("front-side-assemble")
     with pytest.raises(TaskError, match="exp-fit"):
         resolve_options("assemble", {"model": "cubic"})
+    assert resolve_options("side-push", {"learning": "curve"})["learning"] == "curve"
+    with pytest.raises(TaskError, match="learning='online' is not one of eq18, curve"):
+        resolve_options("assemble", {"learning": "online"})

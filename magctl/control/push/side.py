@@ -16,7 +16,10 @@ When ``D_s,des + Δ ≤ 0`` (possible after an over-push with ``K_s`` ≥ 1 or a
 the model) eq 22 gives an infinite gap: the attempt makes no pass, settles and measures
 ``D_s,act = 0`` (the no-push branch of :mod:`magctl.stability.switched`).
 
-The naive controllers of §VI-B (a fixed gap, no model) are ``fixed_gap=``.
+The naive controllers of §VI-B (a fixed gap, no model) are ``fixed_gap=``. With ``learning="curve"`` the
+eq 17–18 pair is replaced by :class:`~magctl.control.curve_learning.CurveLearningLaw`: the curve itself is
+re-estimated after every pass from the gap commanded and the displacement measured, ``D_s,des`` is bounded by
+the estimate's displacement at ``min_gap`` and the gap inverts the estimate (docs/push-control.md §6).
 """
 
 from __future__ import annotations
@@ -24,14 +27,18 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
+from magctl.control.curve_learning import CurveLearningLaw, curve_learning_law
 from magctl.control.learning import LearningLaw, side_push_law
 from magctl.control.push.common import FINISHED, START, PushTask, around, arrived, side_model, with_defaults
 from magctl.core.batched import cross, norm, perp, unit
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
+from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
 
 REPOSITION, PASS, SETTLE = 1, 2, 3
+LEARNING = {"eq18": "the paper's eq 18 law correcting the fixed model F (gain K_s)",
+            "curve": "the curve D_s(D_g) re-estimated after every pass and inverted (magctl.control.curve_learning)"}
 
 
 class SidePushTask(PushTask, Block):
@@ -44,9 +51,13 @@ class SidePushTask(PushTask, Block):
     ks : float
         ``K_s`` of eq 18 (used when ``law`` is not given).
     model : "lin", "exp" or a model object
-        ``F`` of eq 17: eq 23 (``lin``) or eq 22 (``exp``).
-    law : LearningLaw, optional
-        The eq 18 block (shared with the iteration-domain analysis).
+        ``F`` of eq 17: eq 23 (``lin``) or eq 22 (``exp``); with ``learning="curve"``, the prior curve
+        (eq 22's form: ``exp`` or ``exp-fit``).
+    learning : {"eq18", "curve"}
+        The paper's eq 18 law on ``F`` (``ks``), or the curve learned online
+        (:func:`~magctl.control.curve_learning.curve_learning_law`, prior ``model``).
+    law : LearningLaw or CurveLearningLaw, optional
+        The learning block itself (shared with the iteration-domain analysis); overrides ``learning``.
     fixed_gap : float, optional
         Pass at this gap every time (the paper's naive 370/500 µm controllers).
     min_gap : float
@@ -68,22 +79,25 @@ class SidePushTask(PushTask, Block):
     PHASES = {0: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", FINISHED: "finished"}
 
     def __init__(self, name: str = "side_push", *, goal=(0.0, 0.0), ks: float | None = None, model=None,
-                 law: LearningLaw | None = None, fixed_gap: float | None = None, n_spheres: int = 1,
+                 learning: str | None = None, law: LearningLaw | CurveLearningLaw | None = None,
+                 fixed_gap: float | None = None, n_spheres: int = 1,
                  sphere: int = 0, min_gap: float | None = None, eps: float | None = None,
                  max_attempts: int | None = None, behind: float | None = None, ahead: float | None = None,
                  clearance: float | None = None, arrive_tol: float | None = None, pass_speed: float | None = None,
                  travel_speed: float | None = None, settle_frames: int | None = None,
                  max_lost_frames: int | None = None, phase_timeout_frames: int | None = None,
                  workspace: float | None = None):
-        p = with_defaults("side", ks=ks, model=model, min_gap=min_gap, eps=eps, max_attempts=max_attempts,
-                          behind=behind, ahead=ahead, clearance=clearance, arrive_tol=arrive_tol,
+        p = with_defaults("side", ks=ks, model=model, learning=learning, min_gap=min_gap, eps=eps,
+                          max_attempts=max_attempts, behind=behind, ahead=ahead, clearance=clearance,
+                          arrive_tol=arrive_tol,
                           pass_speed=pass_speed, travel_speed=travel_speed, settle_frames=settle_frames,
                           max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
                           workspace=workspace)
         self._check_common("side push", name, p, goal=goal, n_spheres=n_spheres, sphere=sphere)
         model, min_gap, behind, ahead, pass_speed = p["model"], p["min_gap"], p["behind"], p["ahead"], p["pass_speed"]
         self.model = side_model(model) if isinstance(model, str) else model
-        self.law = law if law is not None else side_push_law(p["ks"])
+        self.law = law if law is not None else self._law(name, p["learning"], p["ks"])
+        self.learns_curve = isinstance(self.law, CurveLearningLaw)
         self.fixed_gap = None if fixed_gap is None else check_positive("fixed_gap", fixed_gap)
         self.min_gap = check_positive("min_gap", min_gap)
         self.d_max = float(self.model.displacement(self.min_gap))
@@ -94,13 +108,26 @@ class SidePushTask(PushTask, Block):
         outs.append(Port("gap", (), "m"))
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
 
+    def _law(self, name: str, learning: str, ks: float):
+        if learning == "eq18":
+            return side_push_law(ks)
+        if learning == "curve":
+            if not hasattr(self.model, "rate"):
+                raise MagctlError(f"side push {name!r}: learning='curve' learns eq 22's form; give model='exp-fit' "
+                                  f"or 'exp' as its prior, not {getattr(self.model, 'name', self.model)!r}")
+            return curve_learning_law(self.model)
+        raise MagctlError(f"side push {name!r}: learning={learning!r} is not one of {', '.join(LEARNING)}")
+
     def kernel(self):
-        """The compiled frame (:func:`magctl.control.push.kernels.side_step`); None for a model of another kind."""
+        """The compiled frame (:func:`magctl.control.push.kernels.side_step`); None for a model of another kind
+        or a law without a kernel (the curve-learning law)."""
         from magctl.control.push import kernels as k
         from magctl.core.kernel import Kernel
 
+        if not self._kernel_law_ok():
+            return None
         params = self._side_kernel_params()
-        if params is None or not self._kernel_law_ok():
+        if params is None:
             return None
         return Kernel(step=k.side_step, params=params)
 
@@ -167,12 +194,17 @@ class SidePushTask(PushTask, Block):
 
     def _begin(self, new, mask, r, spheres):
         s, dist, u, side, _ = self._geometry(new, r, spheres)
-        d_des = np.minimum(dist, self.d_max)  # eq 16, bounded (§V-B step 1)
-        if self.fixed_gap is None:
+        if self.learns_curve:  # the estimate's own bound and inverse (docs/push-control.md §6)
+            d_des = np.minimum(dist, self.law.displacement(new["law"], self.min_gap))
+        else:
+            d_des = np.minimum(dist, self.d_max)  # eq 16, bounded (§V-B step 1)
+        if self.fixed_gap is not None:
+            gap = np.full(dist.shape, self.fixed_gap)
+        elif self.learns_curve:
+            gap = self.law.gap(new["law"], d_des, self.min_gap)
+        else:
             delta = self.law.output(new["law"], {})["y"]
             gap = np.maximum(self.model.gap(d_des + delta), self.min_gap)  # eq 17
-        else:
-            gap = np.full(dist.shape, self.fixed_gap)
         # D_s,des + Δ ≤ 0: eq 22 asks for an infinite gap, i.e. no pass; the attempt only settles and
         # measures D_s,act = 0 (the no-push branch of magctl.stability.switched)
         skip = mask & ~np.isfinite(gap)
@@ -199,8 +231,10 @@ class SidePushTask(PushTask, Block):
         if meas.any():
             d_act = np.einsum("bi,bi->b", s - new["p0"], new["u"])
             go_on = self._finish_attempt(new, meas, done)
-            # eq 18 bracket as printed; the law's gain carries the sign
-            new["law"] = self.law.update_where(new["law"], {"e": d_act - new["d_des"]}, go_on)
+            if self.learns_curve:
+                new["law"] = self.law.update_where(new["law"], {"gap": new["gap"], "displacement": d_act}, go_on)
+            else:  # eq 18 bracket as printed; the law's gain carries the sign
+                new["law"] = self.law.update_where(new["law"], {"e": d_act - new["d_des"]}, go_on)
             self._begin(new, go_on, r, spheres)
         # the servo target and speed cap of the phase, for the trials in ok (the others keep theirs)
         ph = np.where(ok, new["phase"], START)
