@@ -104,6 +104,12 @@ NEAR = {"robot_est": lambda rng, k: np.array([1.0e-3, 1.0e-3]) + 1e-3 * rng.rand
         "lost": lambda rng, k: rng.random(BATCH) < 0.2}
 SPHERES = [[1.6e-3, 1.5e-3], [2.5e-3, 2.5e-3]]
 
+def _curve_law():
+    from magctl.control.curve_learning import curve_learning_law
+
+    return curve_learning_law()
+
+
 FACTORIES = {
     # core
     "Constant": lambda cls: cls("c", [1.0, 2.0], shape=(2,)),
@@ -138,6 +144,9 @@ FACTORIES = {
     # control
     "Servo": lambda cls: cls("servo", speed_cap_input=True, hold_input=True),
     "LearningLaw": lambda cls: cls("law", 0.8, initial=1e-4),
+    "CurveLearningLaw": (lambda cls: _curve_law(),
+                         {"gap": lambda rng, k: (380 + 300 * rng.random(BATCH)) * UM,
+                          "displacement": lambda rng, k: 80 * UM * rng.random(BATCH)}),
     "Planner": (lambda cls: cls("planner", n_spheres=2, bounds=(0.0, 0.0, 3e-3, 3e-3), cell=50e-6),
                 {"goal": lambda rng, k: np.array([[2.8e-3, 2.8e-3]] * BATCH), **NEAR}),
     "ArrivalStatus": lambda cls: cls("status"),
@@ -185,6 +194,8 @@ def _variants() -> dict:
         "Servo, no optional inputs": lambda: Servo("servo"),
         "SidePushTask, eq 22 model": lambda: SidePushTask("side", goal=(2.5e-3, 1.5e-3), model="exp",
                                                           arrive_tol=500 * UM, settle_frames=1),
+        "SidePushTask, curve learning": lambda: SidePushTask("side", goal=(2.5e-3, 1.5e-3), learning="curve",
+                                                             model="exp-fit", arrive_tol=500 * UM, settle_frames=1),
         "SidePushTask, fixed gap": lambda: SidePushTask("side", goal=(2.5e-3, 1.5e-3), fixed_gap=500 * UM,
                                                         arrive_tol=500 * UM, settle_frames=1),
         "StickSlipRobot, no variability": lambda: StickSlipRobot("robot", variability=False),
