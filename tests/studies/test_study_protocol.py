@@ -238,6 +238,34 @@ def test_assembly_computes_from_cached_trials_and_draws(tmp_path):
     assert [p.suffix for p in paths] == [".png", ".gif", ".gif", ".gif"] and all(p.stat().st_size > 1000 for p in paths)
 
 
+def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
+    """The beyond study from fake trials: hand numbers for the summaries and the targets, the figure drawn, and
+    the attempt-map grid (curve law within 5 attempts of the floor wherever the floor is within 30)."""
+    beyond = studies.discover()["beyond"]
+    exps = beyond.experiments()
+    n = 4
+    attempts = {beyond.CURVE: [4, 5, 6, 11], "lin-fit, K_s=0.9": [5, 6, 6, 7],
+                f"{beyond.CURVE}, dirt": [5, 6, 20, 30], "lin-fit, K_s=0.9, dirt": [5, 6, 22, 30]}
+    cache = studies.TrialCache()
+    for label, exp in exps.items():
+        status = [CONVERGED] * (n - 1) + [ATTEMPT_LIMIT if attempts[label][-1] == 30 else CONVERGED]
+        cache.store(push.trials_key(exp, n, 0), "beyond", fake_trials(status, attempts[label], 30))
+    computed = studies.compute("beyond", context(tmp_path, "beyond", cache=cache, trials=n))
+    s = computed.results["controllers"]
+    assert s[beyond.CURVE]["mean_attempts_all"] == pytest.approx(6.5)
+    assert s[beyond.CURVE]["converged_by"] == {"4": 0.25, "10": 0.75, "30": 1.0}
+    assert s[f"{beyond.CURVE}, dirt"]["attempts_p95"] == pytest.approx(np.percentile([5, 6, 20, 30], 95))
+    met = [ok for _, _, ok in beyond.targets(computed.results)]
+    assert met == [False, False, True]  # mean 6.5 > 5; 75 % by 10; 95th percentile 28.5 below 28.8
+    summary, paper = beyond.summarise(computed)
+    assert paper == [] and any("**missed**" in line for line in summary)
+    for row in computed.results["scale_grid"]:
+        if row["fewest"] <= 25:
+            assert row["curve"] is not None and row["curve"] <= row["fewest"] + 5, row
+    [path] = beyond.draw(computed, context(tmp_path, "beyond", cache=cache, trials=n))
+    assert path.read_bytes()[:8] == PNG_MAGIC
+
+
 def test_cheap_studies_draw_nonempty_pngs(cheap_studies, tmp_path):
     """Every cheap study draws its figures from the results its compute step returned."""
     found = studies.discover()

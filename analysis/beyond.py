@@ -1,0 +1,151 @@
+"""Beyond the paper: magctl's own push controllers against the paper's best, same plant, noise and seeds.
+
+Side push: the curve-learning law (``SidePushTask(learning="curve")``, :mod:`magctl.control.curve_learning`,
+prior exp-fit) against the paper's best (lin-fit, K_s = 0.9), on the side-push study's plant and on the
+robustness study's dirt; targets: mean attempts ≤ 5 and every trial within ε_p by attempt 10 without dirt,
+a lower 95th percentile than the paper's law with dirt. Beside the closed loop, the attempt map's convergence
+over plant scales, where eq 18 with the paper's gain diverges (docs/push-control.md §6).
+
+The front push that models its own release and the optimised multi-sphere assembly are not in magctl yet;
+the summary says so rather than leaving them out silently.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from magctl.control.curve_learning import curve_learning_law
+from magctl.control.learning import side_push_law
+from magctl.control.push.common import ExpSideModel, task_defaults
+from magctl.control.status import Status
+from magctl.stability.iteration import side_attempt_map
+from magctl.stability.switched import ScaledSideModel
+from magctl.studies import runner as studies
+from magctl.studies.push import controller_summary, controller_table, reuse_note, run_experiments
+from magctl.studies.runner import Computed, PaperRow, StudyContext
+
+NAME = "beyond"
+TITLE = "Beyond the paper: a side push that learns its curve, against the paper's best"
+ORDER = 60
+DEFAULT_TRIALS = 200
+REUSES = ("side-push", "robustness")
+CURVE = "curve learning (exp-fit prior)"
+CURVE_TASK = {"learning": "curve", "model": "exp-fit"}
+MEAN_TARGET = 5.0
+BY_TARGET = 10
+UM = 1e-6
+PLANT_SCALES = (0.3, 0.6, 1.0, 1.4, 2.0, 2.6, 3.0)
+GAP_SCALES = (0.7, 1.0, 1.5)
+GOAL_UM = 300.0
+
+
+def scale_grid(min_gap: float, eps: float) -> list[dict]:
+    """Attempt map from 300 µm against eq 22 scaled (ρ in displacement, a gap scale): attempts to ε_p of the curve
+    law and of eq 18 with K_s = 0.9 (both on eq 22 as their model), and the fewest attempts any contact-bounded
+    controller can take; None where a law does not get within ε_p in 30 attempts."""
+    rows = []
+    e0 = GOAL_UM * UM
+    for gap_scale in GAP_SCALES:
+        for rho in PLANT_SCALES:
+            plant = ScaledSideModel(scale=rho, gap_scale=gap_scale)
+            fewest = int(np.ceil((e0 - eps) / plant.displacement(min_gap)))
+            curve = side_attempt_map(0.0, e0, model="exp", plant=plant, law=curve_learning_law(prior=ExpSideModel()),
+                                     min_gap=min_gap, eps=eps, max_attempts=30)["attempts"][0]
+            eq18 = side_attempt_map(0.9, e0, model="exp", plant=plant, law=side_push_law(0.9), min_gap=min_gap,
+                                    eps=eps, max_attempts=30)["attempts"][0]
+            rows.append({"gap_scale": gap_scale, "plant_scale": rho, "fewest": fewest,
+                         "curve": int(curve) if curve > 0 else None, "eq18": int(eq18) if eq18 > 0 else None})
+    return rows
+
+
+def experiments() -> dict:
+    """The curve law and the paper's best on the side-push study's plant, and both on the robustness study's
+    dirt: the same set-up, noise and seeds (the paper's best clean is the side-push study's experiment)."""
+    side, robust = studies.get("side-push"), studies.get("robustness")
+    dirty = dataclasses.replace(side.PLANT, sticky_probability=robust.STICKY)
+    best = side.BEST
+    return {CURVE: side.side_experiment(CURVE, CURVE_TASK),
+            best: side.experiments()[best],
+            f"{CURVE}, dirt": side.side_experiment(f"{CURVE}, dirt", CURVE_TASK, dirty),
+            f"{best}, dirt": side.side_experiment(f"{best}, dirt", side.CONTROLLERS[best], dirty)}
+
+
+def compute(ctx: StudyContext) -> Computed:
+    side = studies.get("side-push")
+    n = ctx.n_trials(DEFAULT_TRIALS)
+    exps = experiments()
+    best = side.BEST
+    runs, sources = run_experiments(ctx, exps, n)
+    summaries = {}
+    for label, r in runs.items():
+        s = controller_summary(r)
+        s["attempts_p95"] = studies.get("robustness").attempts_percentile(r, 95, side.MAX_ATTEMPTS)
+        s["converged_by"] = {str(k): float(np.mean((np.asarray(r["status"]) == Status.CONVERGED)
+                                                   & (np.asarray(r["attempts"]) <= k))) for k in (4, 10, 30)}
+        summaries[label] = s
+    task = exps[CURVE]
+    d = task_defaults("side")
+    results = {"trials_per_controller": n, "controllers": summaries, "clean_plant": side.PLANT.describe(),
+               "dirty_plant": exps[f"{CURVE}, dirt"].variability.describe(), "trials_from_study": sources,
+               "baseline": best, "curve": CURVE, "scale_grid": scale_grid(d["min_gap"], d["eps"]),
+               "curve_task": dict(task.task)}
+    return Computed(results, {"max_attempts": side.MAX_ATTEMPTS})
+
+
+def draw(computed: Computed, ctx: StudyContext) -> list:
+    """Converged share versus attempts: the curve law and the paper's best, with and without dirt."""
+    from magctl.studies.figures import plot_convergence
+
+    r = computed.results
+    return [plot_convergence(r["controllers"], ctx.figure_path("beyond_side_push"),
+                             f"Side pushing, curve learning against the paper's best, {r['trials_per_controller']} "
+                             "trials", computed.data["max_attempts"])]
+
+
+def targets(r: dict) -> list[tuple[str, str, bool]]:
+    """(target, measured, met) of the side push."""
+    s, c, b = r["controllers"], r["curve"], r["baseline"]
+    clean, dirt, base_dirt = s[c], s[f"{c}, dirt"], s[f"{b}, dirt"]
+    mean = clean["mean_attempts_all"]
+    by = clean["converged_by"][str(BY_TARGET)]
+    return [
+        (f"mean attempts ≤ {MEAN_TARGET:g} (no dirt)", f"{mean:.2f} (paper's best {s[b]['mean_attempts_all']:.2f})",
+         mean <= MEAN_TARGET),
+        (f"every trial within ε_p by attempt {BY_TARGET} (no dirt)", f"{by:.1%}", by >= 1.0),
+        ("95th percentile below the paper's law with dirt",
+         f"{dirt['attempts_p95']:.0f} against {base_dirt['attempts_p95']:.0f}",
+         dirt["attempts_p95"] < base_dirt["attempts_p95"]),
+    ]
+
+
+def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
+    r = computed.results
+    s = r["controllers"]
+    lines = [f"{r['trials_per_controller']} trials per controller, seed as every study; plant: {r['clean_plant']}; "
+             f"with dirt: {r['dirty_plant']}.", "",
+             *controller_table(s, computed.data["max_attempts"], ("attempts, 95th percentile", "attempts_p95")), "",
+             "| controller | by attempt 4 | by 10 | by 30 |", "|---|---|---|---|"]
+    lines += [f"| {label} | {v['converged_by']['4']:.1%} | {v['converged_by']['10']:.1%} | "
+              f"{v['converged_by']['30']:.1%} |" for label, v in s.items()]
+    lines += ["", "| target | measured | |", "|---|---|---|"]
+    lines += [f"| {t} | {m} | {'met' if ok else '**missed**'} |" for t, m, ok in targets(r)]
+    lines += ["", "Where it does not win: a mean of 5 attempts is the floor of any side push that keeps the contact "
+              "bound (≈ 71 µm per pass at 370 µm less the few µm repositioning takes back, with the ±10 % mobility "
+              "scatter: 4.8–5.0 on average), and a one-pixel ε_p leaves a few trials stepping over the band; with "
+              "dirt both laws are held by the sticky spheres' 14 µm passes (docs/push-control.md §6).", "",
+              "Attempt map from 300 µm against eq 22 scaled (ρ in displacement × gap scale; no noise; both laws on "
+              "eq 22 as their model): attempts to ε_p of the curve law / eq 18 with K_s = 0.9 (fewest possible); "
+              "— where a law is not within ε_p by attempt 30.", "",
+              "| gap scale \\ ρ | " + " | ".join(f"{v:g}" for v in PLANT_SCALES) + " |",
+              "|---|" + "---|" * len(PLANT_SCALES)]
+    for gs in GAP_SCALES:
+        cells = []
+        for row in (x for x in r["scale_grid"] if x["gap_scale"] == gs):
+            got = ["—" if row[k] is None else str(row[k]) for k in ("curve", "eq18")]
+            cells.append(f"{got[0]} / {got[1]} ({row['fewest']})")
+        lines.append(f"| {gs:g} | " + " | ".join(cells) + " |")
+    lines += ["", "Not in magctl yet: a front push that models its own release, and multi-sphere assembly planned "
+              "by optimisation.", "", reuse_note(r["trials_from_study"], NAME)]
+    return lines, []
