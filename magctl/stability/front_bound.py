@@ -1,0 +1,184 @@
+"""How far a front push that models its own release can beat eq 13 — measured on the identified release map.
+
+Eq 13 with ``K_c`` = 1 sets ``δ(i+1)`` to the last release: it uses one number of the release's history. A
+controller that knew the release's conditional distribution given what it can see before an attempt — the
+distance ``d`` to the goal and the trial's last release ``R_prev`` (the identified map's predictors,
+:class:`~magctl.stability.iteration.ReleaseMap`) — would choose the ``δ`` that maximises the chance that
+this attempt ends within ε_p (eq 12):
+
+    δ*(d, R_prev) = argmax_δ P( |(R − δ, lateral)| < ε_p  |  L = d + δ, R_prev ),
+
+the probability read as the share of the ``k`` logged attempts nearest to ``(d + δ, R_prev)`` that would
+have ended inside. The first attempt can only choose among the logged first pushes (the map has first
+releases at those push lengths only). :func:`release_policy` builds that controller from a map;
+:func:`policy_attempts` runs it on a map; :func:`cross_validated` builds it from half the identified trials
+and runs it, beside eq 13 with ``K_c`` = 1, on the other half — so the policy is not scored on the
+attempts it was chosen from (on the same attempts it "knows" which of them the resampling will draw).
+
+The result (docs/push-control.md §7) bounds what any controller seeing ``(d, R_prev)`` can gain: the greedy
+policy maximises each attempt's success; a lower mean would need a later-attempt success above what the
+release's scatter about its conditional mean leaves inside ε_p.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from magctl.core.checks import check_positive
+from magctl.core.errors import MagctlError
+from magctl.core.units import UM
+from magctl.stability.iteration import FRONT_EPS, FRONT_GOAL, FRONT_MAX_ATTEMPTS, ReleaseMap, front_identified_map
+
+DELTAS = np.arange(-200.0, 401.0, 10.0) * UM
+"""Candidate ``δ`` of the policy (m): the span of the logged push lengths minus the goal distances."""
+NEIGHBOURS = 30
+"""Logged later attempts whose outcomes estimate one candidate's success (twice the map's resampling k)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ReleasePolicy:
+    """The greedy release-model controller: ``δ(0)`` for the first attempt, ``δ*(d, R_prev)`` after it."""
+
+    delta0: float
+    first_success: dict[float, float]
+    """Share of logged first attempts ending within ε_p, by first push length (m)."""
+    deltas: np.ndarray
+    tree: cKDTree
+    rows: np.ndarray
+    release_map: ReleaseMap
+    eps: float
+    k: int
+
+    def success(self, d, previous) -> np.ndarray:
+        """Estimated success of every candidate δ, shape ``(len(d), len(deltas))``."""
+        d = np.atleast_1d(np.asarray(d, float))
+        prev = np.broadcast_to(np.asarray(previous, float), d.shape)
+        m, out = self.release_map, np.empty((d.size, self.deltas.size))
+        for j, delta in enumerate(self.deltas):
+            _, nb = self.tree.query(np.c_[d + delta, prev] / m.scale, k=self.k)
+            rows = self.rows[np.reshape(nb, (d.size, self.k))]
+            out[:, j] = (np.hypot(m.release[rows] - delta, m.lateral[rows]) < self.eps).mean(axis=1)
+        return out
+
+    def delta(self, d, previous) -> tuple[np.ndarray, np.ndarray]:
+        """``δ*`` and its estimated success for each ``(d, R_prev)``."""
+        p = self.success(d, previous)
+        best = p.argmax(axis=1)
+        return self.deltas[best], p[np.arange(best.size), best]
+
+
+def release_policy(release_map: ReleaseMap, *, eps: float = FRONT_EPS, goal: float = FRONT_GOAL,
+                   deltas=DELTAS, k: int = NEIGHBOURS) -> ReleasePolicy:
+    """The greedy controller of the module docstring, estimated from ``release_map``."""
+    check_positive("eps", eps)
+    later = np.flatnonzero(~release_map.first)
+    if later.size < k or k < 1:
+        raise MagctlError(f"release policy needs at least k = {k} later attempts, the map has {later.size}")
+    m = release_map
+    first = {}
+    for length in np.unique(m.length[m.first]):
+        sel = m.first & (m.length == length)
+        delta = length - goal
+        first[float(length)] = float((np.hypot(m.release[sel] - delta, m.lateral[sel]) < eps).mean())
+    best_length = max(first, key=first.get)
+    tree = cKDTree(np.c_[m.length[later], m.previous[later]] / m.scale)
+    return ReleasePolicy(best_length - goal, first, np.asarray(deltas, float), tree, later, m, float(eps), int(k))
+
+
+def policy_attempts(policy: ReleasePolicy, release_map: ReleaseMap, trials: int = 2000, *, eps: float = FRONT_EPS,
+                    goal: float = FRONT_GOAL, max_attempts: int = FRONT_MAX_ATTEMPTS, seed: int = 0) -> dict:
+    """Run ``policy`` on ``release_map`` (the attempt map of
+    :func:`~magctl.stability.iteration.front_identified_map` with ``δ`` from the policy).
+
+    Returns ``attempts`` (B,) (−1 = not converged) and ``later_success``: the share of attempts after the
+    first that ended within ε_p.
+    """
+    rng = np.random.default_rng(seed)
+    d = np.full(trials, float(goal))
+    done = np.zeros(trials, dtype=bool)
+    attempts = np.full(trials, -1)
+    last = np.zeros(trials)
+    tried = hits = 0
+    for i in range(max_attempts):
+        if i == 0:
+            delta = np.full(trials, policy.delta0)
+        else:
+            delta = np.zeros(trials)
+            delta[~done] = policy.delta(d[~done], last[~done])[0]
+        release, lateral, _ = release_map.sample(d + delta, i == 0, rng, last)
+        last = np.where(done, last, release)
+        d = np.where(done, d, np.hypot(release - delta, lateral))
+        hit = ~done & (d < eps)
+        if i > 0:
+            tried, hits = tried + int((~done).sum()), hits + int(hit.sum())
+        attempts[hit] = i + 1
+        done |= hit
+        if done.all():
+            break
+    return {"attempts": attempts, "later_success": hits / tried if tried else float("nan")}
+
+
+def split_by_trial(release_map: ReleaseMap, part: int, parts: int = 2) -> ReleaseMap:
+    """The map of every ``parts``-th identification trial starting at ``part`` (a trial is a first attempt and
+    the later ones logged after it)."""
+    trial = np.cumsum(release_map.first) - 1
+    keep = trial % parts == part
+    return dataclasses.replace(release_map, **{name: getattr(release_map, name)[keep] for name in
+                                               ("first", "length", "previous", "release", "lateral", "contact")})
+
+
+def mean_attempts(attempts: np.ndarray, max_attempts: int = FRONT_MAX_ATTEMPTS) -> float:
+    """Mean attempts per trial, a trial that did not converge counted at the limit."""
+    a = np.asarray(attempts)
+    return float(np.where(a > 0, a, max_attempts).mean())
+
+
+def cross_validated(release_map: ReleaseMap | None = None, trials: int = 2000, *, seed: int = 0,
+                    eps: float = FRONT_EPS, delta0_kc1: float = 0.0) -> dict:
+    """The policy built on one half of the identified trials and run on the other, both ways, beside eq 13
+    with ``K_c`` = 1 (``δ(0)`` = ``delta0_kc1``) on the same half and seed.
+
+    Returns per fold (``"0→1"``, ``"1→0"``) the policy's and eq 13's mean attempts, the policy's later-attempt
+    success and first-attempt success by push length, and the mean over the folds of both means and of the
+    gain (eq 13 minus policy).
+    """
+    m = release_map or ReleaseMap.load()
+    folds = {}
+    for train, test in ((0, 1), (1, 0)):
+        policy = release_policy(split_by_trial(m, train), eps=eps)
+        held_out = split_by_trial(m, test)
+        run = policy_attempts(policy, held_out, trials, eps=eps, seed=seed)
+        kc1 = front_identified_map(1.0, delta0_kc1, trials, release_map=held_out, eps=eps, seed=seed)
+        later = kc1["distance"][:, 1:]
+        folds[f"{train}→{test}"] = {
+            "policy_mean_attempts": mean_attempts(run["attempts"]), "kc1_mean_attempts": mean_attempts(kc1["attempts"]),
+            "policy_later_success": run["later_success"],
+            "kc1_later_success": float((later < eps).sum() / np.isfinite(later).sum()),
+            "policy_delta0_um": policy.delta0 / UM,
+            "first_success_by_push_um": {f"{k / UM:.0f}": v for k, v in policy.first_success.items()}}
+    policy_mean = float(np.mean([f["policy_mean_attempts"] for f in folds.values()]))
+    kc1_mean = float(np.mean([f["kc1_mean_attempts"] for f in folds.values()]))
+    return {"folds": folds, "policy_mean_attempts": policy_mean, "kc1_mean_attempts": kc1_mean,
+            "gain_attempts": kc1_mean - policy_mean, "trials": trials, "eps_um": eps / UM,
+            "conditional_release_std_um": conditional_scatter(m) / UM}
+
+
+def conditional_scatter(release_map: ReleaseMap, k: int = NEIGHBOURS) -> float:
+    """Median, over the logged later attempts, of the release's standard deviation among the ``k`` logged later
+    attempts nearest in ``(L, R_prev)``: the scatter no choice of ``δ`` can remove (m)."""
+    m = release_map
+    later = np.flatnonzero(~m.first)
+    points = np.c_[m.length[later], m.previous[later]] / m.scale
+    _, nb = cKDTree(points).query(points, k=k)
+    return float(np.median(m.release[later[nb]].std(axis=1)))
+
+
+def later_success_needed(first_success: float, mean_target: float) -> float:
+    """Later-attempt success ``p`` that a mean of ``mean_target`` attempts needs when the first attempt succeeds
+    with ``first_success`` and every later one with ``p`` (geometric): ``1 + (1 − p₁)/p = target``."""
+    if mean_target <= 1:
+        raise MagctlError(f"a mean of {mean_target!r} attempts cannot be reached: every trial makes one")
+    return (1.0 - first_success) / (mean_target - 1.0)
