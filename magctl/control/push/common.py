@@ -425,6 +425,20 @@ class PushTask:
 
 
 
+def select_state(mask: np.ndarray, a: dict, b: dict) -> dict:
+    """Per trial, ``a``'s entries where ``mask`` holds and ``b``'s elsewhere (nested dicts alike)."""
+    out = {}
+    for k, va in a.items():
+        vb = b[k]
+        if isinstance(va, dict):
+            out[k] = select_state(mask, va, vb)
+        elif isinstance(va, np.ndarray) and va.ndim >= 1 and va.shape[0] == mask.shape[0]:
+            out[k] = np.where(mask.reshape((-1,) + (1,) * (va.ndim - 1)), va, vb)
+        else:
+            out[k] = va
+    return out
+
+
 def arrived(r: np.ndarray, target: np.ndarray, tol: float) -> np.ndarray:
     """Robot within ``tol`` of its target."""
     return norm(r - target) < tol
