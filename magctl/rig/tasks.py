@@ -26,7 +26,7 @@ import numpy as np
 
 from magctl.config import UNITS, Params, load_model, split_unit
 from magctl.control.push.common import SIDE_MODELS, task_parameters
-from magctl.control.push.side import LEARNING
+from magctl.control.push.side import DIRT_RESPONSES, LEARNING
 from magctl.control.servo import default_servo_setting, servo_params, servo_settings
 from magctl.control.status import STATUS_NAMES, Status
 from magctl.core.compiled import NotCompilable
@@ -224,10 +224,11 @@ def _option_value(task: str, key: str, raw, factor: float, unit: str, name: str)
         if raw not in SIDE_MODELS:
             raise TaskError(f"{task}: option model={raw!r} is not one of {', '.join(SIDE_MODELS)}")
         return str(raw)
-    if name == "learning":
-        if raw not in LEARNING:
-            raise TaskError(f"{task}: option learning={raw!r} is not one of {', '.join(LEARNING)}")
-        return str(raw)
+    for option, known in (("learning", LEARNING), ("dirt_response", DIRT_RESPONSES)):
+        if name == option:
+            if raw not in known:
+                raise TaskError(f"{task}: option {option}={raw!r} is not one of {', '.join(known)}")
+            return str(raw)
     if name in ("goal", "target", "origin"):
         try:
             arr = np.asarray(raw, dtype=float).reshape(-1)

@@ -240,3 +240,55 @@ def test_task_and_law_refuse_what_they_cannot_learn():
         law(gain=0.9)
     task = SidePushTask(learning="curve", model="exp-fit")
     assert isinstance(task.law, CurveLearningLaw) and task.kernel() is None
+
+
+def _dirt_runs(scales, dirt_response):
+    """The curve law's side push round the stand-in plant, eq 22 scaled per trial, a sticky sphere's release
+    (flow-driven, so scaled with its mobility) taken as none; returns final status, attempts and front pushes
+    started."""
+    p = standin_params()
+    task = SidePushTask(goal=(300 * UM, 0.0), law=law(prior=ExpSideModel()), model="exp", clearance=2.5e-3,
+                        behind=3e-3, ahead=3e-3, pass_speed=3e-3, travel_speed=3e-3, arrive_tol=1 * UM,
+                        max_attempts=30, dirt_response=dirt_response)
+    r0, s0 = (-1e-3, 0.0), np.array([[0.0, 0.0]])
+    n = task.name
+    dia = Diagram("loop", [
+        task, StraightToTarget("servo", v_max=3e-3), KinematicRobot("robot", start=r0),
+        StandinSpheres("spheres", s0, p.contact_distance, side_range=2.4e-3, sphere_radius=p.sphere_radius,
+                       start_robot=r0, side_scale=scales),
+        StandinTracker("tracker", 1, p.workspace_half, None, r0, 0.0, s0),
+    ], [
+        ("tracker.robot_est", f"{n}.robot_est"), ("tracker.spheres_est", f"{n}.spheres_est"),
+        ("tracker.lost", f"{n}.lost"), (f"{n}.target", "servo.target"), (f"{n}.speed_cap", "servo.speed_cap"),
+        ("robot.position", "servo.position"), ("servo.speed", "robot.speed"), ("servo.heading", "robot.heading"),
+        ("robot.position", "spheres.position"), ("robot.position", "tracker.position"),
+        ("robot.heading", "tracker.heading"), ("spheres.spheres", "tracker.spheres"),
+    ])
+    res = simulate(dia, 9000, batch=len(scales), record=[f"{n}.status", f"{n}.attempt"])
+    task_state = next(leaf for leaf in res.final_state["leaves"] if "d_des" in leaf)
+    fronts = task_state["fronts"] if dirt_response == "front" else np.zeros(len(scales), dtype=int)
+    return res[f"{n}.status"][:, -1], res[f"{n}.attempt"][:, -1], fronts
+
+
+def test_a_stuck_sphere_gets_a_front_push_and_converges_sooner():
+    """A sphere at 15 % of the prior's mobility: side passes alone need ⌈292.5/9.3⌉ = 32 passes (beyond the
+    30-attempt limit); with the front push answering dirt it converges within 10 attempts. A sphere as the
+    prior is never front-pushed, and converges as without the option."""
+    scales = np.array([0.15, 1.0])
+    status, attempts, fronts = _dirt_runs(scales, "front")
+    assert list(status) == [Status.CONVERGED, Status.CONVERGED]
+    assert attempts[0] <= 10 and fronts[0] >= 1 and fronts[1] == 0
+    plain_status, plain_attempts, _ = _dirt_runs(scales, "none")
+    assert plain_status[0] == Status.ATTEMPT_LIMIT
+    assert plain_status[1] == Status.CONVERGED and plain_attempts[1] == attempts[1]
+
+
+def test_dirt_response_is_checked():
+    with pytest.raises(MagctlError, match="dirt_response='front' needs learning='curve'"):
+        SidePushTask(dirt_response="front")
+    with pytest.raises(MagctlError, match="dirt_response='wash' is not one of none, front"):
+        SidePushTask(learning="curve", model="exp-fit", dirt_response="wash")
+    from magctl.control.push.assembly import AssemblyTask
+
+    with pytest.raises(MagctlError, match="assembly takes 'none'"):
+        AssemblyTask(learning="curve", model="exp-fit", dirt_response="front")

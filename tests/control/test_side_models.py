@@ -58,3 +58,6 @@ def test_rig_options_take_every_side_model_and_the_fig15_task():
     assert resolve_options("side-push", {"learning": "curve"})["learning"] == "curve"
     with pytest.raises(TaskError, match="learning='online' is not one of eq18, curve"):
         resolve_options("assemble", {"learning": "online"})
+    assert resolve_options("side-push", {"dirt_response": "front"})["dirt_response"] == "front"
+    with pytest.raises(TaskError, match="dirt_response='wash' is not one of none, front"):
+        resolve_options("side-push", {"dirt_response": "wash"})

@@ -196,6 +196,9 @@ def _variants() -> dict:
                                                           arrive_tol=500 * UM, settle_frames=1),
         "SidePushTask, curve learning": lambda: SidePushTask("side", goal=(2.5e-3, 1.5e-3), learning="curve",
                                                              model="exp-fit", arrive_tol=500 * UM, settle_frames=1),
+        "SidePushTask, curve learning, front push on dirt": lambda: SidePushTask(
+            "side", goal=(2.5e-3, 1.5e-3), learning="curve", model="exp-fit", dirt_response="front",
+            arrive_tol=500 * UM, settle_frames=1),
         "SidePushTask, fixed gap": lambda: SidePushTask("side", goal=(2.5e-3, 1.5e-3), fixed_gap=500 * UM,
                                                         arrive_tol=500 * UM, settle_frames=1),
         "StickSlipRobot, no variability": lambda: StickSlipRobot("robot", variability=False),

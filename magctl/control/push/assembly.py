@@ -16,7 +16,15 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.control.push.common import ATTEMPT_LIMIT, FINISHED, RUNNING, sphere_radii, task_parameters, with_defaults
+from magctl.control.push.common import (
+    ATTEMPT_LIMIT,
+    FINISHED,
+    RUNNING,
+    select_state,
+    sphere_radii,
+    task_parameters,
+    with_defaults,
+)
 from magctl.control.push.front import FrontAssemblyTask
 from magctl.control.push.side import SidePushTask
 from magctl.core.batched import cross, norm, rotate, unit
@@ -46,6 +54,9 @@ class AssemblyTask(SidePushTask):
                  theta_n: float | None = None, radii=None, eps_as: float | None = None, **kw):
         if moved == fixed or not (0 <= moved < n_spheres and 0 <= fixed < n_spheres):
             raise MagctlError(f"assembly {name!r}: sphere indices {moved}, {fixed} must differ and be < {n_spheres}")
+        if kw.get("dirt_response") not in (None, "none"):
+            raise MagctlError(f"assembly {name!r}: dirt_response={kw['dirt_response']!r} answers a single sphere's "
+                              "side push; assembly takes 'none'")
         p = with_defaults("assembly", theta_n=theta_n, eps_as=eps_as, ks=kw.pop("ks", None))
         theta = float(p["theta_n"])
         if not 0 <= theta < np.pi / 2:
@@ -145,7 +156,7 @@ class FrontThenSideAssemblyTask(Block):
         out["phase"] = np.where(handover, self.SIDE_PHASE_OFFSET, out["phase"])
         out["stage"] = np.where(in_side, 2, 1).astype(np.int64)
         new = {"stage": np.where(in_side | handover, 2, 1).astype(np.int64),
-               "front": f_new, "side": _select(in_side, s_new, state["side"])}
+               "front": f_new, "side": select_state(in_side, s_new, state["side"])}
         return out, new
 
     def output(self, state, u):
@@ -163,20 +174,6 @@ class FrontThenSideAssemblyTask(Block):
         if side is None or not (self.front._kernel_law_ok() and self.side._kernel_law_ok()):
             return None
         return Kernel(step=k.front_then_side_step, params=(*self.front._front_kernel_params(), *side))
-
-
-def _select(mask: np.ndarray, a: dict, b: dict) -> dict:
-    """Per trial, ``a``'s entries where ``mask`` holds and ``b``'s elsewhere (nested dicts alike)."""
-    out = {}
-    for k, va in a.items():
-        vb = b[k]
-        if isinstance(va, dict):
-            out[k] = _select(mask, va, vb)
-        elif isinstance(va, np.ndarray) and va.ndim >= 1 and va.shape[0] == mask.shape[0]:
-            out[k] = np.where(mask.reshape((-1,) + (1,) * (va.ndim - 1)), va, vb)
-        else:
-            out[k] = va
-    return out
 
 
 __all__ = ["AssemblyTask", "FrontAssemblyTask", "FrontThenSideAssemblyTask"]

@@ -16,6 +16,12 @@ When ``D_s,des + Δ ≤ 0`` (possible after an over-push with ``K_s`` ≥ 1 or a
 the model) eq 22 gives an infinite gap: the attempt makes no pass, settles and measures
 ``D_s,act = 0`` (the no-push branch of :mod:`magctl.stability.switched`).
 
+With ``dirt_response="front"`` (and the curve law) a sphere the estimate reads as stuck — under
+``[dirt] mobility`` of the prior's displacement at the contact threshold with more than ``[dirt] passes``
+passes to go — gets one front push to the goal (:class:`~magctl.control.push.front.FrontPushTask`, eq 11's
+tolerance ``[dirt] push_tol``) instead of the next pass; the side passes then finish from where it lies,
+with the estimate they had learned.
+
 The naive controllers of §VI-B (a fixed gap, no model) are ``fixed_gap=``. With ``learning="curve"`` the
 eq 17–18 pair is replaced by :class:`~magctl.control.curve_learning.CurveLearningLaw`: the curve itself is
 re-estimated after every pass from the gap commanded and the displacement measured, ``D_s,des`` is bounded by
@@ -27,9 +33,21 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
+from magctl.config import load_model
 from magctl.control.curve_learning import CurveLearningLaw, curve_learning_law
 from magctl.control.learning import LearningLaw, side_push_law
-from magctl.control.push.common import FINISHED, START, PushTask, around, arrived, side_model, with_defaults
+from magctl.control.push.common import (
+    FINISHED,
+    START,
+    PushTask,
+    around,
+    arrived,
+    select_state,
+    side_model,
+    with_defaults,
+)
+from magctl.control.push.front import FrontPushTask
+from magctl.control.status import Status
 from magctl.core.batched import cross, norm, perp, unit
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
@@ -39,6 +57,11 @@ from magctl.core.ports import Port
 REPOSITION, PASS, SETTLE = 1, 2, 3
 LEARNING = {"eq18": "the paper's eq 18 law correcting the fixed model F (gain K_s)",
             "curve": "the curve D_s(D_g) re-estimated after every pass and inverted (magctl.control.curve_learning)"}
+DIRT_RESPONSES = {"none": "side passes only, whatever the sphere's mobility",
+                  "front": "one front push for the coarse part when the curve law reads the sphere as stuck"}
+SIDE_STAGE, FRONT_STAGE = 1, 2
+FRONT_PHASE_OFFSET = 10
+"""``phase`` output of the front push that answers dirt: the front task's phase plus this offset."""
 
 
 class SidePushTask(PushTask, Block):
@@ -58,6 +81,9 @@ class SidePushTask(PushTask, Block):
         (:func:`~magctl.control.curve_learning.curve_learning_law`, prior ``model``).
     law : LearningLaw or CurveLearningLaw, optional
         The learning block itself (shared with the iteration-domain analysis); overrides ``learning``.
+    dirt_response : {"none", "front"}
+        What the curve law does on a sphere it reads as stuck (:data:`DIRT_RESPONSES`; ``models/push.toml``
+        ``[dirt]``).
     fixed_gap : float, optional
         Pass at this gap every time (the paper's naive 370/500 µm controllers).
     min_gap : float
@@ -80,14 +106,15 @@ class SidePushTask(PushTask, Block):
 
     def __init__(self, name: str = "side_push", *, goal=(0.0, 0.0), ks: float | None = None, model=None,
                  learning: str | None = None, law: LearningLaw | CurveLearningLaw | None = None,
-                 fixed_gap: float | None = None, n_spheres: int = 1,
+                 dirt_response: str | None = None, fixed_gap: float | None = None, n_spheres: int = 1,
                  sphere: int = 0, min_gap: float | None = None, eps: float | None = None,
                  max_attempts: int | None = None, behind: float | None = None, ahead: float | None = None,
                  clearance: float | None = None, arrive_tol: float | None = None, pass_speed: float | None = None,
                  travel_speed: float | None = None, settle_frames: int | None = None,
                  max_lost_frames: int | None = None, phase_timeout_frames: int | None = None,
                  workspace: float | None = None):
-        p = with_defaults("side", ks=ks, model=model, learning=learning, min_gap=min_gap, eps=eps,
+        p = with_defaults("side", ks=ks, model=model, learning=learning, dirt_response=dirt_response,
+                          min_gap=min_gap, eps=eps,
                           max_attempts=max_attempts, behind=behind, ahead=ahead, clearance=clearance,
                           arrive_tol=arrive_tol,
                           pass_speed=pass_speed, travel_speed=travel_speed, settle_frames=settle_frames,
@@ -98,6 +125,7 @@ class SidePushTask(PushTask, Block):
         self.model = side_model(model) if isinstance(model, str) else model
         self.law = law if law is not None else self._law(name, p["learning"], p["ks"])
         self.learns_curve = isinstance(self.law, CurveLearningLaw)
+        self.front = self._dirt_front(name, p["dirt_response"], n_spheres, sphere, p)
         self.fixed_gap = None if fixed_gap is None else check_positive("fixed_gap", fixed_gap)
         self.min_gap = check_positive("min_gap", min_gap)
         self.d_max = float(self.model.displacement(self.min_gap))
@@ -118,13 +146,32 @@ class SidePushTask(PushTask, Block):
             return curve_learning_law(self.model)
         raise MagctlError(f"side push {name!r}: learning={learning!r} is not one of {', '.join(LEARNING)}")
 
+    def _dirt_front(self, name: str, response: str, n_spheres: int, sphere: int, p: dict) -> FrontPushTask | None:
+        """The front push that answers dirt (``dirt_response="front"``), else None."""
+        if response not in DIRT_RESPONSES:
+            raise MagctlError(f"side push {name!r}: dirt_response={response!r} is not one of "
+                              f"{', '.join(DIRT_RESPONSES)}")
+        if response == "none":
+            return None
+        if not self.learns_curve:
+            raise MagctlError(f"side push {name!r}: dirt_response='front' needs learning='curve' (the curve law "
+                              "is what reads a stuck sphere)")
+        dirt = load_model("push").dirt
+        self.dirt_mobility = check_positive("[dirt] mobility", float(dirt.mobility))
+        self.dirt_passes = float(dirt.passes)
+        self.max_fronts = int(dirt.fronts)
+        shared = {k: p[k] for k in ("arrive_tol", "travel_speed", "settle_frames", "max_lost_frames",
+                                    "phase_timeout_frames", "workspace")}
+        return FrontPushTask(f"{name}_front", goal=self.goal, kc=0.0, delta0=0.0, max_attempts=1,
+                             push_tol=float(dirt.push_tol), n_spheres=n_spheres, sphere=sphere, **shared)
+
     def kernel(self):
-        """The compiled frame (:func:`magctl.control.push.kernels.side_step`); None for a model of another kind
-        or a law without a kernel (the curve-learning law)."""
+        """The compiled frame (:func:`magctl.control.push.kernels.side_step`); None for a model of another kind,
+        a law without a kernel (the curve-learning law) or a front push answering dirt."""
         from magctl.control.push import kernels as k
         from magctl.core.kernel import Kernel
 
-        if not self._kernel_law_ok():
+        if self.front is not None or not self._kernel_law_ok():
             return None
         params = self._side_kernel_params()
         if params is None:
@@ -167,9 +214,13 @@ class SidePushTask(PushTask, Block):
         return s, dist, u, side, dist < self.eps
 
     def state_vars(self):
-        from magctl.core.block import StateVar
+        from magctl.core.block import StateVar, substate
 
-        return (*self._common_vars(),
+        front = () if self.front is None else (
+            StateVar("stage", (), "int64", description="1: side passes, 2: the front push answering dirt"),
+            StateVar("fronts", (), "int64", description="front pushes started"),
+            substate("front", self.front.state_vars(), "the front push answering dirt"))
+        return (*self._common_vars(), *front,
                 StateVar("goal", (2,), symbol="P_g", description="goal, m"),
                 StateVar("u", (2,), symbol="u", description="unit pushing direction of the attempt"),
                 StateVar("p0", (2,), symbol="P_s", description="sphere position when the attempt began, m"),
@@ -185,7 +236,73 @@ class SidePushTask(PushTask, Block):
             st[k] = np.zeros((batch, 2))
         st["d_des"] = np.zeros(batch)
         st["gap"] = np.full(batch, np.nan)
+        if self.front is not None:
+            st |= {"stage": np.full(batch, SIDE_STAGE, dtype=np.int64), "fronts": np.zeros(batch, dtype=np.int64),
+                   "front": self.front.initial_state(batch)}
         return st
+
+    def step(self, state, u):
+        return self._frame(state, u) if self.front is None else self._frame_with_front(state, u)
+
+    def output(self, state, u):
+        return self.step(state, u)[0]
+
+    def update(self, state, u):
+        return self.step(state, u)[1]
+
+    def _frame_with_front(self, state, u):
+        """One frame of side passes that hand a stuck sphere to one front push and take it back afterwards.
+
+        The side stage is frozen while the front push runs. It hands over on the frame it measures an attempt
+        after which the curve law reads the sphere as stuck (estimated displacement at the contact threshold
+        under ``dirt_mobility`` of the prior's) with more than ``dirt_passes`` passes at that bound to go, at
+        most ``max_fronts`` times; the front push counts as an attempt when it ends, and the side passes
+        start afresh from where the sphere lies. A front push ending in a failure (tracking or sphere lost,
+        stalled) ends the task with that status.
+        """
+        side_state = {k: v for k, v in state.items() if k not in ("stage", "fronts", "front")}
+        s_out, s_new = self._frame(side_state, u)
+        f_out, f_new = self.front.step(state["front"], u)
+        in_front = state["stage"] == FRONT_STAGE
+        spheres = np.asarray(u["spheres_est"], dtype=float)
+        s = spheres[:, self.sphere_indices[0]]
+        dist = norm(s_new["goal"] - s)
+        measured = ~in_front & (s_new["attempt"] > side_state["attempt"]) & (s_new["status"] == Status.RUNNING)
+        stuck = self.law.mobility(s_new["law"], self.min_gap) < self.dirt_mobility
+        many = dist > self.dirt_passes * self.law.displacement(s_new["law"], self.min_gap)
+        trigger = measured & stuck & many & (state["fronts"] < self.max_fronts)
+        ended = in_front & (f_out["status"] != Status.RUNNING)
+        failed = ended & ~np.isin(f_out["status"], (Status.CONVERGED, Status.ATTEMPT_LIMIT))
+        back = ended & ~failed
+
+        side = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in s_new.items()}
+        side = select_state(in_front, side_state, side)
+        restart = trigger | back
+        side["phase"] = np.where(restart, START, side["phase"])
+        side["frames"] = np.where(restart, 0, side["frames"])
+        side["target"] = np.where(restart[:, None], np.nan, side["target"])
+        if back.any():
+            self._finish_attempt(side, back, dist < self.eps)  # the front push was an attempt
+        side["status"] = np.where(failed, f_out["status"], side["status"])
+        side["phase"] = np.where(side["status"] != Status.RUNNING, FINISHED, side["phase"])
+
+        running = select_state(in_front, f_new, state["front"])
+        front = select_state(trigger, self.front.initial_state(len(trigger)), running)
+        new = side | {"stage": np.where(trigger, FRONT_STAGE, np.where(ended, SIDE_STAGE, state["stage"])),
+                      "fronts": state["fronts"] + trigger, "front": front}
+
+        running_front = in_front & ~ended
+        out = dict(s_out)
+        for k in ("target", "speed_cap"):
+            out[k] = np.where(running_front.reshape((-1,) + (1,) * (np.ndim(f_out[k]) - 1)), f_out[k], s_out[k])
+        out["phase"] = np.where(running_front, f_out["phase"] + FRONT_PHASE_OFFSET, s_out["phase"])
+        out["gap"] = np.where(in_front, 0.0, s_out["gap"])
+        out["status"] = side["status"].copy()
+        out["attempt"] = side["attempt"].copy()
+        out["phase"] = np.where(side["status"] != Status.RUNNING, FINISHED, out["phase"])
+        out["target"] = np.where((ended | trigger)[:, None], np.asarray(u["robot_est"], dtype=float), out["target"])
+        out["speed_cap"] = np.where(ended | trigger, 0.0, out["speed_cap"])
+        return out, new
 
     def _frame(self, state, u):
         out, new = super()._frame(state, u)
@@ -242,3 +359,4 @@ class SidePushTask(PushTask, Block):
         tgt = np.where(((ph == PASS) | (ph == SETTLE))[:, None], new["end"], tgt)
         new["target"] = tgt
         new["speed"] = np.where(ok, np.where(ph == PASS, self.pass_speed, self.travel_speed), new["speed"])
+
