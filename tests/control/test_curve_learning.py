@@ -4,16 +4,15 @@ plant scales where eq 18 fails, and the attempt map against the 30 Hz task."""
 import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
+from test_push import ideal_loop
 
 from magctl.control.curve_learning import CurveLearningLaw, curve_learning_law
 from magctl.control.learning import side_push_law
 from magctl.control.push.common import ExpSideModel, LinSideModel, side_model
 from magctl.control.push.side import SidePushTask
 from magctl.control.status import Status
-from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.simulation import simulate
-from magctl.plant.standin import KinematicRobot, StandinSpheres, StandinTracker, StraightToTarget, standin_params
 from magctl.stability import iteration as S
 from magctl.stability.switched import ScaledSideModel
 
@@ -191,28 +190,26 @@ def test_attempt_map_beats_eq18_under_mobility_and_pass_scatter():
     assert learned.mean() < paper[paper > 0].mean() - 0.5
 
 
-def _task_runs(scales, prior):
-    """The 30 Hz side push with the curve law round the stand-in plant (eq 22 scaled per trial); the geometry of
-    tests/stability/test_switched.py, so the passes are the only sphere motion."""
-    p = standin_params()
-    task = SidePushTask(goal=(300 * UM, 0.0), law=law(prior=prior), model="exp", clearance=2.5e-3, behind=3e-3,
-                        ahead=3e-3, pass_speed=3e-3, travel_speed=3e-3, arrive_tol=0.1 * UM, max_attempts=30)
+def _standin_runs(scales, task, frames=9000):
+    """``task`` round the stand-in plant with eq 22 scaled per trial, no release; the geometry of
+    tests/stability/test_switched.py (repositioning round a 2.5 mm circle, passes from 3 mm behind to 3 mm
+    ahead), so the passes are the only sphere motion. Returns the recorded status, attempt and final state."""
     r0, s0 = (-1e-3, 0.0), np.array([[0.0, 0.0]])
+    dia = ideal_loop(task, r0, s0, v_max=3e-3, side_range=2.4e-3, release=False, side_scale=scales)
     n = task.name
-    dia = Diagram("loop", [
-        task, StraightToTarget("servo", v_max=3e-3), KinematicRobot("robot", start=r0),
-        StandinSpheres("spheres", s0, p.contact_distance, side_range=2.4e-3, sphere_radius=p.sphere_radius,
-                       start_robot=r0, side_scale=scales),
-        StandinTracker("tracker", 1, p.workspace_half, None, r0, 0.0, s0),
-    ], [
-        ("tracker.robot_est", f"{n}.robot_est"), ("tracker.spheres_est", f"{n}.spheres_est"),
-        ("tracker.lost", f"{n}.lost"), (f"{n}.target", "servo.target"), (f"{n}.speed_cap", "servo.speed_cap"),
-        ("robot.position", "servo.position"), ("servo.speed", "robot.speed"), ("servo.heading", "robot.heading"),
-        ("robot.position", "spheres.position"), ("robot.position", "tracker.position"),
-        ("robot.heading", "tracker.heading"), ("spheres.spheres", "tracker.spheres"),
-    ])
-    res = simulate(dia, 9000, batch=len(scales), record=[f"{n}.status", f"{n}.attempt"])
-    return res[f"{n}.status"][:, -1], res[f"{n}.attempt"][:, -1]
+    res = simulate(dia, frames, batch=len(scales), record=[f"{n}.status", f"{n}.attempt"])
+    return res[f"{n}.status"][:, -1], res[f"{n}.attempt"][:, -1], res.final_state
+
+
+def _side_task(prior, **kw):
+    return SidePushTask(goal=(300 * UM, 0.0), law=law(prior=prior), model="exp", clearance=2.5e-3, behind=3e-3,
+                        ahead=3e-3, pass_speed=3e-3, travel_speed=3e-3, max_attempts=30, **kw)
+
+
+def _task_runs(scales, prior):
+    """The 30 Hz side push with the curve law round the stand-in plant (eq 22 scaled per trial)."""
+    status, attempts, _ = _standin_runs(scales, _side_task(prior, arrive_tol=0.1 * UM))
+    return status, attempts
 
 
 def test_attempt_map_and_30hz_task_agree():
@@ -246,28 +243,11 @@ def _dirt_runs(scales, dirt_response):
     """The curve law's side push round the stand-in plant, eq 22 scaled per trial, a sticky sphere's release
     (flow-driven, so scaled with its mobility) taken as none; returns final status, attempts and front pushes
     started."""
-    p = standin_params()
-    task = SidePushTask(goal=(300 * UM, 0.0), law=law(prior=ExpSideModel()), model="exp", clearance=2.5e-3,
-                        behind=3e-3, ahead=3e-3, pass_speed=3e-3, travel_speed=3e-3, arrive_tol=1 * UM,
-                        max_attempts=30, dirt_response=dirt_response)
-    r0, s0 = (-1e-3, 0.0), np.array([[0.0, 0.0]])
-    n = task.name
-    dia = Diagram("loop", [
-        task, StraightToTarget("servo", v_max=3e-3), KinematicRobot("robot", start=r0),
-        StandinSpheres("spheres", s0, p.contact_distance, side_range=2.4e-3, sphere_radius=p.sphere_radius,
-                       start_robot=r0, side_scale=scales),
-        StandinTracker("tracker", 1, p.workspace_half, None, r0, 0.0, s0),
-    ], [
-        ("tracker.robot_est", f"{n}.robot_est"), ("tracker.spheres_est", f"{n}.spheres_est"),
-        ("tracker.lost", f"{n}.lost"), (f"{n}.target", "servo.target"), (f"{n}.speed_cap", "servo.speed_cap"),
-        ("robot.position", "servo.position"), ("servo.speed", "robot.speed"), ("servo.heading", "robot.heading"),
-        ("robot.position", "spheres.position"), ("robot.position", "tracker.position"),
-        ("robot.heading", "tracker.heading"), ("spheres.spheres", "tracker.spheres"),
-    ])
-    res = simulate(dia, 9000, batch=len(scales), record=[f"{n}.status", f"{n}.attempt"])
-    task_state = next(leaf for leaf in res.final_state["leaves"] if "d_des" in leaf)
+    task = _side_task(ExpSideModel(), arrive_tol=1 * UM, dirt_response=dirt_response)
+    status, attempts, final = _standin_runs(scales, task)
+    task_state = next(leaf for leaf in final["leaves"] if "d_des" in leaf)
     fronts = task_state["fronts"] if dirt_response == "front" else np.zeros(len(scales), dtype=int)
-    return res[f"{n}.status"][:, -1], res[f"{n}.attempt"][:, -1], fronts
+    return status, attempts, fronts
 
 
 def test_a_stuck_sphere_gets_a_front_push_and_converges_sooner():

@@ -36,8 +36,10 @@ CONVERGED, ATTEMPT_LIMIT = Status.CONVERGED, Status.ATTEMPT_LIMIT
 EXACT = {"arrive_tol": 0.1 * UM}  # the ideal servo lands the robot exactly on its targets
 
 
-def ideal_loop(task, robot0, spheres0, *, v_max=1e-3, side_range=None, blackout=None, sphere_loss=None):
-    """``task`` round the ideal servo and the stand-in robot, spheres and tracker."""
+def ideal_loop(task, robot0, spheres0, *, v_max=1e-3, side_range=None, blackout=None, sphere_loss=None,
+               release=True, side_scale=1.0):
+    """``task`` round the ideal servo and the stand-in robot, spheres and tracker (``release=False``: the
+    spheres are not pulled back when the robot leaves them; ``side_scale``: eq 22 scaled, per trial)."""
     p = standin_params()
     spheres0 = np.asarray(spheres0, dtype=float)
     n = task.name
@@ -45,9 +47,10 @@ def ideal_loop(task, robot0, spheres0, *, v_max=1e-3, side_range=None, blackout=
         task,
         StraightToTarget("servo", v_max=v_max),
         KinematicRobot("robot", start=robot0),
-        StandinSpheres("spheres", spheres0, p.contact_distance, release_mean=p.release_mean,
-                       release_std=p.release_std, side_range=p.side_range if side_range is None else side_range,
-                       sphere_radius=p.sphere_radius, start_robot=robot0),
+        StandinSpheres("spheres", spheres0, p.contact_distance, release_mean=p.release_mean if release else 0.0,
+                       release_std=p.release_std if release else 0.0,
+                       side_range=p.side_range if side_range is None else side_range,
+                       sphere_radius=p.sphere_radius, start_robot=robot0, side_scale=side_scale),
         StandinTracker("tracker", len(spheres0), p.workspace_half, blackout, robot0, 0.0, spheres0,
                        sphere_loss=sphere_loss),
     ]
