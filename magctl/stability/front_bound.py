@@ -3,17 +3,11 @@
 Eq 13 with ``K_c`` = 1 sets ``δ(i+1)`` to the last release: it uses one number of the release's history. A
 controller that knew the release's conditional distribution given what it can see before an attempt — the
 distance ``d`` to the goal and the trial's last release ``R_prev`` (the identified map's predictors,
-:class:`~magctl.stability.iteration.ReleaseMap`) — would choose the ``δ`` that maximises the chance that
-this attempt ends within ε_p (eq 12):
-
-    δ*(d, R_prev) = argmax_δ P( |(R − δ, lateral)| < ε_p  |  L = d + δ, R_prev ),
-
-the probability read as the share of the ``k`` logged attempts nearest to ``(d + δ, R_prev)`` that would
-have ended inside. The first attempt can only choose among the logged first pushes (the map has first
-releases at those push lengths only). :func:`release_policy` builds that controller from a map;
+:class:`~magctl.control.release_model.ReleaseMap`) — would choose the ``δ`` that maximises the chance that
+this attempt ends within ε_p (eq 12): the greedy policy of :mod:`magctl.control.release_model`.
 :func:`policy_attempts` runs it on a map; :func:`cross_validated` builds it from half the identified trials
-and runs it, beside eq 13 with ``K_c`` = 1, on the other half — so the policy is not scored on the
-attempts it was chosen from (on the same attempts it "knows" which of them the resampling will draw).
+and runs it, beside eq 13 with ``K_c`` = 1, on the other half — so the policy is not scored on the attempts
+it was chosen from (on the same attempts it "knows" which of them the resampling will draw).
 
 The result (docs/push-control.md §7) bounds what any controller seeing ``(d, R_prev)`` can gain: the greedy
 policy maximises each attempt's success; a lower mean would need a later-attempt success above what the
@@ -27,65 +21,10 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
-from magctl.core.checks import check_positive
+from magctl.control.release_model import NEIGHBOURS, ReleaseMap, ReleasePolicy, release_policy
 from magctl.core.errors import MagctlError
 from magctl.core.units import UM
-from magctl.stability.iteration import FRONT_EPS, FRONT_GOAL, FRONT_MAX_ATTEMPTS, ReleaseMap, front_identified_map
-
-DELTAS = np.arange(-200.0, 401.0, 10.0) * UM
-"""Candidate ``δ`` of the policy (m): the span of the logged push lengths minus the goal distances."""
-NEIGHBOURS = 30
-"""Logged later attempts whose outcomes estimate one candidate's success (twice the map's resampling k)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class ReleasePolicy:
-    """The greedy release-model controller: ``δ(0)`` for the first attempt, ``δ*(d, R_prev)`` after it."""
-
-    delta0: float
-    first_success: dict[float, float]
-    """Share of logged first attempts ending within ε_p, by first push length (m)."""
-    deltas: np.ndarray
-    tree: cKDTree
-    rows: np.ndarray
-    release_map: ReleaseMap
-    eps: float
-    k: int
-
-    def success(self, d, previous) -> np.ndarray:
-        """Estimated success of every candidate δ, shape ``(len(d), len(deltas))``."""
-        d = np.atleast_1d(np.asarray(d, float))
-        prev = np.broadcast_to(np.asarray(previous, float), d.shape)
-        m, out = self.release_map, np.empty((d.size, self.deltas.size))
-        for j, delta in enumerate(self.deltas):
-            _, nb = self.tree.query(np.c_[d + delta, prev] / m.scale, k=self.k)
-            rows = self.rows[np.reshape(nb, (d.size, self.k))]
-            out[:, j] = (np.hypot(m.release[rows] - delta, m.lateral[rows]) < self.eps).mean(axis=1)
-        return out
-
-    def delta(self, d, previous) -> tuple[np.ndarray, np.ndarray]:
-        """``δ*`` and its estimated success for each ``(d, R_prev)``."""
-        p = self.success(d, previous)
-        best = p.argmax(axis=1)
-        return self.deltas[best], p[np.arange(best.size), best]
-
-
-def release_policy(release_map: ReleaseMap, *, eps: float = FRONT_EPS, goal: float = FRONT_GOAL,
-                   deltas=DELTAS, k: int = NEIGHBOURS) -> ReleasePolicy:
-    """The greedy controller of the module docstring, estimated from ``release_map``."""
-    check_positive("eps", eps)
-    later = np.flatnonzero(~release_map.first)
-    if later.size < k or k < 1:
-        raise MagctlError(f"release policy needs at least k = {k} later attempts, the map has {later.size}")
-    m = release_map
-    first = {}
-    for length in np.unique(m.length[m.first]):
-        sel = m.first & (m.length == length)
-        delta = length - goal
-        first[float(length)] = float((np.hypot(m.release[sel] - delta, m.lateral[sel]) < eps).mean())
-    best_length = max(first, key=first.get)
-    tree = cKDTree(np.c_[m.length[later], m.previous[later]] / m.scale)
-    return ReleasePolicy(best_length - goal, first, np.asarray(deltas, float), tree, later, m, float(eps), int(k))
+from magctl.stability.iteration import FRONT_EPS, FRONT_GOAL, FRONT_MAX_ATTEMPTS, front_identified_map
 
 
 def policy_attempts(policy: ReleasePolicy, release_map: ReleaseMap, trials: int = 2000, *, eps: float = FRONT_EPS,
@@ -148,7 +87,7 @@ def cross_validated(release_map: ReleaseMap | None = None, trials: int = 2000, *
     m = release_map or ReleaseMap.load()
     folds = {}
     for train, test in ((0, 1), (1, 0)):
-        policy = release_policy(split_by_trial(m, train), eps=eps)
+        policy = release_policy(split_by_trial(m, train), eps=eps, goal=FRONT_GOAL)
         held_out = split_by_trial(m, test)
         run = policy_attempts(policy, held_out, trials, eps=eps, seed=seed)
         kc1 = front_identified_map(1.0, delta0_kc1, trials, release_map=held_out, eps=eps, seed=seed)

@@ -24,7 +24,6 @@ Lengths are metres inside; reports carry µm in unit-suffixed keys.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import control
 import numpy as np
@@ -41,6 +40,7 @@ from magctl.control.push.common import (
     side_model,
     task_defaults,
 )
+from magctl.control.release_model import ReleaseMap
 from magctl.core.checks import check_finite, check_positive
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
@@ -336,98 +336,6 @@ def front_attempts_monte_carlo(kc: float, delta0: float, trials: int = 20000, *,
 
 # --- front pushing: the release map identified from the closed loop ------------------------------
 FRONT_GOAL = goal_distance("front")
-
-
-@dataclass(frozen=True)
-class ReleaseMap:
-    """The front push's release map identified from the closed loop: a conditional distribution (metres).
-
-    Stored in ``models/front_release.toml`` by :mod:`magctl.studies.front_release`: every logged
-    attempt of the identification trials with its predictors — the push length ``L = e_before + δ``
-    (how far the sphere has to go to ``P_o``, eq 10) and the previous attempt's release ``R_prev``
-    — and its outcome: the release ``R = e_after + δ`` (how far short of ``P_o`` the sphere is
-    measured), its distance off the pushing line and whether the robot touched it.
-
-    :meth:`sample` draws the outcome of a logged attempt near the query (k-nearest-neighbour
-    conditional resampling): a first attempt from the logged first attempts at the nearest logged
-    push length (the first push starts from rest; its ``L`` is the goal distance plus ``δ(0)``),
-    a later one uniformly from the ``k`` logged later attempts nearest in ``(L, R_prev)`` (both
-    scaled by ``scale``). The outcome is drawn jointly: ``R``, the lateral distance and contact
-    keep their dependence. The paper's eq 14 plant is the special case of outcomes
-    ``R ~ N(300, 75²) µm`` independent of ``(L, R_prev)``, no lateral distance.
-    """
-
-    first: np.ndarray
-    length: np.ndarray
-    previous: np.ndarray
-    release: np.ndarray
-    lateral: np.ndarray
-    contact: np.ndarray
-    k: int = 15
-    scale: float = 100 * UM
-    source: str = ""
-
-    @classmethod
-    def load(cls, name: str = "front_release") -> ReleaseMap:
-        """Read ``models/<name>.toml`` (written by ``magctl.studies.front_release.write_model``)."""
-        p = load_model(name)
-        m = p.map
-        return cls(np.asarray(m.first, float) > 0.5, np.asarray(m.length, float), np.asarray(m.previous, float),
-                   np.asarray(m.release, float), np.asarray(m.lateral, float), np.asarray(m.contact, float) > 0.5,
-                   int(m.neighbours), float(m.scale), p.provenance.sources["trials"])
-
-    def __post_init__(self):
-        n = self.first.size
-        for name in ("length", "previous", "release", "lateral", "contact"):
-            a = getattr(self, name)
-            if a.shape != (n,) or (a.dtype.kind == "f" and not np.all(np.isfinite(a))):
-                raise MagctlError(f"release map {name} needs {n} finite entries, got shape {a.shape}")
-        n_later = int((~self.first).sum())
-        if not self.first.any() or n_later < self.k or self.k < 1:
-            raise MagctlError(f"release map needs first attempts and at least k = {self.k} later ones "
-                              f"(has {int(self.first.sum())} and {n_later})")
-        if not self.scale > 0:
-            raise MagctlError(f"release map scale {self.scale!r} must be positive")
-
-    @cached_property
-    def _later(self):
-        from scipy.spatial import cKDTree
-
-        idx = np.flatnonzero(~self.first)
-        return cKDTree(np.c_[self.length[idx], self.previous[idx]] / self.scale), idx
-
-    @cached_property
-    def _first(self):
-        idx = np.flatnonzero(self.first)
-        values, group = np.unique(self.length[idx], return_inverse=True)
-        return values, [idx[group == g] for g in range(values.size)]
-
-    def sample(self, length, first, rng: np.random.Generator, previous=None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Draw ``(R, lateral, contact)`` for each push length (``first``: bool, per draw or one for all).
-
-        ``previous`` is each trial's previous release (required for later attempts).
-        """
-        length = np.atleast_1d(np.asarray(length, float))
-        n = length.size
-        first = np.broadcast_to(np.asarray(first, bool), (n,))
-        pick = np.zeros(n, dtype=int)
-        if first.any():
-            values, groups = self._first
-            g = np.abs(length[first, None] - values[None, :]).argmin(axis=1)
-            rows = np.flatnonzero(first)
-            for gi in np.unique(g):
-                sel = rows[g == gi]
-                pick[sel] = groups[gi][rng.integers(0, groups[gi].size, sel.size)]
-        if not first.all():
-            if previous is None:
-                raise MagctlError("release map: later attempts need the previous release")
-            prev = np.broadcast_to(np.asarray(previous, float), (n,))[~first]
-            tree, idx = self._later
-            _, nb = tree.query(np.c_[length[~first], prev] / self.scale, k=self.k)
-            nb = nb.reshape(-1, self.k)
-            pick[~first] = idx[nb[np.arange(nb.shape[0]), rng.integers(0, self.k, nb.shape[0])]]
-        return self.release[pick], self.lateral[pick], self.contact[pick]
 
 
 def front_identified_map(kc, delta0, trials: int = 20000, *, release_map: ReleaseMap | None = None,

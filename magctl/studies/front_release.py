@@ -166,7 +166,7 @@ def identify(log: dict[str, np.ndarray]) -> dict:
     has 127 µm), and the previous pull-back sets where the robot starts its next approach, so how far
     its flow carries the sphere before contact. Outcomes: ``R``, the distance off the line
     (eq 12 tests the 2-D distance) and contact, kept jointly.
-    ``magctl.stability.iteration.ReleaseMap`` resamples them by nearest neighbours.
+    ``magctl.control.release_model.ReleaseMap`` resamples them by nearest neighbours.
 
     Returns ``first``, ``length``, ``previous``, ``release``, ``lateral``, ``contact`` (arrays),
     ``neighbours``, ``scale`` and the pooled ``release_mean``, ``release_std``, ``p_contact_later``.
@@ -225,7 +225,7 @@ def model_toml(model: dict) -> str:
         "# tests/studies/test_front_release.py regenerates it and compares.",
         "# One entry per logged attempt: predictors (first, length = push length L = (P_o - P_s)·u, previous =",
         "# the trial's previous release) and outcomes (release R = (P_o - P_s')·u, lateral = distance off the",
-        "# line, contact); magctl.stability.iteration.ReleaseMap resamples them by nearest neighbours.",
+        "# line, contact); magctl.control.release_model.ReleaseMap resamples them by nearest neighbours.",
         "",
         "[provenance]",
         f'controllers = {{ value = "{"; ".join(p["controllers"])}", source = "analysis/front_push.py controllers()" }}',
@@ -283,7 +283,8 @@ def agreement(trials: int = 200, seed: int = 0, *, model_trials: int = 40000, ex
     ``max_bin_diff`` and ``mean_diff`` (model − loop), ``bin_se`` (per attempt, from the model's p) and
     ``mean_se``.
     """
-    from magctl.stability.iteration import ReleaseMap, front_attempts_monte_carlo, front_identified_map
+    from magctl.control.release_model import ReleaseMap
+    from magctl.stability.iteration import front_attempts_monte_carlo, front_identified_map
     from magctl.studies.push import controller_summary
     from magctl.studies.trials import run_push_trials
 
@@ -322,7 +323,8 @@ def target_power(trials: int = 200, *, repeats: int = 500, mean_tol: float = 0.3
     the mean attempts within ``mean_tol`` (``p_mean``) and both (``p_both``). This is the ceiling
     the sampling noise of a ``trials``-trial study puts on the targets.
     """
-    from magctl.stability.iteration import ReleaseMap, front_identified_map
+    from magctl.control.release_model import ReleaseMap
+    from magctl.stability.iteration import front_identified_map
 
     exps = identification_experiments() if exps is None else exps
     rmap = ReleaseMap.load()

@@ -38,7 +38,7 @@ def test_a_release_without_scatter_is_hit_on_every_later_attempt():
     """R = L/2 exactly: after the first attempt (which misses: R = 375 µm, δ(0) = 0) the policy asks for the
     δ with |(d + δ)/2 − δ| < ε_p, finds success 1, and every trial converges at attempt 2."""
     m = synthetic_map(lambda L, rng: 0.5 * L)
-    policy = B.release_policy(m)
+    policy = B.release_policy(m, eps=EPS, goal=GOAL)
     delta, p = policy.delta(np.array([375 * UM, 100 * UM]), np.array([375 * UM, 375 * UM]))
     assert np.all(p == 1.0)
     assert np.all(np.abs(0.5 * (np.array([375, 100]) * UM + delta) - delta) < EPS)
@@ -52,7 +52,7 @@ def test_an_independent_normal_release_gives_the_closed_form_window():
     with 2Φ(ε_p/σ) − 1; the policy's later-attempt success matches within 4 binomial standard errors."""
     sigma = 90 * UM
     m = synthetic_map(lambda L, rng: 300 * UM + sigma * rng.standard_normal(L.shape), n_trials=600)
-    policy = B.release_policy(m, k=200, deltas=np.arange(200, 401, 10) * UM)
+    policy = B.release_policy(m, eps=EPS, goal=GOAL, k=200, deltas=np.arange(200, 401, 10) * UM)
     delta, _ = policy.delta(np.full(50, 400 * UM), np.full(50, 250 * UM))
     assert np.abs(np.median(delta) - 300 * UM) <= 30 * UM
     run = B.policy_attempts(policy, m, 1500, seed=1)
@@ -85,3 +85,27 @@ def test_the_identified_release_leaves_no_half_attempt_to_gain():
     first = max(max(f["first_success_by_push_um"].values()) for f in r["folds"].values())
     needed = B.later_success_needed(first, r["kc1_mean_attempts"] - 0.5)
     assert all(f["policy_later_success"] < needed for f in r["folds"].values())
+
+
+def test_release_policy_law_steps_the_policy():
+    """The law block's update is δ ← δ*(|e|, e + δ) on the masked trials (the others, and a NaN error, keep
+    theirs); its first δ is the policy's δ(0); the front push takes it as learning='release'."""
+    from magctl.control.push.front import FrontAssemblyTask, FrontPushTask
+    from magctl.control.release_model import ReleasePolicyLaw
+
+    m = synthetic_map(lambda L, rng: 0.5 * L)
+    policy = B.release_policy(m, eps=EPS, goal=GOAL)
+    law = ReleasePolicyLaw("law", policy)
+    state = law.initial_state(4)
+    assert np.all(law.output(state, {})["y"] == policy.delta0)
+    e = np.array([100, -50, 200, np.nan]) * UM
+    new = law.update_where(state, {"e": e}, np.array([True, True, False, True]))
+    want = policy.delta(np.abs(e[:2]), e[:2] + state["x"][:2])[0]
+    np.testing.assert_array_equal(new["x"][:2], want)
+    np.testing.assert_array_equal(new["x"][2:], state["x"][2:])
+    task = FrontPushTask(goal=(0.0, 0.0), learning="release")
+    assert isinstance(task.law, ReleasePolicyLaw) and task.kernel() is None
+    with pytest.raises(MagctlError, match="learning='curve' is not one of eq13, release"):
+        FrontPushTask(goal=(0.0, 0.0), learning="curve")
+    with pytest.raises(MagctlError, match="front-push assembly takes 'eq13'"):
+        FrontAssemblyTask(learning="release")

@@ -1,0 +1,224 @@
+"""The front push's model of its own release: the map identified from the closed loop, and the controller on it.
+
+:class:`ReleaseMap` is the release's conditional distribution identified from logged closed-loop attempts
+(``models/front_release.toml``, written by :mod:`magctl.studies.front_release`): the attempt map of
+:mod:`magctl.stability.iteration` samples it as a plant, and :class:`ReleasePolicyLaw` uses it as the
+controller's model.
+
+The release-model controller (docs/push-control.md §7): before each attempt it picks the ``δ`` that
+maximises the chance of ending within ε_p (eq 12) given what it can see — the distance ``d`` to the goal
+and the trial's last release ``R_prev``:
+
+    δ*(d, R_prev) = argmax_δ P( |(R − δ, lateral)| < ε_p  |  L = d + δ, R_prev ),
+
+the probability read as the share of the ``k`` logged later attempts nearest to ``(d + δ, R_prev)`` that
+would have ended inside; the first attempt chooses among the logged first pushes (the map has first
+releases at those push lengths only). :class:`ReleasePolicyLaw` is that controller as a learning-law block:
+it takes eq 13's place in :class:`~magctl.control.push.front.FrontPushTask` (``learning="release"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from magctl.config import load_model
+from magctl.control.learning import ATTEMPT
+from magctl.core.block import Block, StateVar
+from magctl.core.checks import check_positive
+from magctl.core.errors import MagctlError
+from magctl.core.ports import Port
+from magctl.core.units import UM
+
+DELTAS = np.arange(-200.0, 401.0, 10.0) * UM
+"""Candidate ``δ`` of the policy (m): the span of the logged push lengths minus the goal distances."""
+NEIGHBOURS = 30
+"""Logged later attempts whose outcomes estimate one candidate's success (twice the map's resampling k)."""
+
+
+@dataclass(frozen=True)
+class ReleaseMap:
+    """The front push's release map identified from the closed loop: a conditional distribution (metres).
+
+    Stored in ``models/front_release.toml`` by :mod:`magctl.studies.front_release`: every logged
+    attempt of the identification trials with its predictors — the push length ``L = e_before + δ``
+    (how far the sphere has to go to ``P_o``, eq 10) and the previous attempt's release ``R_prev``
+    — and its outcome: the release ``R = e_after + δ`` (how far short of ``P_o`` the sphere is
+    measured), its distance off the pushing line and whether the robot touched it.
+
+    :meth:`sample` draws the outcome of a logged attempt near the query (k-nearest-neighbour
+    conditional resampling): a first attempt from the logged first attempts at the nearest logged
+    push length (the first push starts from rest; its ``L`` is the goal distance plus ``δ(0)``),
+    a later one uniformly from the ``k`` logged later attempts nearest in ``(L, R_prev)`` (both
+    scaled by ``scale``). The outcome is drawn jointly: ``R``, the lateral distance and contact
+    keep their dependence. The paper's eq 14 plant is the special case of outcomes
+    ``R ~ N(300, 75²) µm`` independent of ``(L, R_prev)``, no lateral distance.
+    """
+
+    first: np.ndarray
+    length: np.ndarray
+    previous: np.ndarray
+    release: np.ndarray
+    lateral: np.ndarray
+    contact: np.ndarray
+    k: int = 15
+    scale: float = 100 * UM
+    source: str = ""
+
+    @classmethod
+    def load(cls, name: str = "front_release") -> ReleaseMap:
+        """Read ``models/<name>.toml`` (written by ``magctl.studies.front_release.write_model``)."""
+        p = load_model(name)
+        m = p.map
+        return cls(np.asarray(m.first, float) > 0.5, np.asarray(m.length, float), np.asarray(m.previous, float),
+                   np.asarray(m.release, float), np.asarray(m.lateral, float), np.asarray(m.contact, float) > 0.5,
+                   int(m.neighbours), float(m.scale), p.provenance.sources["trials"])
+
+    def __post_init__(self):
+        n = self.first.size
+        for name in ("length", "previous", "release", "lateral", "contact"):
+            a = getattr(self, name)
+            if a.shape != (n,) or (a.dtype.kind == "f" and not np.all(np.isfinite(a))):
+                raise MagctlError(f"release map {name} needs {n} finite entries, got shape {a.shape}")
+        n_later = int((~self.first).sum())
+        if not self.first.any() or n_later < self.k or self.k < 1:
+            raise MagctlError(f"release map needs first attempts and at least k = {self.k} later ones "
+                              f"(has {int(self.first.sum())} and {n_later})")
+        if not self.scale > 0:
+            raise MagctlError(f"release map scale {self.scale!r} must be positive")
+
+    @cached_property
+    def _later(self):
+        from scipy.spatial import cKDTree
+
+        idx = np.flatnonzero(~self.first)
+        return cKDTree(np.c_[self.length[idx], self.previous[idx]] / self.scale), idx
+
+    @cached_property
+    def _first(self):
+        idx = np.flatnonzero(self.first)
+        values, group = np.unique(self.length[idx], return_inverse=True)
+        return values, [idx[group == g] for g in range(values.size)]
+
+    def sample(self, length, first, rng: np.random.Generator, previous=None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Draw ``(R, lateral, contact)`` for each push length (``first``: bool, per draw or one for all).
+
+        ``previous`` is each trial's previous release (required for later attempts).
+        """
+        length = np.atleast_1d(np.asarray(length, float))
+        n = length.size
+        first = np.broadcast_to(np.asarray(first, bool), (n,))
+        pick = np.zeros(n, dtype=int)
+        if first.any():
+            values, groups = self._first
+            g = np.abs(length[first, None] - values[None, :]).argmin(axis=1)
+            rows = np.flatnonzero(first)
+            for gi in np.unique(g):
+                sel = rows[g == gi]
+                pick[sel] = groups[gi][rng.integers(0, groups[gi].size, sel.size)]
+        if not first.all():
+            if previous is None:
+                raise MagctlError("release map: later attempts need the previous release")
+            prev = np.broadcast_to(np.asarray(previous, float), (n,))[~first]
+            tree, idx = self._later
+            _, nb = tree.query(np.c_[length[~first], prev] / self.scale, k=self.k)
+            nb = nb.reshape(-1, self.k)
+            pick[~first] = idx[nb[np.arange(nb.shape[0]), rng.integers(0, self.k, nb.shape[0])]]
+        return self.release[pick], self.lateral[pick], self.contact[pick]
+
+
+@dataclass(frozen=True)
+class ReleasePolicy:
+    """The greedy release-model controller: ``δ(0)`` for the first attempt, ``δ*(d, R_prev)`` after it."""
+
+    delta0: float
+    first_success: dict[float, float]
+    """Share of logged first attempts ending within ε_p, by first push length (m)."""
+    deltas: np.ndarray
+    tree: cKDTree
+    rows: np.ndarray
+    release_map: ReleaseMap
+    eps: float
+    k: int
+
+    def success(self, d, previous) -> np.ndarray:
+        """Estimated success of every candidate δ, shape ``(len(d), len(deltas))``."""
+        d = np.atleast_1d(np.asarray(d, float))
+        prev = np.broadcast_to(np.asarray(previous, float), d.shape)
+        m, out = self.release_map, np.empty((d.size, self.deltas.size))
+        for j, delta in enumerate(self.deltas):
+            _, nb = self.tree.query(np.c_[d + delta, prev] / m.scale, k=self.k)
+            rows = self.rows[np.reshape(nb, (d.size, self.k))]
+            out[:, j] = (np.hypot(m.release[rows] - delta, m.lateral[rows]) < self.eps).mean(axis=1)
+        return out
+
+    def delta(self, d, previous) -> tuple[np.ndarray, np.ndarray]:
+        """``δ*`` and its estimated success for each ``(d, R_prev)``."""
+        p = self.success(d, previous)
+        best = p.argmax(axis=1)
+        return self.deltas[best], p[np.arange(best.size), best]
+
+
+def release_policy(release_map: ReleaseMap, *, eps: float, goal: float, deltas=DELTAS,
+                   k: int = NEIGHBOURS) -> ReleasePolicy:
+    """The greedy controller of the module docstring, estimated from ``release_map`` (ε_p ``eps`` and the first
+    attempt's goal distance ``goal``, m)."""
+    check_positive("eps", eps)
+    later = np.flatnonzero(~release_map.first)
+    if later.size < k or k < 1:
+        raise MagctlError(f"release policy needs at least k = {k} later attempts, the map has {later.size}")
+    m = release_map
+    first = {}
+    for length in np.unique(m.length[m.first]):
+        sel = m.first & (m.length == length)
+        delta = length - goal
+        first[float(length)] = float((np.hypot(m.release[sel] - delta, m.lateral[sel]) < eps).mean())
+    best_length = max(first, key=first.get)
+    tree = cKDTree(np.c_[m.length[later], m.previous[later]] / m.scale)
+    return ReleasePolicy(best_length - goal, first, np.asarray(deltas, float), tree, later, m, float(eps), int(k))
+
+
+class ReleasePolicyLaw(Block):
+    """The release-model controller as the front push's learning law (in eq 13's place).
+
+    State ``δ``. After an attempt that ended with along-line error ``e = (P_g − P_s)·u`` the release was
+    ``R = e + δ`` and the next attempt starts ``|e|`` from the goal, so ``δ ← δ*(|e|, e + δ)``
+    (:meth:`ReleasePolicy.delta`). Initial ``δ`` is the policy's ``δ(0)``.
+
+    Ports: input ``e`` () m, output ``y`` () = ``δ`` m — those of :class:`~magctl.control.learning.LearningLaw`,
+    so :class:`~magctl.control.push.front.FrontPushTask` steps either.
+    """
+
+    def __init__(self, name: str, policy: ReleasePolicy, dt: float = ATTEMPT):
+        self.policy = policy
+        super().__init__(name, inputs=[Port("e", (), "m")], outputs=[Port("y", (), "m")], dt=dt, feedthrough=False)
+
+    def state_vars(self):
+        return (StateVar("x", (), symbol="δ", description="the next attempt's δ, m"),)
+
+    def initial_state(self, batch, rng=None):
+        return {"x": np.full(batch, self.policy.delta0)}
+
+    def output(self, state, u):
+        return {"y": state["x"].copy()}
+
+    def update(self, state, u):
+        return self.update_where(state, u, np.ones(np.shape(state["x"]), dtype=bool))
+
+    def update_where(self, state, u, mask) -> dict:
+        """``δ ← δ*(|e|, e + δ)`` for the trials in ``mask``; the others keep theirs."""
+        e = np.asarray(u["e"], dtype=float)
+        m = np.asarray(mask, dtype=bool) & np.isfinite(e)
+        x = state["x"].copy()
+        if m.any():
+            x[m] = self.policy.delta(np.abs(e[m]), e[m] + x[m])[0]
+        return {"x": x}
+
+
+def release_policy_law(name: str = "front_law", *, eps: float, goal: float) -> ReleasePolicyLaw:
+    """The law on the identified map of ``models/front_release.toml``."""
+    return ReleasePolicyLaw(name, release_policy(ReleaseMap.load(), eps=eps, goal=goal))
