@@ -13,6 +13,7 @@ import inspect
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 import magctl.loops
 import magctl.rig.tasks
@@ -47,6 +48,8 @@ def structure(obj, depth: int = 0):
         return tuple(structure(v, depth + 1) for v in obj)
     if isinstance(obj, np.ndarray):
         return ("array", obj.dtype.str, obj.shape, obj.tobytes())
+    if isinstance(obj, cKDTree):  # a neighbour index is its points
+        return ("cKDTree", structure(obj.data, depth + 1))
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return (type(obj).__qualname__, structure(vars(obj), depth + 1))
     if isinstance(obj, (int, float, str, bool, complex, type(None), np.generic)):
@@ -71,6 +74,7 @@ CASES = [
     ("front", "front-push", {}, {}),
     ("front", "front-push", {"kc": 0.5, "delta0_um": 127.0, "eps_um": 75.0, "max_attempts": 10},
      {"kc": 0.5, "delta0": 127 * UM, "eps": 75 * UM, "max_attempts": 10}),
+    ("front", "front-push", {"learning": "release"}, {"learning": "release"}),
     ("side", "side-push", {}, {}),
     ("side", "side-push", {"model": "exp", "ks": 0.5, "clearance_mm": 1.0, "servo": "paper"},
      {"model": "exp", "ks": 0.5, "clearance": 1e-3, "servo": "paper"}),

@@ -26,6 +26,7 @@ import numpy as np
 
 from magctl.config import UNITS, Params, load_model, split_unit
 from magctl.control.push.common import SIDE_MODELS, task_parameters
+from magctl.control.push.front import LEARNING as FRONT_LEARNING
 from magctl.control.push.side import DIRT_RESPONSES, LEARNING
 from magctl.control.servo import default_servo_setting, servo_params, servo_settings
 from magctl.control.status import STATUS_NAMES, Status
@@ -224,7 +225,8 @@ def _option_value(task: str, key: str, raw, factor: float, unit: str, name: str)
         if raw not in SIDE_MODELS:
             raise TaskError(f"{task}: option model={raw!r} is not one of {', '.join(SIDE_MODELS)}")
         return str(raw)
-    for option, known in (("learning", LEARNING), ("dirt_response", DIRT_RESPONSES)):
+    learning = FRONT_LEARNING if task == "front-push" else LEARNING
+    for option, known in (("learning", learning), ("dirt_response", DIRT_RESPONSES)):
         if name == option:
             if raw not in known:
                 raise TaskError(f"{task}: option {option}={raw!r} is not one of {', '.join(known)}")

@@ -59,5 +59,8 @@ def test_rig_options_take_every_side_model_and_the_fig15_task():
     with pytest.raises(TaskError, match="learning='online' is not one of eq18, curve"):
         resolve_options("assemble", {"learning": "online"})
     assert resolve_options("side-push", {"dirt_response": "front"})["dirt_response"] == "front"
+    assert resolve_options("front-push", {"learning": "release"})["learning"] == "release"
+    with pytest.raises(TaskError, match="learning='curve' is not one of eq13, release"):
+        resolve_options("front-push", {"learning": "curve"})
     with pytest.raises(TaskError, match="dirt_response='wash' is not one of none, front"):
         resolve_options("side-push", {"dirt_response": "wash"})

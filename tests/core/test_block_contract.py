@@ -104,6 +104,12 @@ NEAR = {"robot_est": lambda rng, k: np.array([1.0e-3, 1.0e-3]) + 1e-3 * rng.rand
         "lost": lambda rng, k: rng.random(BATCH) < 0.2}
 SPHERES = [[1.6e-3, 1.5e-3], [2.5e-3, 2.5e-3]]
 
+def _release_law():
+    from magctl.control.release_model import release_policy_law
+
+    return release_policy_law(eps=75 * UM, goal=750 * UM)
+
+
 def _curve_law():
     from magctl.control.curve_learning import curve_learning_law
 
@@ -144,6 +150,7 @@ FACTORIES = {
     # control
     "Servo": lambda cls: cls("servo", speed_cap_input=True, hold_input=True),
     "LearningLaw": lambda cls: cls("law", 0.8, initial=1e-4),
+    "ReleasePolicyLaw": (lambda cls: _release_law(), {"e": lambda rng, k: 200 * UM * rng.standard_normal(BATCH)}),
     "CurveLearningLaw": (lambda cls: _curve_law(),
                          {"gap": lambda rng, k: (380 + 300 * rng.random(BATCH)) * UM,
                           "displacement": lambda rng, k: 80 * UM * rng.random(BATCH)}),

@@ -19,14 +19,26 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.control.learning import LearningLaw, front_push_law
-from magctl.control.push.common import FINISHED, START, PushTask, around, arrived, sphere_radii, with_defaults
+from magctl.control.learning import front_push_law
+from magctl.control.push.common import (
+    FINISHED,
+    START,
+    PushTask,
+    around,
+    arrived,
+    goal_distance,
+    sphere_radii,
+    with_defaults,
+)
+from magctl.control.release_model import release_policy_law
 from magctl.core.batched import norm, unit
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 
 APPROACH, PUSH, RETRACT, SETTLE = 1, 2, 3, 4
+LEARNING = {"eq13": "the paper's eq 13 law (K_c, δ(0))",
+            "release": "the controller that models its own release (magctl.control.release_model)"}
 
 
 class FrontPushTask(PushTask, Block):
@@ -38,8 +50,12 @@ class FrontPushTask(PushTask, Block):
         ``P_g`` in metres (one for all trials, or one per trial).
     kc, delta0 : float
         ``K_c`` and ``δ(0)`` (m) of the law, used when ``law`` is not given.
-    law : LearningLaw, optional
-        The eq 13 block to use (shared with the iteration-domain analysis).
+    learning : {"eq13", "release"}
+        The paper's eq 13 law (``kc``, ``delta0``), or the controller that models its own release
+        (:class:`~magctl.control.release_model.ReleasePolicyLaw` on ``models/front_release.toml``,
+        docs/push-control.md §7).
+    law : LearningLaw or ReleasePolicyLaw, optional
+        The learning block to use (shared with the iteration-domain analysis); overrides ``learning``.
     n_spheres, sphere : int
         Width of the ``spheres_est`` port and which sphere to push.
     eps : float
@@ -74,20 +90,20 @@ class FrontPushTask(PushTask, Block):
               FINISHED: "finished"}
 
     def __init__(self, name: str = "front_push", *, goal, kc: float | None = None, delta0: float | None = None,
-                 law: LearningLaw | None = None, n_spheres: int = 1, sphere: int = 0, eps: float | None = None,
+                 learning: str | None = None, law=None, n_spheres: int = 1, sphere: int = 0, eps: float | None = None,
                  push_tol: float | None = None, max_attempts: int | None = None, contact: float | None = None,
                  approach: float | None = None, retract: float | None = None, clearance: float | None = None,
                  arrive_tol: float | None = None, push_speed: float | None = None, travel_speed: float | None = None,
                  settle_frames: int | None = None, max_lost_frames: int | None = None,
                  phase_timeout_frames: int | None = None, workspace: float | None = None):
-        p = with_defaults("front", kc=kc, delta0=delta0, eps=eps, push_tol=push_tol, max_attempts=max_attempts,
-                          contact=contact,
+        p = with_defaults("front", kc=kc, delta0=delta0, learning=learning, eps=eps, push_tol=push_tol,
+                          max_attempts=max_attempts, contact=contact,
                           approach=approach, retract=retract, clearance=clearance, arrive_tol=arrive_tol,
                           push_speed=push_speed, travel_speed=travel_speed, settle_frames=settle_frames,
                           max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
                           workspace=workspace)
         self._check_common("front push", name, p, goal=goal, n_spheres=n_spheres, sphere=sphere)
-        self.law = law if law is not None else front_push_law(p["kc"], p["delta0"])
+        self.law = law if law is not None else self._law(name, p)
         self.push_tol = check_positive("push_tol", p["push_tol"])
         self.contact = check_positive("contact", p["contact"])
         self.approach = check_positive("approach", p["approach"])
@@ -96,8 +112,16 @@ class FrontPushTask(PushTask, Block):
         ins, outs = self._ports(n_spheres)
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
 
+    def _law(self, name: str, p: dict):
+        if p["learning"] == "eq13":
+            return front_push_law(p["kc"], p["delta0"])
+        if p["learning"] == "release":
+            return release_policy_law(eps=self.eps, goal=goal_distance("front"))
+        raise MagctlError(f"front push {name!r}: learning={p['learning']!r} is not one of {', '.join(LEARNING)}")
+
     def kernel(self):
-        """The compiled frame (:func:`magctl.control.push.kernels.front_step`)."""
+        """The compiled frame (:func:`magctl.control.push.kernels.front_step`); None with a law without a
+        kernel (the release-model controller)."""
         from magctl.control.push import kernels as k
         from magctl.core.kernel import Kernel
 
@@ -200,6 +224,9 @@ class FrontAssemblyTask(FrontPushTask):
         self.radii = (check_positive("radius 1", radii[0]), check_positive("radius 2", radii[1]))
         eps_as = with_defaults("assembly", eps_as=eps_as)["eps_as"]
         self.eps_as = check_positive("eps_as", eps_as, allow_zero=True)
+        if kw.get("learning") not in (None, "eq13"):
+            raise MagctlError(f"assembly {name!r}: learning={kw['learning']!r} models a single sphere's release "
+                              "towards a goal; front-push assembly takes 'eq13'")
         kw.setdefault("goal", (0.0, 0.0))
         super().__init__(name, n_spheres=n_spheres, sphere=moved, **kw)
         self.sphere_indices = (int(moved), int(fixed))
