@@ -242,15 +242,16 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
     """The beyond study from fake trials: hand numbers for the summaries and the targets, the figure drawn, and
     the attempt-map grid (curve law within 5 attempts of the floor wherever the floor is within 30)."""
     beyond = studies.discover()["beyond"]
-    exps = beyond.experiments()
+    exps = beyond.experiments() | beyond.front_experiments()
     n = 4
     attempts = {beyond.CURVE: [4, 5, 6, 11], "lin-fit, K_s=0.9": [5, 6, 6, 7],
                 f"{beyond.CURVE}, dirt": [5, 6, 20, 30], "lin-fit, K_s=0.9, dirt": [5, 6, 22, 30],
-                f"{beyond.CURVE_FRONT}, dirt": [5, 6, 7, 9]}
+                f"{beyond.CURVE_FRONT}, dirt": [5, 6, 7, 9], beyond.RELEASE: [2, 3, 4, 10], beyond.KC1: [2, 2, 3, 4]}
     cache = studies.TrialCache()
     for label, exp in exps.items():
-        status = [CONVERGED] * (n - 1) + [ATTEMPT_LIMIT if attempts[label][-1] == 30 else CONVERGED]
-        cache.store(push.trials_key(exp, n, 0), "beyond", fake_trials(status, attempts[label], 30))
+        limit = 10 if label in (beyond.RELEASE, beyond.KC1) else 30
+        status = [CONVERGED] * (n - 1) + [ATTEMPT_LIMIT if attempts[label][-1] == limit else CONVERGED]
+        cache.store(push.trials_key(exp, n, 0), "beyond", fake_trials(status, attempts[label], limit))
     computed = studies.compute("beyond", context(tmp_path, "beyond", cache=cache, trials=n))
     s = computed.results["controllers"]
     assert s[beyond.CURVE]["mean_attempts_all"] == pytest.approx(6.5)
@@ -258,13 +259,17 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
     assert s[f"{beyond.CURVE}, dirt"]["attempts_p95"] == pytest.approx(np.percentile([5, 6, 20, 30], 95))
     met = [ok for _, _, ok in beyond.targets(computed.results)]
     assert met == [False, False, True]  # mean 6.5 > 5; 75 % by 10; with dirt 95th percentile 8.7 below 28.8
+    fc = computed.results["front_controllers"]
+    assert fc[beyond.RELEASE]["mean_attempts_all"] == pytest.approx(4.75)
+    assert fc[beyond.KC1]["mean_attempts_all"] == pytest.approx(2.75)
+    assert beyond.front_target(computed.results)[2] is False  # 2 attempts worse, not 0.5 better
     summary, paper = beyond.summarise(computed)
     assert paper == [] and any("**missed**" in line for line in summary)
     for row in computed.results["scale_grid"]:
         if row["fewest"] <= 25:
             assert row["curve"] is not None and row["curve"] <= row["fewest"] + 5, row
-    [path] = beyond.draw(computed, context(tmp_path, "beyond", cache=cache, trials=n))
-    assert path.read_bytes()[:8] == PNG_MAGIC
+    paths = beyond.draw(computed, context(tmp_path, "beyond", cache=cache, trials=n))
+    assert len(paths) == 2 and all(p.read_bytes()[:8] == PNG_MAGIC for p in paths)
 
 
 def test_cheap_studies_draw_nonempty_pngs(cheap_studies, tmp_path):
