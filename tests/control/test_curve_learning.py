@@ -272,3 +272,27 @@ def test_dirt_response_is_checked():
 
     with pytest.raises(MagctlError, match="assembly takes 'none'"):
         AssemblyTask(learning="curve", model="exp-fit", dirt_response="front")
+
+
+def test_push_out_is_learned_and_the_pass_turned_against_it():
+    """A pass that moved the sphere 50 µm along its line and 5 µm across it, away from the robot, gives a
+    push-out ratio of 0.1 (the first measurement is taken whole, the next with push_out_weight); the next pass
+    is turned by atan(0.1) towards the robot's side, so the sum of both motions points at the goal."""
+    task = SidePushTask(goal=(300 * UM, 0.0), learning="curve", model="exp-fit", push_out_weight=0.5)
+    new = task.initial_state(1)
+    u = np.array([[1.0, 0.0]])
+    new["u"], new["p0"] = u, np.zeros((1, 2))
+    new["start"] = np.array([[-task.behind, 400 * UM]])  # the robot passed on the +y side
+    mask = np.array([True])
+    task._learn_push_out(new, mask, np.array([[50 * UM, -5 * UM]]))
+    assert new["push_out"][0] == pytest.approx(0.1) and new["push_out_n"][0] == 1
+    task._learn_push_out(new, mask, np.array([[50 * UM, -15 * UM]]))
+    assert new["push_out"][0] == pytest.approx(0.2)  # halfway to 0.3
+    task._learn_push_out(new, mask, np.array([[5 * UM, -5 * UM]]))  # too short a pass: no measurement
+    assert new["push_out"][0] == pytest.approx(0.2) and new["push_out_n"][0] == 2
+    # the next attempt, robot on the +y side of a sphere at the origin, goal along +x
+    task._begin(new, mask, np.array([[-1e-3, 0.5e-3]]), np.array([[[0.0, 0.0]]]))
+    turn = np.arctan2(new["u"][0, 1], new["u"][0, 0])
+    assert turn == pytest.approx(np.arctan(0.2))
+    with pytest.raises(MagctlError, match="push_out_weight"):
+        SidePushTask(learning="curve", model="exp-fit", push_out_weight=0.0)

@@ -81,6 +81,11 @@ class SidePushTask(PushTask, Block):
         (:func:`~magctl.control.curve_learning.curve_learning_law`, prior ``model``).
     law : LearningLaw or CurveLearningLaw, optional
         The learning block itself (shared with the iteration-domain analysis); overrides ``learning``.
+    push_out_weight, push_out_min : float
+        With the curve law: the weight of each new measurement in the estimate of the push-out ratio (the
+        sphere's displacement across the pass, away from the robot, per unit displacement along it), and the
+        least displacement along the pass that gives a measurement (m). The pass is turned towards the
+        robot's side by ``atan`` of the estimate so that the displacement points at the goal.
     dirt_response : {"none", "front"}
         What the curve law does on a sphere it reads as stuck (:data:`DIRT_RESPONSES`; ``models/push.toml``
         ``[dirt]``).
@@ -106,7 +111,8 @@ class SidePushTask(PushTask, Block):
 
     def __init__(self, name: str = "side_push", *, goal=(0.0, 0.0), ks: float | None = None, model=None,
                  learning: str | None = None, law: LearningLaw | CurveLearningLaw | None = None,
-                 dirt_response: str | None = None, fixed_gap: float | None = None, n_spheres: int = 1,
+                 dirt_response: str | None = None, push_out_weight: float | None = None,
+                 push_out_min: float | None = None, fixed_gap: float | None = None, n_spheres: int = 1,
                  sphere: int = 0, min_gap: float | None = None, eps: float | None = None,
                  max_attempts: int | None = None, behind: float | None = None, ahead: float | None = None,
                  clearance: float | None = None, arrive_tol: float | None = None, pass_speed: float | None = None,
@@ -114,6 +120,7 @@ class SidePushTask(PushTask, Block):
                  max_lost_frames: int | None = None, phase_timeout_frames: int | None = None,
                  workspace: float | None = None):
         p = with_defaults("side", ks=ks, model=model, learning=learning, dirt_response=dirt_response,
+                          push_out_weight=push_out_weight, push_out_min=push_out_min,
                           min_gap=min_gap, eps=eps,
                           max_attempts=max_attempts, behind=behind, ahead=ahead, clearance=clearance,
                           arrive_tol=arrive_tol,
@@ -125,6 +132,10 @@ class SidePushTask(PushTask, Block):
         self.model = side_model(model) if isinstance(model, str) else model
         self.law = law if law is not None else self._law(name, p["learning"], p["ks"])
         self.learns_curve = isinstance(self.law, CurveLearningLaw)
+        self.push_out_weight = float(p["push_out_weight"])
+        if not 0.0 < self.push_out_weight <= 1.0:
+            raise MagctlError(f"side push {name!r}: push_out_weight={self.push_out_weight!r} must be in (0, 1]")
+        self.push_out_min = check_positive("push_out_min", p["push_out_min"])
         self.front = self._dirt_front(name, p["dirt_response"], n_spheres, sphere, p)
         self.fixed_gap = None if fixed_gap is None else check_positive("fixed_gap", fixed_gap)
         self.min_gap = check_positive("min_gap", min_gap)
@@ -216,11 +227,14 @@ class SidePushTask(PushTask, Block):
     def state_vars(self):
         from magctl.core.block import StateVar, substate
 
+        push_out = () if not self.learns_curve else (
+            StateVar("push_out", (), description="estimated push-out across a pass per unit displacement along it"),
+            StateVar("push_out_n", (), "int64", description="push-out measurements so far"))
         front = () if self.front is None else (
             StateVar("stage", (), "int64", description="1: side passes, 2: the front push answering dirt"),
             StateVar("fronts", (), "int64", description="front pushes started"),
             substate("front", self.front.state_vars(), "the front push answering dirt"))
-        return (*self._common_vars(), *front,
+        return (*self._common_vars(), *push_out, *front,
                 StateVar("goal", (2,), symbol="P_g", description="goal, m"),
                 StateVar("u", (2,), symbol="u", description="unit pushing direction of the attempt"),
                 StateVar("p0", (2,), symbol="P_s", description="sphere position when the attempt began, m"),
@@ -236,6 +250,8 @@ class SidePushTask(PushTask, Block):
             st[k] = np.zeros((batch, 2))
         st["d_des"] = np.zeros(batch)
         st["gap"] = np.full(batch, np.nan)
+        if self.learns_curve:
+            st |= {"push_out": np.zeros(batch), "push_out_n": np.zeros(batch, dtype=np.int64)}
         if self.front is not None:
             st |= {"stage": np.full(batch, SIDE_STAGE, dtype=np.int64), "fronts": np.zeros(batch, dtype=np.int64),
                    "front": self.front.initial_state(batch)}
@@ -312,6 +328,9 @@ class SidePushTask(PushTask, Block):
     def _begin(self, new, mask, r, spheres):
         s, dist, u, side, _ = self._geometry(new, r, spheres)
         if self.learns_curve:  # the estimate's own bound and inverse (docs/push-control.md §6)
+            # the flow pushes the sphere across the pass, away from the robot: aim so the sum points at the goal
+            turn = np.arctan(new["push_out"])
+            u = np.cos(turn)[:, None] * u + (side * np.sin(turn))[:, None] * perp(u)
             d_des = np.minimum(dist, self.law.displacement(new["law"], self.min_gap))
         else:
             d_des = np.minimum(dist, self.d_max)  # eq 16, bounded (§V-B step 1)
@@ -336,6 +355,20 @@ class SidePushTask(PushTask, Block):
         self._enter(new, mask & ~skip, REPOSITION)
         self._enter(new, skip, SETTLE)
 
+    def _learn_push_out(self, new, mask, s) -> None:
+        """Update the push-out ratio from the attempt just measured: the sphere's displacement across the pass
+        line, away from the side the robot passed on, over its displacement along it (passes at least
+        ``push_out_min`` long); the first measurement is taken whole, later ones with ``push_out_weight``."""
+        u, d = new["u"], s - new["p0"]
+        robot_side = np.sign(np.einsum("bi,bi->b", new["start"] - new["p0"] + self.behind * u, perp(u)))
+        along = np.einsum("bi,bi->b", d, u)
+        across = -robot_side * np.einsum("bi,bi->b", d, perp(u))
+        use = mask & (along >= self.push_out_min)
+        ratio = across / np.where(use, along, 1.0)
+        weight = np.where(new["push_out_n"] == 0, 1.0, self.push_out_weight)
+        new["push_out"] = np.where(use, new["push_out"] + weight * (ratio - new["push_out"]), new["push_out"])
+        new["push_out_n"] = np.where(use, new["push_out_n"] + 1, new["push_out_n"])
+
     def _step(self, state, new, r, spheres, ok):
         ph = new["phase"]
         s, *_, done = self._geometry(new, r, spheres)
@@ -350,6 +383,7 @@ class SidePushTask(PushTask, Block):
             go_on = self._finish_attempt(new, meas, done)
             if self.learns_curve:
                 new["law"] = self.law.update_where(new["law"], {"gap": new["gap"], "displacement": d_act}, go_on)
+                self._learn_push_out(new, go_on, s)
             else:  # eq 18 bracket as printed; the law's gain carries the sign
                 new["law"] = self.law.update_where(new["law"], {"e": d_act - new["d_des"]}, go_on)
             self._begin(new, go_on, r, spheres)
