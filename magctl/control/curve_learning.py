@@ -62,6 +62,8 @@ class CurveLearningLaw(Block):
         Random-walk step of ``a`` per attempt (lets the estimate follow a sphere whose mobility changes).
     rate_floor : float
         ``b`` is kept at or above this fraction of the prior's, so the curve stays decreasing and invertible.
+    iterations : int
+        Gauss–Newton iterations of each measurement update (1: the plain EKF step; ``[online]`` uses 3).
 
     Ports
     -----

@@ -92,8 +92,6 @@ class ReleaseMap:
 
     @cached_property
     def _later(self):
-        from scipy.spatial import cKDTree
-
         idx = np.flatnonzero(~self.first)
         return cKDTree(np.c_[self.length[idx], self.previous[idx]] / self.scale), idx
 

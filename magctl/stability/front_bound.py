@@ -21,43 +21,29 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
-from magctl.control.release_model import NEIGHBOURS, ReleaseMap, ReleasePolicy, release_policy
+from magctl.control.release_model import NEIGHBOURS, ReleaseMap, ReleasePolicy, ReleasePolicyLaw, release_policy
 from magctl.core.errors import MagctlError
 from magctl.core.units import UM
 from magctl.stability.iteration import FRONT_EPS, FRONT_GOAL, FRONT_MAX_ATTEMPTS, front_identified_map
 
 
+def later_success(distance: np.ndarray, eps: float) -> float:
+    """Share of the attempts after the first that ended within ``eps``, from an attempt map's ``distance``
+    (B, N; NaN after convergence)."""
+    later = distance[:, 1:]
+    return float((later < eps).sum() / max(np.isfinite(later).sum(), 1))
+
+
 def policy_attempts(policy: ReleasePolicy, release_map: ReleaseMap, trials: int = 2000, *, eps: float = FRONT_EPS,
                     goal: float = FRONT_GOAL, max_attempts: int = FRONT_MAX_ATTEMPTS, seed: int = 0) -> dict:
-    """Run ``policy`` on ``release_map`` (the attempt map of
-    :func:`~magctl.stability.iteration.front_identified_map` with ``δ`` from the policy).
+    """Run the controller on ``policy`` — :class:`~magctl.control.release_model.ReleasePolicyLaw`, the block the
+    front push steps — on ``release_map`` (:func:`~magctl.stability.iteration.front_identified_map`).
 
-    Returns ``attempts`` (B,) (−1 = not converged) and ``later_success``: the share of attempts after the
-    first that ended within ε_p.
+    Returns ``attempts`` (B,) (−1 = not converged) and ``later_success`` (:func:`later_success`).
     """
-    rng = np.random.default_rng(seed)
-    d = np.full(trials, float(goal))
-    done = np.zeros(trials, dtype=bool)
-    attempts = np.full(trials, -1)
-    last = np.zeros(trials)
-    tried = hits = 0
-    for i in range(max_attempts):
-        if i == 0:
-            delta = np.full(trials, policy.delta0)
-        else:
-            delta = np.zeros(trials)
-            delta[~done] = policy.delta(d[~done], last[~done])[0]
-        release, lateral, _ = release_map.sample(d + delta, i == 0, rng, last)
-        last = np.where(done, last, release)
-        d = np.where(done, d, np.hypot(release - delta, lateral))
-        hit = ~done & (d < eps)
-        if i > 0:
-            tried, hits = tried + int((~done).sum()), hits + int(hit.sum())
-        attempts[hit] = i + 1
-        done |= hit
-        if done.all():
-            break
-    return {"attempts": attempts, "later_success": hits / tried if tried else float("nan")}
+    run = front_identified_map(0.0, 0.0, trials, release_map=release_map, eps=eps, max_attempts=max_attempts,
+                               goal=goal, seed=seed, law=ReleasePolicyLaw("release_law", policy))
+    return {"attempts": run["attempts"], "later_success": later_success(run["distance"], eps)}
 
 
 def split_by_trial(release_map: ReleaseMap, part: int, parts: int = 2) -> ReleaseMap:
@@ -91,11 +77,10 @@ def cross_validated(release_map: ReleaseMap | None = None, trials: int = 2000, *
         held_out = split_by_trial(m, test)
         run = policy_attempts(policy, held_out, trials, eps=eps, seed=seed)
         kc1 = front_identified_map(1.0, delta0_kc1, trials, release_map=held_out, eps=eps, seed=seed)
-        later = kc1["distance"][:, 1:]
         folds[f"{train}→{test}"] = {
             "policy_mean_attempts": mean_attempts(run["attempts"]), "kc1_mean_attempts": mean_attempts(kc1["attempts"]),
             "policy_later_success": run["later_success"],
-            "kc1_later_success": float((later < eps).sum() / np.isfinite(later).sum()),
+            "kc1_later_success": later_success(kc1["distance"], eps),
             "policy_delta0_um": policy.delta0 / UM,
             "first_success_by_push_um": {f"{k / UM:.0f}": v for k, v in policy.first_success.items()}}
     policy_mean = float(np.mean([f["policy_mean_attempts"] for f in folds.values()]))
@@ -107,7 +92,8 @@ def cross_validated(release_map: ReleaseMap | None = None, trials: int = 2000, *
 
 def conditional_scatter(release_map: ReleaseMap, k: int = NEIGHBOURS) -> float:
     """Median, over the logged later attempts, of the release's standard deviation among the ``k`` logged later
-    attempts nearest in ``(L, R_prev)``: the scatter no choice of ``δ`` can remove (m)."""
+    attempts nearest in ``(L, R_prev)``: the scatter no choice of ``δ`` can remove (m; slightly high, as the
+    neighbourhood also spans some change of the conditional mean)."""
     m = release_map
     later = np.flatnonzero(~m.first)
     points = np.c_[m.length[later], m.previous[later]] / m.scale

@@ -291,8 +291,7 @@ class SidePushTask(PushTask, Block):
         failed = ended & ~np.isin(f_out["status"], (Status.CONVERGED, Status.ATTEMPT_LIMIT))
         back = ended & ~failed
 
-        side = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in s_new.items()}
-        side = select_state(in_front, side_state, side)
+        side = select_state(in_front, side_state, s_new)
         restart = trigger | back
         side["phase"] = np.where(restart, START, side["phase"])
         side["frames"] = np.where(restart, 0, side["frames"])
@@ -393,4 +392,3 @@ class SidePushTask(PushTask, Block):
         tgt = np.where(((ph == PASS) | (ph == SETTLE))[:, None], new["end"], tgt)
         new["target"] = tgt
         new["speed"] = np.where(ok, np.where(ph == PASS, self.pass_speed, self.travel_speed), new["speed"])
-
