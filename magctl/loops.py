@@ -36,6 +36,7 @@ from magctl.control.guards import ArrivalStatus, Patrol
 from magctl.control.push.assembly import AssemblyTask, FrontThenSideAssemblyTask
 from magctl.control.push.common import goal_distance
 from magctl.control.push.front import FrontAssemblyTask, FrontPushTask
+from magctl.control.push.planned import PlannedAssemblyTask
 from magctl.control.push.side import SidePushTask
 from magctl.control.servo import Servo, servo_params
 from magctl.core.batched import perp, unit
@@ -143,12 +144,14 @@ def controller(task: str, *, n_spheres: int, goal=None, target=None, waypoints=N
 def _push_task_block(task: str, n_spheres: int, goal, options: dict):
     cls = PUSH_TASKS[task]
     kw = dict(options)
+    if task == "assemble" and (n_spheres > 2 or kw.keys() & {"arrangement", "planner"}):
+        cls = PlannedAssemblyTask  # N spheres, or a pair by planned passes (docs/push-control.md §8)
     if task in ("front-push", "side-push"):
         if goal is None:
             raise MagctlError(f"task {task!r} needs a goal")
         kw["goal"] = goal
     elif goal is not None:
-        raise MagctlError(f"task {task!r} takes no goal: it assembles sphere 0 onto sphere 1")
+        raise MagctlError(f"task {task!r} takes no goal: it assembles the spheres where they lie")
     try:
         return cls("task", n_spheres=n_spheres, **kw)
     except TypeError as err:  # an option the block does not have
@@ -394,7 +397,14 @@ def closed_loop(ctrl: Diagram, plnt: Diagram, name: str = "loop") -> Diagram:
 ORIGIN = np.array([2.0e-3, 1.8e-3])
 """Where the (first) sphere starts: near the middle of the 4.8 × 3.6 mm camera field."""
 EXPERIMENT_TASKS = {"front": "front-push", "side": "side-push", "assembly": "assemble",
-                    "front-assembly": "front-assemble", "front-side-assembly": "front-side-assemble"}
+                    "front-assembly": "front-assemble", "front-side-assembly": "front-side-assemble",
+                    "assembly-close": "assemble", "assembly-far": "assemble", "assembly-3": "assemble",
+                    "assembly-4": "assemble"}
+ASSEMBLY_LAYOUTS_UM = {"assembly-close": ((0, 0), (450, 0)), "assembly-far": ((0, 0), (900, 0)),
+                       "assembly-3": ((0, 0), (420, -20), (190, 360)),
+                       "assembly-4": ((0, 0), (400, 150), (800, -50), (1150, 200))}
+"""Sphere centres (µm from :data:`ORIGIN`) of the multi-sphere set-ups beyond the paper (docs/push-control.md §8):
+a pair 450 and 900 µm apart (the paper's is 600 µm), three spheres 407-444 µm apart, four in a rough zig-zag."""
 
 
 @dataclass(frozen=True)
@@ -403,10 +413,11 @@ class Experiment:
 
     Attributes
     ----------
-    kind : {"front", "side", "assembly", "front-assembly", "front-side-assembly"}
+    kind : {"front", "side", "assembly", "front-assembly", "front-side-assembly", "assembly-close", "assembly-far", \
+"assembly-3", "assembly-4"}
         Set-up: front push (§V-A), side push (§V-B), side-push assembly (§V-C), the
-        front-push assembly the paper shows failing (Fig 3), or the paper's Fig 15 protocol
-        (a front push, then side-push assembly).
+        front-push assembly the paper shows failing (Fig 3), the paper's Fig 15 protocol
+        (a front push, then side-push assembly), or the assemblies of 2-4 spheres of :data:`ASSEMBLY_LAYOUTS_UM`.
     task : dict
         Options of :func:`controller` (push-task gains, model, fixed gap, ``servo`` …); what is
         not given is the default every controller uses, on the rig too.
@@ -429,7 +440,8 @@ def geometry(kind: str) -> dict:
 
     The robot starts 1 mm behind the (first) sphere. Front push: goal 750 µm beyond the sphere;
     side push: 300 µm from it, square to the robot's line (both :func:`default_goal`).
-    Assembly: a second sphere 600 µm (centre to centre) ahead of the first; the goal is it.
+    Assembly: a second sphere 600 µm (centre to centre) ahead of the first; the goal is it. The
+    set-ups beyond the paper place their spheres by :data:`ASSEMBLY_LAYOUTS_UM` (no goal).
     """
     if kind not in EXPERIMENT_TASKS:
         raise MagctlError(f"experiment kind {kind!r} is not one of {', '.join(EXPERIMENT_TASKS)}")
@@ -438,6 +450,8 @@ def geometry(kind: str) -> dict:
     if kind in ("front", "side"):
         return {"spheres": sphere[None], "robot": robot, "goal": default_goal(EXPERIMENT_TASKS[kind], robot,
                                                                                sphere[None])}
+    if kind in ASSEMBLY_LAYOUTS_UM:
+        return {"spheres": sphere + np.asarray(ASSEMBLY_LAYOUTS_UM[kind], float) * UM, "robot": robot, "goal": None}
     second = sphere + (600 * UM, 0.0)
     return {"spheres": np.stack([sphere, second]), "robot": robot, "goal": second}
 

@@ -83,6 +83,9 @@ CASES = [
     ("assembly", "assemble", {}, {}),
     ("assembly", "assemble", {"theta_n_deg": 20.0, "eps_as_um": 10.0},
      {"theta_n": np.deg2rad(20.0), "eps_as": 10 * UM}),
+    ("assembly", "assemble", {"planner": "greedy"}, {"planner": "greedy"}),
+    ("assembly-3", "assemble", {"n_spheres": 3, "arrangement": "triangle"}, {"arrangement": "triangle"}),
+    ("assembly-4", "assemble", {"eps_as_um": 8.0, "max_attempts": 20}, {"eps_as": 8 * UM, "max_attempts": 20}),
 ]
 
 

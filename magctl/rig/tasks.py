@@ -25,6 +25,8 @@ from typing import Any
 import numpy as np
 
 from magctl.config import UNITS, Params, load_model, split_unit
+from magctl.control.arrangement import ARRANGEMENTS
+from magctl.control.assembly_planner import PLANNERS
 from magctl.control.push.common import SIDE_MODELS, task_parameters
 from magctl.control.push.front import LEARNING as FRONT_LEARNING
 from magctl.control.push.side import DIRT_RESPONSES, LEARNING
@@ -170,7 +172,8 @@ class Controller:
 _SI_SUFFIX = {"m": "m", "m/s": "m_s", "rad": "rad", "1": "", "": ""}
 _PUSH_TABLES = {"front-push": ("front",), "side-push": ("side",), "assemble": ("side", "assembly"),
                 "front-side-assemble": ("side", "assembly")}
-_OPTIONAL = {"front-push": {}, "side-push": {"fixed_gap": "m"}, "assemble": {"fixed_gap": "m"},
+_OPTIONAL = {"front-push": {}, "side-push": {"fixed_gap": "m"},
+             "assemble": {"fixed_gap": "m", "n_spheres": "1", "arrangement": "", "planner": ""},
              "front-side-assemble": {"fixed_gap": "m", "front_attempts": "1"}}
 
 
@@ -226,7 +229,8 @@ def _option_value(task: str, key: str, raw, factor: float, unit: str, name: str)
             raise TaskError(f"{task}: option model={raw!r} is not one of {', '.join(SIDE_MODELS)}")
         return str(raw)
     learning = FRONT_LEARNING if task == "front-push" else LEARNING
-    for option, known in (("learning", learning), ("dirt_response", DIRT_RESPONSES)):
+    for option, known in (("learning", learning), ("dirt_response", DIRT_RESPONSES), ("arrangement", ARRANGEMENTS),
+                          ("planner", PLANNERS)):
         if name == option:
             if raw not in known:
                 raise TaskError(f"{task}: option {option}={raw!r} is not one of {', '.join(known)}")
@@ -249,7 +253,7 @@ def _option_value(task: str, key: str, raw, factor: float, unit: str, name: str)
         raise TaskError(f"{task}: option {key} must be finite, got {raw!r}")
     if unit == "m/s" and v <= 0:
         raise TaskError(f"{task}: option {key} must be positive, got {raw!r}")
-    if name.endswith(("_frames", "attempts")):
+    if name.endswith(("_frames", "attempts")) or name == "n_spheres":
         if v != int(v) or v < 0:
             raise TaskError(f"{task}: option {key} must be a whole number >= 0, got {raw!r}")
         return int(v)
@@ -339,10 +343,37 @@ def _side_push(first_obs: Observation, options: dict, params: Params) -> Task:
     return _push("side-push", first_obs, options)
 
 
+_PLANNED_OPTIONS = ("n_spheres", "arrangement", "planner", "eps_as", "max_attempts", "clearance", "arrive_tol",
+                    "pass_speed", "travel_speed", "settle_frames", "max_lost_frames", "phase_timeout_frames",
+                    "workspace", "servo", "speed_max")
+"""Options of the planned assembly (:class:`~magctl.control.push.planned.PlannedAssemblyTask`) on the rig."""
+
+
 @register_task("assemble")
 def _assemble(first_obs: Observation, options: dict, params: Params) -> Task:
-    """Assemble sphere 0 onto sphere 1 by side-pushing along the adjusted line (§V-C, eq 21)."""
-    return _push("assemble", first_obs, options)
+    """Assemble the tracked spheres. Two, with no ``planner`` or ``arrangement`` option: sphere 0 onto sphere 1 by
+    side-pushing along the adjusted line (§V-C, eq 21). Otherwise (``n_spheres`` = 2-4, the rig's tracked count):
+    into ``arrangement`` (pair, line, triangle) by passes the ``planner`` chooses (optimal, greedy;
+    docs/push-control.md §8)."""
+    given = resolve_options("assemble", options)
+    have = _need_spheres("assemble", first_obs)
+    n = given.get("n_spheres", have)
+    if n != have:
+        raise TaskError(f"assemble: option n_spheres={n} but the rig tracks {have} sphere(s)")
+    if n <= 2 and not given.keys() & {"planner", "arrangement"}:
+        values, logged = _resolved("assemble", {k: v for k, v in options.items() if split_unit(k)[0] != "n_spheres"})
+        values = {k: v for k, v in values.items() if k not in ("n_spheres", "arrangement", "planner")}
+        return Task("assemble", _build("assemble", values, n), logged, dict(PUSH_OUTCOMES))
+    foreign = sorted(set(given) - set(_PLANNED_OPTIONS))
+    if foreign:
+        raise TaskError(f"assemble: option(s) {', '.join(foreign)} do not apply to the planned assembly of "
+                        f"{n} spheres; its options: {', '.join(_PLANNED_OPTIONS)}")
+    values, logged = _resolved("assemble", options)
+    values = {k: values[k] for k in _PLANNED_OPTIONS if k in values and k != "n_spheres"}
+    values = {k: v for k, v in values.items() if k in ("servo", "speed_max") or k in given}
+    values.setdefault("planner", "optimal")
+    logged = {k: v for k, v in logged.items() if split_unit(k)[0] in _PLANNED_OPTIONS} | {"n_spheres": n}
+    return Task("assemble", _build("assemble", values, n), logged, dict(PUSH_OUTCOMES))
 
 
 @register_task("front-side-assemble")

@@ -56,12 +56,18 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
     g = geometry(exp.kind)
     radius = sphere_params().radius
     max_att = int(task.max_attempts)
+    target = getattr(task, "target", None)   # a planned assembly: its arrangement's RMS bond error
+    goal = g["spheres"][-1] if g["goal"] is None else g["goal"]
+
+    def error_of(spheres):
+        return target.error(spheres) if target is not None else task_error(exp.kind, spheres, g["goal"], radius)
+
     errors = np.full((batch, max_att + 1), np.nan)
-    errors[:, 0] = task_error(exp.kind, g["spheres"][None], g["goal"], radius)
-    along = g["goal"] - g["spheres"][0]
+    errors[:, 0] = error_of(g["spheres"][None])
+    along = goal - g["spheres"][0]
     along = along / np.linalg.norm(along)
     signed = np.full((batch, max_att + 1), np.nan)
-    signed[:, 0] = (g["goal"] - g["spheres"][0]) @ along
+    signed[:, 0] = (goal - g["spheres"][0]) @ along
     status = np.full(batch, Status.RUNNING, dtype=np.int64)
     attempts = np.zeros(batch, dtype=np.int64)
     frames = np.full(batch, exp.max_frames, dtype=np.int64)
@@ -75,13 +81,13 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
                        engine=study_engine())
         state = res.final_state
         st, att = res[STATUS], res[ATTEMPT]
-        err = task_error(exp.kind, res[SPHERES], g["goal"], radius)
+        err = error_of(res[SPHERES])
         prev = np.concatenate([attempts[:, None], att[:, :-1]], axis=1)
         bumped = att > prev
         rows, cols = np.nonzero(bumped)
         slot = np.minimum(att[rows, cols], max_att)
         errors[rows, slot] = err[rows, cols]
-        signed[rows, slot] = np.einsum("ki,i->k", g["goal"] - res[SPHERES][rows, cols, 0], along)
+        signed[rows, slot] = np.einsum("ki,i->k", goal - res[SPHERES][rows, cols, 0], along)
         ended = (st != Status.RUNNING) & (status == Status.RUNNING)[:, None]
         first_end = np.where(ended.any(axis=1), ended.argmax(axis=1), -1)
         newly = first_end >= 0
@@ -94,7 +100,7 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
         done_frames += steps
         if not (status == Status.RUNNING).any():
             break
-    final = task_error(exp.kind, res[SPHERES][:, -1][:, None], g["goal"], radius)[:, 0]
+    final = error_of(res[SPHERES][:, -1][:, None])[:, 0]
     out = {
         "status": status, "attempts": attempts, "error_um": errors / UM, "signed_error_um": signed / UM,
         "final_error_um": final / UM,

@@ -104,6 +104,12 @@ NEAR = {"robot_est": lambda rng, k: np.array([1.0e-3, 1.0e-3]) + 1e-3 * rng.rand
         "lost": lambda rng, k: rng.random(BATCH) < 0.2}
 SPHERES = [[1.6e-3, 1.5e-3], [2.5e-3, 2.5e-3]]
 
+def _pair():
+    from magctl.control.arrangement import arrangement
+
+    return arrangement("pair")
+
+
 def _release_law():
     from magctl.control.release_model import release_policy_law
 
@@ -165,6 +171,9 @@ FACTORIES = {
                                      settle_frames=1), NEAR),
     "AssemblyTask": (lambda cls: cls("assembly", arrive_tol=500 * UM, settle_frames=1), NEAR),
     "FrontThenSideAssemblyTask": (lambda cls: cls("front_side", arrive_tol=500 * UM, settle_frames=1), NEAR),
+    "PlannedAssemblyTask": (lambda cls: cls("planned", n_spheres=2, arrangement="pair", arrive_tol=500 * UM,
+                                            settle_frames=1), NEAR),
+    "PassPlanner": (lambda cls: cls(_pair()), {"spheres": NEAR["spheres_est"], "robot": NEAR["robot_est"]}),
 }
 
 BLOCKS = _block_classes()

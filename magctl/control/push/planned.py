@@ -1,0 +1,194 @@
+"""Multi-sphere assembly by planned passes (docs/push-control.md §8) as a batched state machine at 30 Hz.
+
+One attempt, per trial:
+
+1. the :class:`~magctl.control.assembly_planner.PassPlanner` block turns the tracked spheres into the next
+   pass ``a → b`` (optimised on the pass map, or the greedy baseline);
+2. ``REPOSITION`` — the robot travels to ``a`` along the paper's wavefront path (§II,
+   :func:`magctl.control.planner.plan_path`) round every sphere at the repositioning keep-out;
+3. ``PASS`` — it drives the pass at the pushing speed;
+4. ``SETTLE`` — it waits, then the spheres are measured: the arrangement assembled
+   (:meth:`~magctl.control.arrangement.Arrangement.assembled`, eq 21 on every contact) ends the task,
+   otherwise the planner learns from the pass and plans the next.
+
+A trial for which the planner finds no pass that keeps its bounds ends ``STALLED``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magctl import FRAME_PERIOD_S
+from magctl.config import load_model
+from magctl.control.arrangement import ARRANGEMENTS
+from magctl.control.arrangement import arrangement as make_arrangement
+from magctl.control.assembly_planner import PassPlanner, PlanLimits
+from magctl.control.planner import KEEP_OUT_M, PlanningError, plan_path
+from magctl.control.push.common import STALLED, START, PushTask, arrived, with_defaults
+from magctl.core.batched import norm
+from magctl.core.block import Block, StateVar
+from magctl.core.errors import MagctlError
+from magctl.core.ports import Port
+
+REPOSITION, PASS, SETTLE = 1, 2, 3
+MAX_WAYPOINTS = 24
+"""Waypoints kept for one repositioning path (the wavefront path after shortening has a handful)."""
+WAYPOINT_TOL = 50e-6
+"""The robot counts as past an intermediate waypoint within 50 µm (the pass start needs ``arrive_tol``)."""
+
+
+class PlannedAssemblyTask(PushTask, Block):
+    """Assembly of ``n_spheres`` spheres into ``arrangement`` by passes the planner chooses.
+
+    Parameters
+    ----------
+    n_spheres : int
+        Spheres on the slide, all of them in the arrangement (2, 3 or 4).
+    arrangement : {"pair", "line", "triangle"}
+        The target (:data:`~magctl.control.arrangement.ARRANGEMENTS`); default: a pair for 2, a line otherwise.
+    planner : {"optimal", "greedy"}
+        Passes optimised on the pass map with IPOPT, or the paper's method one sphere at a time
+        (:data:`~magctl.control.assembly_planner.PLANNERS`).
+    eps_as : float
+        ``ε_as`` of eq 21 (``[assembly]``).
+    max_attempts : int
+        Passes before the task gives up (30).
+    pass_speed, clearance, …
+        As :class:`~magctl.control.push.side.SidePushTask` (``[side]``): the pushing speed and the
+        repositioning keep-out.
+
+    Ports: inputs as every push task; outputs as every push task plus ``gap`` (m), the smallest distance of
+    the pass from a sphere, measured when it is planned; ``correction`` is the planner's predicted RMS bond
+    error after the pass.
+    """
+
+    PHASES = {0: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", 99: "finished"}
+
+    def __init__(self, name: str = "planned_assembly", *, n_spheres: int = 3, arrangement: str | None = None,
+                 planner: str = "optimal", eps_as: float | None = None, max_attempts: int | None = None,
+                 clearance: float | None = None, arrive_tol: float | None = None, pass_speed: float | None = None,
+                 travel_speed: float | None = None, settle_frames: int | None = None,
+                 max_lost_frames: int | None = None, phase_timeout_frames: int | None = None,
+                 workspace: float | None = None):
+        n_spheres = int(n_spheres)
+        if not 2 <= n_spheres <= 4:
+            raise MagctlError(f"assembly {name!r}: n_spheres={n_spheres} must be 2, 3 or 4")
+        kind = arrangement or ("pair" if n_spheres == 2 else "line")
+        if kind not in ARRANGEMENTS:
+            raise MagctlError(f"assembly {name!r}: arrangement={kind!r} is not one of {', '.join(ARRANGEMENTS)}")
+        self.target = make_arrangement(kind, n_spheres, eps_as=eps_as)
+        p = with_defaults("side", max_attempts=max_attempts, clearance=clearance, arrive_tol=arrive_tol,
+                          pass_speed=pass_speed, travel_speed=travel_speed, settle_frames=settle_frames,
+                          max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
+                          workspace=workspace, eps=None)
+        if max_attempts is None:
+            p["max_attempts"] = int(load_model("push").plan.max_passes)
+        if clearance is None:
+            p["clearance"] = float(load_model("push").plan.reposition_clearance)
+        self._check_common("assembly", name, p, goal=(0.0, 0.0), n_spheres=n_spheres, sphere=0)
+        self.sphere_indices = tuple(range(n_spheres))
+        self.law = PassPlanner(self.target, f"{name}_planner", planner=planner)
+        self.pass_speed = float(p["pass_speed"])
+        self.cell = float(load_model("push").plan.reposition_cell)
+        self.law_limits = PlanLimits.default()
+        self.bounds = self.law_limits.field
+        ins, outs = self._ports(n_spheres)
+        outs.append(Port("gap", (), "m"))
+        Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
+
+    def state_vars(self):
+        return (*self._common_vars(),
+                StateVar("waypoints", (MAX_WAYPOINTS, 2), description="repositioning path to the pass start, m"),
+                StateVar("n_waypoints", (), "int64", description="waypoints in the path"),
+                StateVar("waypoint", (), "int64", description="index of the waypoint the robot heads for"),
+                StateVar("start", (2,), symbol="a", description="start of the pass, m"),
+                StateVar("end", (2,), symbol="b", description="end of the pass, m"),
+                StateVar("gap", (), description="closest approach of the pass to a sphere, m"))
+
+    def initial_state(self, batch, rng=None):
+        st = self._common_state(batch)
+        st |= {"waypoints": np.full((batch, MAX_WAYPOINTS, 2), np.nan),
+               "n_waypoints": np.zeros(batch, dtype=np.int64), "waypoint": np.zeros(batch, dtype=np.int64),
+               "start": np.full((batch, 2), np.nan), "end": np.full((batch, 2), np.nan),
+               "gap": np.full(batch, np.nan)}
+        return st
+
+    def _frame(self, state, u):
+        out, new = super()._frame(state, u)
+        out["gap"] = np.nan_to_num(new["gap"])
+        return out, new
+
+    def _spheres_found(self, new, spheres) -> np.ndarray:
+        x0, y0, x1, y1 = self.bounds
+        pad = self.workspace
+        inside = ((spheres[..., 0] > x0 - pad) & (spheres[..., 0] < x1 + pad)
+                  & (spheres[..., 1] > y0 - pad) & (spheres[..., 1] < y1 + pad))
+        return np.isfinite(spheres).all(axis=(1, 2)) & inside.all(axis=1)
+
+    def _begin(self, new, mask, r, spheres):
+        """Plan the next pass and the path to its start, for the trials in ``mask``."""
+        new["law"] = self.law.update_where(new["law"], {"spheres": spheres, "robot": r}, mask)
+        a, b = new["law"]["start"], new["law"]["end"]
+        none = mask & ~np.isfinite(a).all(axis=1)
+        if none.any():
+            self._fail(new, none, STALLED, r)
+        for k in np.flatnonzero(mask & ~none):
+            path = self._reposition_path(r[k], a[k], spheres[k])
+            path = path[-MAX_WAYPOINTS:]
+            new["waypoints"][k] = np.nan
+            new["waypoints"][k, : len(path)] = path
+            new["n_waypoints"][k] = len(path)
+            new["waypoint"][k] = 0
+            d = b[k] - a[k]
+            t = np.clip((spheres[k] - a[k]) @ d / (d @ d), 0.0, 1.0)
+            new["gap"][k] = float(np.min(np.linalg.norm(spheres[k] - (a[k] + t[:, None] * d), axis=1)))
+        new["start"] = np.where(mask[:, None], a, new["start"])
+        new["end"] = np.where(mask[:, None], b, new["end"])
+        self._enter(new, mask & ~none, REPOSITION)
+
+    def _reposition_path(self, robot, start, spheres) -> np.ndarray:
+        """Waypoints to the pass start round every sphere (the robot's own position dropped).
+
+        The keep-out is the repositioning clearance; where the spheres, moved by the last pass, close every
+        way round at it, the paper's 650 µm (§VI) and then the planner's pass gap are tried before a
+        straight line (the pass start itself keeps the clearance when it is planned).
+        """
+        x0, y0, x1, y1 = self.bounds
+        pad = 2 * self.cell   # the pass ends may lie on the field's edge: the grid reaches past it
+        bounds = (x0 - pad, y0 - pad, x1 + pad, y1 + pad)
+        for keep_out in (self.clearance, min(self.clearance, KEEP_OUT_M), self.law_limits.min_gap):
+            try:
+                path = plan_path(robot, start, spheres, bounds=bounds, keep_out=keep_out, cell=self.cell)
+                return path[1:] if len(path) > 1 else path
+            except PlanningError:
+                continue
+        return np.asarray([start])
+
+    def _step(self, state, new, r, spheres, ok):
+        ph = new["phase"]
+        done = self.target.assembled(spheres)
+        self._start(new, ok, done, r, spheres)
+        rows = np.arange(len(r))
+        idx = np.minimum(new["waypoint"], MAX_WAYPOINTS - 1)
+        wp = new["waypoints"][rows, idx]
+        last = new["waypoint"] >= new["n_waypoints"] - 1
+        tol = np.where(last, self.arrive_tol, WAYPOINT_TOL)
+        at_wp = ok & (ph == REPOSITION) & (norm(r - np.nan_to_num(wp)) < tol)
+        new["waypoint"] = np.where(at_wp & ~last, new["waypoint"] + 1, new["waypoint"])
+        self._enter(new, at_wp & last, PASS)
+        passed = ok & (ph == PASS) & arrived(r, new["end"], self.arrive_tol)
+        self._enter(new, passed, SETTLE)
+        meas = ok & (ph == SETTLE) & (new["frames"] >= self.settle_frames)
+        if meas.any():
+            go_on = self._finish_attempt(new, meas, done)
+            self._begin(new, go_on, r, spheres)
+        ph = np.where(ok, new["phase"], START)
+        idx = np.minimum(new["waypoint"], MAX_WAYPOINTS - 1)
+        wp = new["waypoints"][rows, idx]
+        tgt = np.where((ph == REPOSITION)[:, None], wp, new["target"])
+        tgt = np.where(((ph == PASS) | (ph == SETTLE))[:, None], new["end"], tgt)
+        new["target"] = tgt
+        new["speed"] = np.where(ok, np.where(ph == PASS, self.pass_speed, self.travel_speed), new["speed"])
+
+
+__all__ = ["PlannedAssemblyTask"]

@@ -1,0 +1,69 @@
+"""The planned assembly as the 30 Hz task: in the closed loop with the physical plant, and on the sim rig."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magctl.control.status import Status
+from magctl.core import simulate
+from magctl.core.errors import MagctlError
+from magctl.loops import Experiment, controller, push_loop
+from magctl.rig.runtime import Runtime
+from magctl.rig.sim import SimRig
+
+UM = 1e-6
+REC = ["controller/task.status", "controller/task.attempt", "controller/task.phase", "controller/task.gap",
+       "plant/spheres.spheres", "plant/spheres.contact", "plant/robot.position"]
+
+
+@pytest.fixture(scope="module")
+def pair_run():
+    exp = Experiment("assembly", {"planner": "optimal"}, max_frames=9000)
+    loop = push_loop(exp)
+    res = simulate(loop, 9000, batch=2, seed=4, record=REC)
+    return loop.blocks["controller"].blocks["task"], res
+
+
+def test_planned_pair_assembles_in_the_closed_loop_without_touching_a_sphere(pair_run):
+    task, res = pair_run
+    status, attempts = res[REC[0]][:, -1], res[REC[1]][:, -1]
+    assert (status == Status.CONVERGED).all()
+    assert (attempts <= 20).all()
+    final = res[REC[4]][:, -1]
+    sep = np.linalg.norm(final[:, 1] - final[:, 0], axis=-1)
+    assert (sep <= 2 * 105 * UM + task.target.eps_as + 1.5 * UM).all()   # eq 21 on the true positions (±tracking)
+    assert not res[REC[5]].any()                                          # the robot never touched a sphere
+
+
+def test_every_pass_keeps_the_contact_bound_in_the_loop(pair_run):
+    """The robot's true distance from every true sphere centre while it drives a pass stays above the contact
+    threshold (370 µm less the servo's cross-track error, < 20 µm)."""
+    _task, res = pair_run
+    on_pass = res[REC[2]] == 2
+    robot, spheres = res[REC[6]], res[REC[4]]
+    dist = np.linalg.norm(spheres - robot[:, :, None, :], axis=-1).min(axis=-1)
+    assert on_pass.any()
+    assert dist[on_pass].min() > 350 * UM
+    gaps = res[REC[3]][on_pass]
+    assert (gaps >= 390 * UM - 1e-9).all()   # the planned gap: min_gap + margin
+
+
+def test_the_task_refuses_what_it_cannot_assemble():
+    with pytest.raises(MagctlError, match="n_spheres"):
+        controller("assemble", n_spheres=5, planner="optimal")
+    with pytest.raises(MagctlError, match="arrangement"):
+        controller("assemble", n_spheres=4, arrangement="triangle")
+    with pytest.raises(MagctlError, match="planner"):
+        controller("assemble", n_spheres=3, planner="random")
+
+
+def test_three_spheres_on_the_sim_rig_start_assembling():
+    """`magctl rig run --task assemble --option n_spheres=3` on the simulated rig: the planned task runs its
+    first passes with the coils driven, then the run is stopped and the coils are left at zero."""
+    rig = SimRig(n_spheres=3)
+    report = Runtime(rig, "assemble", {"n_spheres": 3, "arrangement": "line"}, realtime=False, max_ticks=1500,
+                     quiet=True).run()
+    assert report.task_options["n_spheres"] == 3 and report.task_options["arrangement"] == "line"
+    assert report.final["outputs"]["attempt"] >= 1
+    assert rig.state.value == "inactive"
