@@ -12,7 +12,13 @@ built from half the identification trials and scored on the other half (:mod:`ma
 — against eq 13 with K_c = 1; target: 0.5 attempts fewer, or the measured bound that says why not
 (docs/push-control.md §7).
 
-The optimised multi-sphere assembly is not in magctl yet; the summary says so rather than leaving it out.
+Assembly: two to four spheres assembled by passes planned on the pass map with casadi and IPOPT
+(``assemble`` with ``planner="optimal"``, :mod:`magctl.control.assembly_planner`) against the paper's method
+extended one sphere at a time (``planner="greedy"``, θ_n = 30°) and, for the pair, the paper's own eq 21 task;
+targets: a line and a triangle of three in ≥ 90 % of trials within 30 passes and in fewer passes than the
+greedy baseline, the pair in fewer passes than θ_n = 30°, planning ≤ 1 s per pass. Beside them, on the pass
+map itself, the answer to the paper's open question: the angle and gap that close a pair in the fewest passes,
+by starting distance (docs/push-control.md §8).
 """
 
 from __future__ import annotations
@@ -95,13 +101,104 @@ def experiments() -> dict:
             f"{CURVE_FRONT}, dirt": side.side_experiment(f"{CURVE_FRONT}, dirt", CURVE_FRONT_TASK, dirty)}
 
 
+PLANNED, GREEDY, PAPER_PAIR = "planned (IPOPT on the pass map)", "greedy, θ_n = 30°", "paper's eq 21 task (K_s = 0.9)"
+ASSEMBLY_ROWS = (("pair", "assembly", 2), ("line", "assembly-3", 3), ("triangle", "assembly-3", 3),
+                 ("line", "assembly-4", 4))
+ASSEMBLY_MAX_FRAMES = {2: 9000, 3: 16000, 4: 16000}
+"""Frames before a still-running trial is cut off: 30 passes of ≈ 340 frames (reposition, pass, settle) for N ≥ 3."""
+ASSEMBLY_SHARE_TARGET, ASSEMBLY_PASSES = 0.9, 30
+PAIR_DISTANCES_UM = (450.0, 600.0, 750.0, 900.0)
+
+
+def assembly_experiments() -> dict:
+    """The planned assemblies and their baselines, each on the physical plant with the default variability."""
+    from magctl.loops import Experiment
+
+    out = {}
+    for arr, kind, n in ASSEMBLY_ROWS:
+        base = {"arrangement": arr}
+        frames = ASSEMBLY_MAX_FRAMES[n]
+        out[f"{n} {arr}, {PLANNED}"] = Experiment(kind, base | {"planner": "optimal"}, frames,
+                                                  label=f"{n} {arr}, {PLANNED}")
+        if n < 4:
+            out[f"{n} {arr}, {GREEDY}"] = Experiment(kind, base | {"planner": "greedy"}, frames,
+                                                     label=f"{n} {arr}, {GREEDY}")
+    out[f"2 pair, {PAPER_PAIR}"] = Experiment("assembly", {}, ASSEMBLY_MAX_FRAMES[2], label=f"2 pair, {PAPER_PAIR}")
+    return out
+
+
+def assembly_summary(r: dict) -> dict:
+    """Success (assembled within :data:`ASSEMBLY_PASSES` passes), passes of the successful trials, planning time."""
+    st, att = np.asarray(r["status"]), np.asarray(r["attempts"])
+    ok = (st == Status.CONVERGED) & (att <= ASSEMBLY_PASSES)
+    passes = att[ok]
+    return controller_summary(r) | {"trials": int(st.size), "assembled": float(ok.mean()),
+            "passes_mean": float(passes.mean()) if passes.size else None,
+            "passes_p95": float(np.percentile(passes, 95)) if passes.size else None,
+            "passes_all_mean": float(np.where(ok, att, ASSEMBLY_PASSES).mean()),
+            "final_error_um_median": float(np.median(r["final_error_um"]))}
+
+
+def pair_question(distances_um=PAIR_DISTANCES_UM) -> list[dict]:
+    """The paper's open question on the pass map: passes, first-pass angle θ (pass direction to the centre line,
+    turned away from the fixed sphere) and gap of the planned pair assembly against θ_n = 30°, by distance."""
+    from magctl.control.arrangement import arrangement
+    from magctl.control.assembly_planner import AssemblyPlanner, GreedyPlanner
+    from magctl.loops import ORIGIN
+
+    target = arrangement("pair")
+    planner, greedy = AssemblyPlanner(target), GreedyPlanner(target)
+    rows = []
+    for dist in distances_um:
+        start = np.stack([ORIGIN, ORIGIN + (dist * UM, 0.0)])
+        row = {"distance_um": float(dist)}
+        for name, pl in (("planned", planner), ("greedy", greedy)):
+            p, robot, first, passes = start.copy(), ORIGIN - (1e-3, 0.0), None, 0
+            while passes < ASSEMBLY_PASSES and not target.assembled(p):
+                plan = pl.plan(p) if name == "planned" else pl.plan(p, robot)
+                first = plan if first is None else first
+                p, robot, passes = p + planner.map.displacement(p, plan.start, plan.end), plan.end, passes + 1
+            row[f"{name}_passes"] = passes if target.assembled(p) else None
+            u = (first.end - first.start) / np.hypot(*(first.end - first.start))
+            line = (start[1] - start[0]) / np.hypot(*(start[1] - start[0]))
+            t = np.clip(np.einsum("ni,i->n", start - first.start, first.end - first.start)
+                        / np.sum((first.end - first.start) ** 2), 0, 1)
+            gaps = np.linalg.norm(start - (first.start + t[:, None] * (first.end - first.start)), axis=1)
+            row[f"{name}_angle_deg"] = float(np.degrees(np.arccos(np.clip(abs(u @ line), 0, 1))))
+            row[f"{name}_gap_um"] = float(gaps.min() / UM)
+            row[f"{name}_pushed"] = int(np.argmin(gaps))
+        rows.append(row)
+    return rows
+
+
+def planning_seconds(trials: int = 20) -> dict:
+    """Planning time per pass on one core (s): the three-sphere triangle and line from their start layout,
+    planned on the pass map ``trials`` passes in a row (this machine; a timing, not a test)."""
+    from magctl.control.arrangement import arrangement
+    from magctl.control.assembly_planner import AssemblyPlanner
+    from magctl.loops import geometry
+
+    out = {}
+    for arr in ("triangle", "line"):
+        pl = AssemblyPlanner(arrangement(arr))
+        p = geometry("assembly-3")["spheres"].copy()
+        times = []
+        for _ in range(trials):
+            plan = pl.plan(p)
+            times.append(plan.seconds)
+            p = plan.predicted
+        out[arr] = {"mean": float(np.mean(times)), "max": float(np.max(times))}
+    return out
+
+
 def compute(ctx: StudyContext) -> Computed:
     side = studies.get("side-push")
     n = ctx.n_trials(DEFAULT_TRIALS)
     exps = experiments()
     best = side.BEST
-    runs, sources = run_experiments(ctx, exps | front_experiments(), n)
+    runs, sources = run_experiments(ctx, exps | front_experiments() | assembly_experiments(), n)
     front_runs = {label: runs.pop(label) for label in front_experiments()}
+    assembly_runs = {label: runs.pop(label) for label in assembly_experiments()}
     summaries = {}
     for label, r in runs.items():
         s = controller_summary(r)
@@ -115,7 +212,9 @@ def compute(ctx: StudyContext) -> Computed:
                "dirty_plant": exps[f"{CURVE}, dirt"].variability.describe(), "trials_from_study": sources,
                "baseline": best, "curve": CURVE, "scale_grid": scale_grid(d["min_gap"], d["eps"]),
                "curve_task": dict(task.task), "front_bound": front_bound(),
-               "front_controllers": {label: controller_summary(r) for label, r in front_runs.items()}}
+               "front_controllers": {label: controller_summary(r) for label, r in front_runs.items()},
+               "assembly": {label: assembly_summary(r) for label, r in assembly_runs.items()},
+               "pair_question": pair_question(), "planning_seconds": planning_seconds()}
     return Computed(results, {"max_attempts": side.MAX_ATTEMPTS})
 
 
@@ -131,7 +230,8 @@ def front_bound() -> dict:
 
 
 def draw(computed: Computed, ctx: StudyContext) -> list:
-    """Converged share versus attempts: the curve law and the paper's best, with and without dirt."""
+    """Converged share versus attempts: the curve law and the paper's best, with and without dirt; the front
+    push's controllers; the assemblies (assembled share versus passes)."""
     from magctl.studies.figures import plot_convergence
 
     r = computed.results
@@ -141,7 +241,10 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
                              computed.data["max_attempts"]),
             plot_convergence(r["front_controllers"], ctx.figure_path("beyond_front_push"),
                              f"Front pushing, the release-model controller against K_c = 1, {n} trials",
-                             FRONT_MAX_ATTEMPTS)]
+                             FRONT_MAX_ATTEMPTS),
+            plot_convergence(r["assembly"], ctx.figure_path("beyond_assembly"),
+                             f"Assembly of 2-4 spheres: planned passes against the greedy θ_n = 30°, {n} trials",
+                             ASSEMBLY_PASSES)]
 
 
 def targets(r: dict) -> list[tuple[str, str, bool]]:
@@ -168,6 +271,50 @@ def front_target(r: dict) -> tuple[str, str, bool]:
             f"closed loop: release-model controller {fc[RELEASE]['mean_attempts_all']:.2f} against "
             f"{fc[KC1]['mean_attempts_all']:.2f} (gain {gain:+.2f}); attempt map, held-out trials: "
             f"{fb['policy_mean_attempts']:.2f} against {fb['kc1_mean_attempts']:.2f}", gain >= FRONT_GAIN_TARGET)
+
+
+def assembly_targets(r: dict) -> list[tuple[str, str, bool]]:
+    """(target, measured, met) of the planned assembly."""
+    a = r["assembly"]
+    out = []
+    for arr in ("line", "triangle"):
+        p, g = a[f"3 {arr}, {PLANNED}"], a[f"3 {arr}, {GREEDY}"]
+        out.append((f"3 spheres, {arr}: ≥ {ASSEMBLY_SHARE_TARGET:.0%} within {ASSEMBLY_PASSES} passes",
+                    f"{p['assembled']:.1%}", p["assembled"] >= ASSEMBLY_SHARE_TARGET))
+        out.append((f"3 spheres, {arr}: fewer passes than greedy (failures counted as {ASSEMBLY_PASSES})",
+                    f"{p['passes_all_mean']:.1f} against {g['passes_all_mean']:.1f}",
+                    p["passes_all_mean"] < g["passes_all_mean"]))
+    p, g, paper = a[f"2 pair, {PLANNED}"], a[f"2 pair, {GREEDY}"], a[f"2 pair, {PAPER_PAIR}"]
+    out.append(("pair: fewer passes than θ_n = 30°", f"{p['passes_all_mean']:.1f} against {g['passes_all_mean']:.1f} "
+                f"(greedy) and {paper['passes_all_mean']:.1f} (the paper's task)",
+                p["passes_all_mean"] < min(g["passes_all_mean"], paper["passes_all_mean"])))
+    worst = max(v["max"] for v in r["planning_seconds"].values())
+    mean = np.mean([v["mean"] for v in r["planning_seconds"].values()])
+    out.append(("planning ≤ 1 s per pass on one core", f"mean {mean:.3f} s, max {worst:.3f} s", worst <= 1.0))
+    return out
+
+
+def assembly_lines(r: dict) -> list[str]:
+    """The assembly section of the report."""
+    a = r["assembly"]
+    fmt = lambda v: "—" if v is None else f"{v:.1f}"  # noqa: E731
+    lines = [f"Assembly, closed loop ({r['trials_per_controller']} trials per controller, the default plant): "
+             f"assembled within {ASSEMBLY_PASSES} passes and the passes it took.", "",
+             "| spheres, arrangement, planner | assembled | passes (assembled trials) | 95th percentile | "
+             f"mean, failures as {ASSEMBLY_PASSES} | median final bond error, µm |", "|---|---|---|---|---|---|"]
+    lines += [f"| {label} | {v['assembled']:.1%} | {fmt(v['passes_mean'])} | {fmt(v['passes_p95'])} | "
+              f"{v['passes_all_mean']:.1f} | {v['final_error_um_median']:.1f} |" for label, v in a.items()]
+    lines += ["", "| target | measured | |", "|---|---|---|"]
+    lines += [f"| {t} | {m} | {'met' if ok else '**missed**'} |" for t, m, ok in assembly_targets(r)]
+    lines += ["", "The paper's open question (§VII: θ_n 'arbitrarily chosen'), answered on the pass map: the pair "
+              "closed by planned passes against θ_n = 30°, by starting distance (centre to centre); θ is the first "
+              "pass's angle to the centre line, the gap its distance from the sphere it passes closest.", "",
+              "| distance, µm | planned passes | θ, deg | gap, µm | greedy θ_n = 30° passes | gap, µm |",
+              "|---|---|---|---|---|---|"]
+    lines += [f"| {q['distance_um']:.0f} | {q['planned_passes'] or '—'} | {q['planned_angle_deg']:.0f} | "
+              f"{q['planned_gap_um']:.0f} | {q['greedy_passes'] or '—'} | {q['greedy_gap_um']:.0f} |"
+              for q in r["pair_question"]]
+    return lines
 
 
 def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
@@ -221,6 +368,5 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
               f"{fb['conditional_release_std_um']:.0f} µm (median over the logged attempts): even a normal release "
               f"with that scatter, aimed exactly at its mean and with no lateral miss, would end within "
               f"±{fb['eps_um']:.0f} µm only {fb['normal_cap']:.1%} of the time (docs/push-control.md §7).",
-              "", "Not in magctl yet: multi-sphere assembly planned by optimisation.", "",
-              reuse_note(r["trials_from_study"], NAME)]
+              "", *assembly_lines(r), "", reuse_note(r["trials_from_study"], NAME)]
     return lines, []

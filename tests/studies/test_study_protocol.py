@@ -242,11 +242,16 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
     """The beyond study from fake trials: hand numbers for the summaries and the targets, the figure drawn, and
     the attempt-map grid (curve law within 5 attempts of the floor wherever the floor is within 30)."""
     beyond = studies.discover()["beyond"]
-    exps = beyond.experiments() | beyond.front_experiments()
+    exps = beyond.experiments() | beyond.front_experiments() | beyond.assembly_experiments()
     n = 4
     attempts = {beyond.CURVE: [4, 5, 6, 11], "lin-fit, K_s=0.9": [5, 6, 6, 7],
                 f"{beyond.CURVE}, dirt": [5, 6, 20, 30], "lin-fit, K_s=0.9, dirt": [5, 6, 22, 30],
                 f"{beyond.CURVE_FRONT}, dirt": [5, 6, 7, 9], beyond.RELEASE: [2, 3, 4, 10], beyond.KC1: [2, 2, 3, 4]}
+    planned, greedy = beyond.PLANNED, beyond.GREEDY
+    attempts |= {label: [12, 14, 16, 18] for label in beyond.assembly_experiments()}
+    attempts |= {f"3 line, {planned}": [18, 20, 22, 30], f"3 line, {greedy}": [25, 30, 30, 30],
+                 f"3 triangle, {planned}": [15, 16, 18, 21], f"3 triangle, {greedy}": [14, 16, 18, 20],
+                 f"2 pair, {planned}": [8, 9, 10, 11]}
     cache = studies.TrialCache()
     for label, exp in exps.items():
         limit = 10 if label in (beyond.RELEASE, beyond.KC1) else 30
@@ -263,13 +268,24 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
     assert fc[beyond.RELEASE]["mean_attempts_all"] == pytest.approx(4.75)
     assert fc[beyond.KC1]["mean_attempts_all"] == pytest.approx(2.75)
     assert beyond.front_target(computed.results)[2] is False  # 2 attempts worse, not 0.5 better
+    a = computed.results["assembly"]
+    assert a[f"3 line, {planned}"]["assembled"] == pytest.approx(0.75)       # the 30-pass trial hit the limit
+    assert a[f"3 line, {planned}"]["passes_mean"] == pytest.approx(20.0)
+    assert a[f"3 line, {planned}"]["passes_all_mean"] == pytest.approx(22.5)
+    assert a[f"3 line, {greedy}"]["passes_all_mean"] == pytest.approx(28.75)
+    met = [ok for _, _, ok in beyond.assembly_targets(computed.results)]
+    # line: 75 % < 90 %, 22.5 < 28.75 passes; triangle: 100 %, 17.5 > 17 passes; pair: 9.5 < 15 passes
+    assert met[:5] == [False, True, True, False, True]
+    assert computed.results["pair_question"][1]["planned_passes"] <= computed.results["pair_question"][1][
+        "greedy_passes"]
     summary, paper = beyond.summarise(computed)
     assert paper == [] and any("**missed**" in line for line in summary)
+    assert any(line.startswith("| 3 triangle, planned") for line in summary)
     for row in computed.results["scale_grid"]:
         if row["fewest"] <= 25:
             assert row["curve"] is not None and row["curve"] <= row["fewest"] + 5, row
     paths = beyond.draw(computed, context(tmp_path, "beyond", cache=cache, trials=n))
-    assert len(paths) == 2 and all(p.read_bytes()[:8] == PNG_MAGIC for p in paths)
+    assert len(paths) == 3 and all(p.read_bytes()[:8] == PNG_MAGIC for p in paths)
 
 
 def test_cheap_studies_draw_nonempty_pngs(cheap_studies, tmp_path):
