@@ -17,7 +17,8 @@ cut off from the start raises :class:`PlanningError`.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import shortest_path
 
 from magctl import FRAME_PERIOD_S
 from magctl.core.block import Block, StateVar
@@ -76,21 +77,28 @@ class Grid:
 
 
 def wavefront(free: np.ndarray, goal: tuple[int, int]) -> np.ndarray:
-    """8-connected breadth-first step count from ``goal`` to every free cell; −1 where unreachable."""
+    """8-connected breadth-first step count from ``goal`` to every free cell; −1 where unreachable.
+
+    The free cells and their 8-neighbour links form an unweighted graph; scipy's breadth-first search over it
+    (``shortest_path(unweighted=True)``) gives the wave's step counts.
+    """
     dist = np.full(free.shape, -1, dtype=int)
     if not free[goal]:
         return dist
-    front = np.zeros_like(free)
-    front[goal] = True
-    dist[goal] = 0
-    visited = front.copy()
-    k = 0
-    struct = np.ones((3, 3), dtype=bool)
-    while front.any():
-        k += 1
-        front = ndimage.binary_dilation(front, structure=struct) & free & ~visited
-        dist[front] = k
-        visited |= front
+    ny, nx = free.shape
+    idx = np.arange(free.size).reshape(free.shape)
+    src, dst = [], []
+    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):   # each undirected link once
+        j0, j1 = max(0, -dj), nx - max(0, dj)
+        a, b = (slice(0, ny - di), slice(j0, j1)), (slice(di, ny), slice(j0 + dj, j1 + dj))
+        both = free[a] & free[b]
+        src.append(idx[a][both])
+        dst.append(idx[b][both])
+    src, dst = np.concatenate(src), np.concatenate(dst)
+    graph = csr_matrix((np.ones(src.size), (src, dst)), shape=(free.size, free.size))
+    hops = shortest_path(graph, directed=False, unweighted=True, indices=int(idx[goal]))
+    reach = np.isfinite(hops).reshape(free.shape)
+    dist[reach] = hops.reshape(free.shape)[reach].astype(int)
     return dist
 
 

@@ -34,6 +34,29 @@ def test_wavefront_counts_8_connected_steps():
     assert d[1, 3] == -1
 
 
+def test_wavefront_equals_a_plain_breadth_first_search_on_random_grids():
+    """Against a queue-based BFS written here: the same step count in every cell, −1 where unreachable."""
+    from collections import deque
+
+    rng = np.random.default_rng(7)
+    for _ in range(25):
+        free = rng.random((int(rng.integers(4, 30)), int(rng.integers(4, 30)))) > 0.35
+        goal = (int(rng.integers(free.shape[0])), int(rng.integers(free.shape[1])))
+        free[goal] = True
+        ref = np.full(free.shape, -1)
+        ref[goal] = 0
+        queue = deque([goal])
+        while queue:
+            i, j = queue.popleft()
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    n = (i + di, j + dj)
+                    if (0 <= n[0] < free.shape[0] and 0 <= n[1] < free.shape[1] and free[n] and ref[n] < 0):
+                        ref[n] = ref[i, j] + 1
+                        queue.append(n)
+        assert (wavefront(free, goal) == ref).all()
+
+
 @settings(max_examples=25, deadline=None)
 @given(st.lists(st.tuples(st.floats(0.8e-3, 4.0e-3), st.floats(0.3e-3, 3.3e-3)), min_size=1, max_size=3),
        st.floats(0.1e-3, 0.5e-3), st.floats(0.2e-3, 3.4e-3), st.floats(4.3e-3, 4.7e-3), st.floats(0.2e-3, 3.4e-3))
