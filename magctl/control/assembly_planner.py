@@ -158,11 +158,11 @@ class AssemblyPlanner:
         self._g_ub = np.array([np.inf] * (3 * n) + [(lim.max_length / _MM) ** 2])
         x0, y0, x1, y1 = (v / _MM for v in lim.field)
         self._x_lb, self._x_ub = np.array([x0, y0, x0, y0]), np.array([x1, y1, x1, y1])
-        self.objective = ca.Function("objective", [x, prm], [f])
+        self.objective = ca.Function("objective", [x, prm], [f]).expand()
         self.gradient = ca.Function("gradient", [x, prm], [ca.gradient(f, x)])
         self._bond_errors = ca.Function("bond_errors", [x, prm], [ca.vertcat(*err)])
         nlp = {"x": x, "p": prm, "f": f, "g": ca.vertcat(*g)}
-        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
+        opts = {"expand": True, "ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
                 "ipopt.max_iter": self.max_iter, "ipopt.tol": 1e-6, "ipopt.acceptable_tol": 1e-4}
         self.solver = ca.nlpsol("assembly_pass", "ipopt", nlp, opts)
 
