@@ -104,8 +104,8 @@ def experiments() -> dict:
 PLANNED, GREEDY, PAPER_PAIR = "planned (IPOPT on the pass map)", "greedy, θ_n = 30°", "paper's eq 21 task (K_s = 0.9)"
 ASSEMBLY_ROWS = (("pair", "assembly", 2), ("line", "assembly-3", 3), ("triangle", "assembly-3", 3),
                  ("line", "assembly-4", 4))
-ASSEMBLY_MAX_FRAMES = {2: 9000, 3: 16000, 4: 16000}
-"""Frames before a still-running trial is cut off: 30 passes of ≈ 340 frames (reposition, pass, settle) for N ≥ 3."""
+ASSEMBLY_MAX_FRAMES = {2: 16000, 3: 16000, 4: 16000}
+"""Frames before a still-running trial is cut off: 30 passes of up to ≈ 500 frames (reposition, pass, settle)."""
 ASSEMBLY_SHARE_TARGET, ASSEMBLY_PASSES = 0.9, 30
 PAIR_DISTANCES_UM = (450.0, 600.0, 750.0, 900.0)
 
