@@ -242,3 +242,26 @@ def test_the_physical_plant_starts_tracked_where_the_scene_puts_it():
     assert not out["lost"][0]
     np.testing.assert_allclose(out["robot_est"][0], scene.robot, atol=pixel)
     np.testing.assert_allclose(out["spheres_est"][0], scene.spheres, atol=pixel)
+
+
+def test_three_sphere_assembly_through_the_command_line_against_the_server(start_server, tmp_path):
+    """`magctl rig run --task assemble --option n_spheres=3` against `serve-sim` on loopback (its own process,
+    lock-step): the planned assembly plans, repositions and starts its first pass, logs every frame and leaves
+    the coils at zero."""
+    srv = start_server("--lockstep", "--spheres", "3", "--sphere-um", "2000", "1800", "--sphere-um", "2420", "1780",
+                       "--sphere-um", "2190", "2160")
+    log = tmp_path / "assemble.jsonl"
+    proc = subprocess.run(magctl_cmd("rig", "run", "--rig", srv.address, "--task", "assemble", "--option",
+                                     "n_spheres=3", "--option", "arrangement=triangle", "--max-ticks", "250",
+                                     "--log", str(log), "--json", "--quiet"),
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert doc["exit_status"] == "stopped" and doc["ticks"] == 250
+    run = read_log(log)
+    assert run.start["task"] == "assemble" and run.start["options"]["n_spheres"] == 3
+    assert len(run.events) == 250
+    phases = [e["outputs"]["phase"] for e in run.events]
+    assert 1 in phases and 2 in phases   # repositioned along the wavefront path, then on the pass
+    st = RigClient(srv.address).call("status")
+    assert st["state"] == "inactive" and st["coils_zero"]
