@@ -43,6 +43,24 @@ def _run(block, batch, positions, heading, velocity):
     return np.asarray(out), contact
 
 
+def _drive_past(gaps: np.ndarray, reach: float, speed: float, block_kw: dict):
+    """The robot drives along +x from ``-reach`` to ``+reach`` at ``speed`` past one sphere per trial at
+    ``(0, D_g)``: robot positions ``(T,)``, the step, sphere paths ``(T+1, G, 1, 2)`` and contact ``(G,)``."""
+    b = len(gaps)
+    init = np.zeros((b, 1, 2))
+    init[:, 0, 1] = gaps
+    block = _spheres(init, **block_kw)
+    step = speed * block.dt
+    n = int(np.ceil(2 * reach / step))
+    x = -reach + step * np.arange(n)
+    pos = np.zeros((n, b, 2))
+    pos[:, :, 0] = x[:, None]
+    vel = np.zeros((n, b, 2))
+    vel[:, :, 0] = speed
+    path, contact = _run(block, b, pos, 0.0, vel)
+    return x, step, path, contact
+
+
 @dataclass
 class SidePushResult:
     """Sphere displacement for each side gap.
@@ -80,18 +98,7 @@ def sidepush_curve(gaps, speed: float = ROBOT_SPEED, travel: float = APPROACH, *
         raise ValueError("side gaps D_g must be positive")
     if speed <= 0 or travel <= 0:
         raise ValueError("speed and travel must be positive")
-    b = len(gaps)
-    init = np.zeros((b, 1, 2))
-    init[:, 0, 1] = gaps
-    block = _spheres(init, **block_kw)
-    step = speed * block.dt
-    n = int(np.ceil(2 * travel / step))
-    x = -travel + step * np.arange(n)
-    pos = np.zeros((n, b, 2))
-    pos[:, :, 0] = x[:, None]
-    vel = np.zeros((n, b, 2))
-    vel[:, :, 0] = speed
-    path, contact = _run(block, b, pos, 0.0, vel)
+    _x, _step, path, contact = _drive_past(gaps, travel, speed, block_kw)
     d = path[-1, :, 0] - path[0, :, 0]
     return SidePushResult(gaps, np.linalg.norm(d, axis=-1), d[:, 0], d[:, 1], contact)
 
@@ -134,18 +141,7 @@ def pass_profile(gaps, reach: float = 3e-3, speed: float = ROBOT_SPEED, **block_
         raise ValueError("side gaps D_g must be non-negative")
     if speed <= 0 or reach <= 0:
         raise ValueError("speed and reach must be positive")
-    b = len(gaps)
-    init = np.zeros((b, 1, 2))
-    init[:, 0, 1] = gaps
-    block = _spheres(init, **block_kw)
-    step = speed * block.dt
-    n = int(np.ceil(2 * reach / step))
-    x = -reach + step * np.arange(n)
-    pos = np.zeros((n, b, 2))
-    pos[:, :, 0] = x[:, None]
-    vel = np.zeros((n, b, 2))
-    vel[:, :, 0] = speed
-    path, contact = _run(block, b, pos, 0.0, vel)
+    x, step, path, contact = _drive_past(gaps, reach, speed, block_kw)
     d = path[1:, :, 0] - path[0, :, 0]
     return PassProfile(x + step, gaps, d[..., 0], d[..., 1], contact)
 
