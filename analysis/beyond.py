@@ -40,7 +40,7 @@ from magctl.studies.push import controller_summary, controller_table, reuse_note
 from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "beyond"
-TITLE = "Beyond the paper: a side push that learns its curve, against the paper's best"
+TITLE = "Beyond the paper: push controllers that learn their plant, and assemblies planned by optimisation"
 ORDER = 60
 DEFAULT_TRIALS = 200
 REUSES = ("side-push", "robustness")
