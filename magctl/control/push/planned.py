@@ -134,7 +134,8 @@ class PlannedAssemblyTask(PushTask, Block):
             self._fail(new, none, STALLED, r)
         for k in np.flatnonzero(mask & ~none):
             path = self._reposition_path(r[k], a[k], spheres[k])
-            path = path[-MAX_WAYPOINTS:]
+            if len(path) > MAX_WAYPOINTS:   # not expected after shortening; keep the way out and the pass start
+                path = np.concatenate([path[: MAX_WAYPOINTS - 1], path[-1:]])
             new["waypoints"][k] = np.nan
             new["waypoints"][k, : len(path)] = path
             new["n_waypoints"][k] = len(path)
@@ -150,13 +151,14 @@ class PlannedAssemblyTask(PushTask, Block):
         """Waypoints to the pass start round every sphere (the robot's own position dropped).
 
         The keep-out is the repositioning clearance; where the spheres, moved by the last pass, close every
-        way round at it, the paper's 650 µm (§VI) and then the planner's pass gap are tried before a
-        straight line (the pass start itself keeps the clearance when it is planned).
+        way round at it, the paper's 650 µm (§VI, if smaller) and then the planner's pass gap are tried before
+        a straight line (the pass start itself keeps the clearance when it is planned).
         """
         x0, y0, x1, y1 = self.bounds
         pad = 2 * self.cell   # the pass ends may lie on the field's edge: the grid reaches past it
         bounds = (x0 - pad, y0 - pad, x1 + pad, y1 + pad)
-        for keep_out in (self.clearance, min(self.clearance, KEEP_OUT_M), self.law_limits.min_gap):
+        keep_outs = dict.fromkeys((self.clearance, min(self.clearance, KEEP_OUT_M), self.law_limits.min_gap))
+        for keep_out in keep_outs:
             try:
                 path = plan_path(robot, start, spheres, bounds=bounds, keep_out=keep_out, cell=self.cell)
                 return path[1:] if len(path) > 1 else path
