@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from magctl import FRAME_PERIOD_S
 from magctl.config import load_model
 from magctl.control.arrangement import Arrangement
+from magctl.control.learning import ATTEMPT
 from magctl.control.pass_model import PassMap
 from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
@@ -45,8 +45,6 @@ from magctl.core.ports import Port
 _MM = 1e-3
 SIGMA = 10e-6
 """Scale of the bond errors in the objective (m): the objective is in units of (10 µm)²."""
-ATTEMPT = FRAME_PERIOD_S
-"""The planner is stepped once per pass; its ``dt`` is nominal (the attempt index is its clock)."""
 
 
 @dataclass(frozen=True)
@@ -160,7 +158,6 @@ class AssemblyPlanner:
         self._x_lb, self._x_ub = np.array([x0, y0, x0, y0]), np.array([x1, y1, x1, y1])
         self.objective = ca.Function("objective", [x, prm], [f]).expand()
         self.gradient = ca.Function("gradient", [x, prm], [ca.gradient(f, x)])
-        self._bond_errors = ca.Function("bond_errors", [x, prm], [ca.vertcat(*err)])
         nlp = {"x": x, "p": prm, "f": f, "g": ca.vertcat(*g)}
         opts = {"expand": True, "ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
                 "ipopt.max_iter": self.max_iter, "ipopt.tol": 1e-6, "ipopt.acceptable_tol": 1e-4}
@@ -273,7 +270,8 @@ class PassPlanner(Block):
     outputs ``start``, ``end`` (2,) m, the pass, and ``y`` (m), its predicted RMS bond error.
 
     State: the pass, its prediction, the learned mobility (see the module docstring) and the passes planned.
-    A trial with no feasible pass gets ``start = end = NaN`` (the task then stops it as stalled).
+    A trial with no feasible pass gets ``start = end = NaN`` (the task then stops it as stalled). The greedy
+    baseline predicts nothing: its ``y`` is the bond error before the pass and it learns no mobility.
     """
 
     def __init__(self, target: Arrangement, name: str = "pass_planner", *, planner: str = "optimal", **kw):
@@ -313,8 +311,9 @@ class PassPlanner(Block):
     def learn(self, state, spheres) -> dict:
         """The mobility after the pass just made: least squares of measured on predicted displacement.
 
-        ``m ← (W·m + Σ d_pred·d_meas) / (W + Σ |d_pred|²)`` with ``W`` the predicted displacements so far (a
-        prior of 1 worth one 10 µm displacement); clipped to [0.2, 3].
+        ``m ← (W·m + Σ d_pred·d_meas) / (W + Σ |d_pred|²)``, the sums over the spheres of this pass, with
+        ``W`` the larger of the squared predicted displacements of the passes so far and (10 µm)² — the prior
+        ``m = 1`` counts as one 10 µm displacement until the passes outweigh it; clipped to [0.2, 3].
         """
         pred = state["predicted"] - state["before"]
         meas = np.asarray(spheres, float) - state["before"]

@@ -369,8 +369,7 @@ def _assemble(first_obs: Observation, options: dict, params: Params) -> Task:
         raise TaskError(f"assemble: option(s) {', '.join(foreign)} do not apply to the planned assembly of "
                         f"{n} spheres; its options: {', '.join(_PLANNED_OPTIONS)}")
     values, logged = _resolved("assemble", options)
-    values = {k: values[k] for k in _PLANNED_OPTIONS if k in values and k != "n_spheres"}
-    values = {k: v for k, v in values.items() if k in ("servo", "speed_max") or k in given}
+    values = {k: v for k, v in values.items() if k in ("servo", "speed_max") or (k in given and k != "n_spheres")}
     values.setdefault("planner", "optimal")
     logged = {k: v for k, v in logged.items() if split_unit(k)[0] in _PLANNED_OPTIONS} | {"n_spheres": n}
     return Task("assemble", _build("assemble", values, n), logged, dict(PUSH_OUTCOMES))

@@ -7,7 +7,8 @@ at side gap ``h`` from the robot's line, the robot driving past from 3 mm before
 sphere's displacement along the motion and away from the line after every frame, as a function of the
 robot's position ``x`` relative to the sphere. A pass from ``x0`` to ``x1`` moves it by
 ``S(x1, h) − S(x0, h)`` (superposition along the path: the sphere's own ≤ 70 µm motion hardly changes the
-flow it sees beyond the contact threshold; :func:`superposition_error` measures what it misses).
+flow it sees beyond the contact threshold; tests/studies/test_pass_map.py measures what it misses against
+simulations of the passes themselves).
 
 The map starts at the contact threshold: the planner's passes keep ``min_gap`` from every sphere, so a
 sphere nearer the robot's line than that lies beyond the end of the pass, where the flow ahead of the robot
@@ -51,29 +52,6 @@ def identify(gaps_um=GAPS_UM, reach_um: float = REACH_UM, step_um: float = POSIT
     away = np.stack([np.interp(grid, x_um, prof.away[:, j] / UM) for j in range(gaps.size)], axis=1)
     return {"positions_um": grid, "gaps_um": gaps, "along_um": along, "away_um": away,
             "min_gap_um": min_gap_um, "contact": prof.contact}
-
-
-def superposition_error(gaps_um=(370, 490, 610, 850, 1300), span_um=(-1000.0, 1000.0)) -> dict:
-    """The map's prediction of one pass against the pass itself (:func:`sidepush_curve`), µm."""
-    from magctl.plant.fluid.scenarios import sidepush_curve
-
-    m = identify()
-    g = np.asarray(gaps_um, float)
-    x0, x1 = span_um
-    pred = {}
-    for key in ("along_um", "away_um"):
-        ends = [np.interp([x0, x1], m["positions_um"], _column(m, key, h)) for h in g]
-        pred[key] = np.array([e[1] - e[0] for e in ends])
-    direct = sidepush_curve(g * UM, travel=(x1 - x0) / 2 * UM)
-    return {"gaps_um": g, "predicted_along_um": pred["along_um"], "pass_along_um": direct.along / UM,
-            "predicted_away_um": pred["away_um"], "pass_away_um": direct.across / UM}
-
-
-def _column(m: dict, key: str, h: float) -> np.ndarray:
-    """``S(·, h)`` on the map's positions, linear between its gaps."""
-    j = int(np.clip(np.searchsorted(m["gaps_um"], h) - 1, 0, len(m["gaps_um"]) - 2))
-    w = (h - m["gaps_um"][j]) / (m["gaps_um"][j + 1] - m["gaps_um"][j])
-    return (1 - w) * m[key][:, j] + w * m[key][:, j + 1]
 
 
 def model_toml(m: dict) -> str:

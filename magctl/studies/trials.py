@@ -64,10 +64,11 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
 
     errors = np.full((batch, max_att + 1), np.nan)
     errors[:, 0] = error_of(g["spheres"][None])
+    # signed: along the first sphere's line to its goal (a planned assembly has none: its bond error again)
     along = goal - g["spheres"][0]
     along = along / np.linalg.norm(along)
     signed = np.full((batch, max_att + 1), np.nan)
-    signed[:, 0] = (goal - g["spheres"][0]) @ along
+    signed[:, 0] = errors[:, 0] if target is not None else (goal - g["spheres"][0]) @ along
     status = np.full(batch, Status.RUNNING, dtype=np.int64)
     attempts = np.zeros(batch, dtype=np.int64)
     frames = np.full(batch, exp.max_frames, dtype=np.int64)
@@ -87,7 +88,8 @@ def run_push_trials(trials, seed: int, *, exp: Experiment, chunk_frames: int = 1
         rows, cols = np.nonzero(bumped)
         slot = np.minimum(att[rows, cols], max_att)
         errors[rows, slot] = err[rows, cols]
-        signed[rows, slot] = np.einsum("ki,i->k", goal - res[SPHERES][rows, cols, 0], along)
+        signed[rows, slot] = (err[rows, cols] if target is not None
+                              else np.einsum("ki,i->k", goal - res[SPHERES][rows, cols, 0], along))
         ended = (st != Status.RUNNING) & (status == Status.RUNNING)[:, None]
         first_end = np.where(ended.any(axis=1), ended.argmax(axis=1), -1)
         newly = first_end >= 0

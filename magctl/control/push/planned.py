@@ -20,11 +20,10 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.config import load_model
-from magctl.control.arrangement import ARRANGEMENTS
 from magctl.control.arrangement import arrangement as make_arrangement
 from magctl.control.assembly_planner import PassPlanner, PlanLimits
 from magctl.control.planner import KEEP_OUT_M, PlanningError, plan_path
-from magctl.control.push.common import STALLED, START, PushTask, arrived, with_defaults
+from magctl.control.push.common import FINISHED, STALLED, START, PushTask, arrived, with_defaults
 from magctl.core.batched import norm
 from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
@@ -62,7 +61,7 @@ class PlannedAssemblyTask(PushTask, Block):
     error after the pass.
     """
 
-    PHASES = {0: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", 99: "finished"}
+    PHASES = {START: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", FINISHED: "finished"}
 
     def __init__(self, name: str = "planned_assembly", *, n_spheres: int = 3, arrangement: str | None = None,
                  planner: str = "optimal", eps_as: float | None = None, max_attempts: int | None = None,
@@ -73,10 +72,8 @@ class PlannedAssemblyTask(PushTask, Block):
         n_spheres = int(n_spheres)
         if not 2 <= n_spheres <= 4:
             raise MagctlError(f"assembly {name!r}: n_spheres={n_spheres} must be 2, 3 or 4")
-        kind = arrangement or ("pair" if n_spheres == 2 else "line")
-        if kind not in ARRANGEMENTS:
-            raise MagctlError(f"assembly {name!r}: arrangement={kind!r} is not one of {', '.join(ARRANGEMENTS)}")
-        self.target = make_arrangement(kind, n_spheres, eps_as=eps_as)
+        self.target = make_arrangement(arrangement or ("pair" if n_spheres == 2 else "line"), n_spheres,
+                                       eps_as=eps_as)
         p = with_defaults("side", max_attempts=max_attempts, clearance=clearance, arrive_tol=arrive_tol,
                           pass_speed=pass_speed, travel_speed=travel_speed, settle_frames=settle_frames,
                           max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
