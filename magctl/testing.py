@@ -9,15 +9,14 @@
 B1 definition (units µm and s here, as in the benchmark's statement): T = 1/30 s,
 1 800 steps, 2-D. Plant ``p[k+1] = p[k] + T·clip(u[k])`` with the vector norm
 of ``u`` limited to 400 µm/s (direction kept). Camera ``y[k] = p[k−2] + n[k]``,
-``n ~ N(0, (3 µm)²)`` per axis, drawn per trial as
-``default_rng(s).standard_normal((1800, 2)) * 3``. Discrete PI on
+``n ~ N(0, (3 µm)²)`` per axis, drawn from the trial's counter-based stream. Discrete PI on
 ``e = r − y``: ``u = Kp·e[k] + Ki·I[k]``, ``I[k+1] = I[k] + T·e[k]`` except while
 ``‖u‖ > 400`` (anti-windup: hold I); Kp = 1.5 s⁻¹, Ki = 0.3 s⁻²; r = (1000, 500) µm,
 ``p[0] = 0``.
 
-The seed ``s`` of trial ``k`` is the noise block's stream in a magctl
-simulation seeded with ``seed``: ``SeedSequence(seed, spawn_key=(k, block_key("camera_noise")))``,
-so all three implementations see the same noise.
+The noise of trial ``k`` is the noise block's stream in a magctl simulation seeded with ``seed``
+(``TrialStreams.for_block(seed, [k], "camera_noise")`` read at steps 0 … 1799), so all three
+implementations see the same noise.
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ import control
 import numpy as np
 
 from magctl.core import PI, Constant, Delay, Diagram, GaussianNoise, Integrator, NormSaturation, Sum, simulate
-from magctl.core.random import block_key
+from magctl.core.random import TrialStreams
 
 T = 1.0 / 30.0
 STEPS = 1800
@@ -59,12 +58,8 @@ def b1_diagram() -> Diagram:
 
 def b1_noise(seed: int, trials) -> np.ndarray:
     """Camera noise of the given trials, ``(B, 1800, 2)`` µm, exactly as the magctl diagram draws it."""
-    key = block_key("camera_noise")
-    return np.stack([
-        np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(int(k), key))).standard_normal((STEPS, 2))
-        * NOISE_SIGMA
-        for k in trials
-    ])
+    streams = TrialStreams.for_block(seed, [int(k) for k in trials], "camera_noise")
+    return np.stack([streams.standard_normal((2,), at=k) for k in range(STEPS)], axis=1) * NOISE_SIGMA
 
 
 def b1_numpy(noise: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ and steps — that calls these functions in the schedule's order.
 
 **The array convention.** Every port value and every state entry is an array ``(B, n)`` of its
 dtype, ``n`` the number of elements of one trial's value (1 for a scalar), trial ``b`` in row ``b``;
-a batch-wide counter is stored per trial too. Noise arrays are ``(B, steps, n)``. A kernel
+a batch-wide counter is stored per trial too. A kernel
 function is called for one trial ``b`` with tuples of such arrays:
 
 * feedthrough: ``step(b, params, state, next_state, inputs, outputs, base, noise)`` writes the
@@ -20,25 +20,24 @@ Kernel functions allocate nothing (no ``np.empty``, no copies, no lists): the en
 without numba's reference-counted runtime, which a kernel holding many arrays would otherwise pay an
 atomic count for at every use. ``params`` is the kernel's tuple of parameters; ``state`` and ``next_state`` follow
 ``flat_state_vars(block.state_vars())`` (random streams left out); ``inputs`` and ``outputs`` follow
-the block's port order; ``noise`` holds one array per declared draw (an empty tuple without).
+the block's port order; ``noise`` is the stream key rows of a noisy kernel (an empty tuple without).
 
-A kernel that draws noise declares it with ``noise``: the ``(kind, shape)`` draws of the block's
-stream in the order the block makes them at each position, and the name of the state entry that
-counts positions. The engine draws them beforehand from the same per-trial streams
-(:func:`stream_draws`), so a trial's numbers are those of the interpreted engine; the kernel reads
-position ``p`` at ``noise[b, p - base]``.
+A kernel that draws noise names the state entry holding its streams (``stream="rng"``, or a dotted path
+into a member's state such as ``"robot.rng"``); the engine then passes that block's stream key rows as
+``noise`` (``(B, 5)`` ``uint64``, :mod:`magctl.core.philox`), and the kernel reads its numbers by
+address — ``normal(noise, b, k, i)`` for draw ``i`` at the position ``k`` its state counts — exactly
+the numbers the interpreted engine's :class:`~magctl.core.random.TrialStreams` gives. ``base`` is 0.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from magctl.core.block import STREAM, Block, StateVar, flat_state_vars, state_get, state_with
 from magctl.core.errors import MagctlError
-from magctl.core.random import TrialStreams
 
 
 @dataclass(frozen=True)
@@ -53,12 +52,10 @@ class Kernel:
         Outputs from the state, then the next state (blocks without feedthrough).
     params : tuple
         The functions' ``params``: floats, ints, bools and contiguous arrays.
-    noise : tuple of (str, tuple)
-        ``(kind, shape)`` of each noise draw per position, in the order the block draws them
-        (kinds of :class:`~magctl.core.random.TrialStreams`: ``"standard_normal"``, ``"random"``).
-    position : str
-        State entry holding the stream position of the next draw (with ``noise``); a dotted path
-        (``"robot.k"``) names an entry of a nested state, whose ``"rng"`` entry is then the stream.
+    stream : str
+        The state entry holding the block's :class:`~magctl.core.random.TrialStreams` when its kernel draws
+        noise (``"rng"``; a dotted path such as ``"robot.rng"`` names an entry of a nested state); empty
+        for a kernel that draws nothing.
     in_place : bool
         The functions read every state element before writing the same element of the next
         state, so the engine may pass the state arrays as the next state too (no copy per step).
@@ -69,8 +66,7 @@ class Kernel:
     output: Callable | None = None
     update: Callable | None = None
     params: tuple = ()
-    noise: tuple = field(default_factory=tuple)
-    position: str = ""
+    stream: str = ""
     in_place: bool = True
 
     def __post_init__(self):
@@ -78,8 +74,6 @@ class Kernel:
             raise MagctlError("a kernel has either step (feedthrough) or output and update (no feedthrough)")
         if self.output is not None and self.update is None:
             raise MagctlError("a kernel with output needs update (give a no-op one for a stateless block)")
-        if self.noise and not self.position:
-            raise MagctlError("a kernel that draws noise names the state entry counting its position")
 
 
 def compiled_vars(block: Block) -> list[tuple[tuple[str, ...], StateVar]]:
@@ -125,28 +119,14 @@ def port_width(port) -> int:
     return int(np.prod(port.shape, dtype=int))
 
 
-def stream_draws(rng: TrialStreams, draws: Sequence[tuple[str, tuple]], start: int, count: int) -> list[np.ndarray]:
-    """Positions ``start … start+count−1`` of a block's stream, one ``(B, count, n)`` array per draw.
+def stream_keys_of(kernel: Kernel, state: dict, batch: int) -> np.ndarray:
+    """The ``(B, 5)`` stream key rows a noisy kernel reads (rows switched off when the state holds no stream:
+    the noise-free path)."""
+    from magctl.core.random import stream_keys
 
-    The interpreted engine refills each ``(kind, shape)`` in chunks of ``rng.chunk`` positions from the
-    trial's one generator, in the order the block first asks for them, starting at position 0; this
-    repeats those refills from the trial's seed sequence, so the numbers are the same. It assumes what
-    every random block does: all of its draws are asked for at every position, in ``draws``' order.
-    """
-    if rng.sequences is None:
-        raise MagctlError("compiled noise needs streams made from seed sequences")
-    chunk = rng.chunk
-    n_chunks = (start + count + chunk - 1) // chunk
-    out = [np.empty((rng.batch, n_chunks * chunk, max(int(np.prod(shape, dtype=int)), 1))) for _, shape in draws]
-    for b, seq in enumerate(rng.sequences):
-        gen = np.random.default_rng(seq)
-        if len(draws) == 1:  # one kind: its chunks are consecutive draws
-            kind, shape = draws[0]
-            out[0][b] = getattr(np.random.Generator, kind)(gen, (n_chunks * chunk, *shape)).reshape(
-                n_chunks * chunk, -1)
-            continue
-        for c in range(n_chunks):
-            for (kind, shape), arr in zip(draws, out, strict=True):
-                block = getattr(np.random.Generator, kind)(gen, (chunk, *shape))
-                arr[b, c * chunk:(c + 1) * chunk] = block.reshape(chunk, -1)
-    return [np.ascontiguousarray(arr[:, start:start + count]) for arr in out]
+    rng = state_get(state, tuple(kernel.stream.split(".")))
+    if rng is None:
+        return stream_keys(0, range(batch), 0, on=False)
+    if rng.batch != batch:
+        raise MagctlError(f"the state's streams hold {rng.batch} trials, not {batch}")
+    return rng.keys

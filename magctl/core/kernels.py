@@ -11,6 +11,8 @@ import math
 
 import numba
 
+from magctl.core.philox import normal
+
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 
 
@@ -199,8 +201,6 @@ def gaussian_noise_step(b, params, state, next_state, inputs, outputs, base, noi
     nk, = next_state
     u, = inputs
     y, = outputs
-    draws, = noise
-    p = k[b, 0] - base
     for i in range(y.shape[1]):
-        y[b, i] = u[b, i] + sigma * draws[b, p, i]
+        y[b, i] = u[b, i] + sigma * normal(noise, b, k[b, 0], i)
     nk[b, 0] = k[b, 0] + 1

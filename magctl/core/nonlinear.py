@@ -86,5 +86,4 @@ class GaussianNoise(Block):
     def kernel(self):
         from magctl.core import kernels as k
 
-        return Kernel(step=k.gaussian_noise_step, params=(self.sigma,),
-                      noise=(("standard_normal", self.inputs["u"].shape),), position="k")
+        return Kernel(step=k.gaussian_noise_step, params=(self.sigma,), stream="rng")

@@ -228,7 +228,7 @@ class ActuatedRobot(Block):
         params = (*self.drive.kernel_params(), *self.coils.kernel_params(), *self.robot.kernel_params())
         if self.robot.cv > 0:
             return Kernel(output=k.actuated_output, update=k.actuated_update_noisy, params=params,
-                          noise=(("standard_normal", ()),), position="robot.k")
+                          stream="robot.rng")
         return Kernel(output=k.actuated_output, update=k.actuated_update, params=params)
 
     def output(self, state, u):

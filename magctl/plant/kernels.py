@@ -15,6 +15,8 @@ import math
 
 import numba
 
+from magctl.core.philox import normal
+
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 
 
@@ -233,8 +235,7 @@ def robot_update_noisy(b, params, state, next_state, inputs, base, noise):
     """``StickSlipRobot.update`` with the step variation ``n ~ N(0, 1)`` of stream position ``k``."""
     pos, psi, vel, tilt, k = state
     bs, bo, fr = inputs
-    draws, = noise
-    n = draws[b, k[b, 0] - base, 0]
+    n = normal(noise, b, k[b, 0], 0)
     r = robot_advance(params, bs[b, 0], bs[b, 1], bo[b, 0], fr[b, 0], psi[b, 0], pos[b, 0], pos[b, 1], True, n)
     _robot_write(b, state, next_state, r)
 
@@ -275,5 +276,4 @@ def actuated_update(b, params, state, next_state, inputs, base, noise):
 def actuated_update_noisy(b, params, state, next_state, inputs, base, noise):
     """``ActuatedRobot.update`` with the robot's step variation at stream position ``robot.k``."""
     k = state[5]
-    draws, = noise
-    _actuated(b, params, state, next_state, inputs, True, draws[b, k[b, 0] - base, 0])
+    _actuated(b, params, state, next_state, inputs, True, normal(noise, b, k[b, 0], 0))

@@ -134,7 +134,7 @@ class StickSlipRobot(Block):
 
         if self.cv > 0:
             return Kernel(output=k.robot_output, update=k.robot_update_noisy, params=self.kernel_params(),
-                          noise=(("standard_normal", ()),), position="k")
+                          stream="rng")
         return Kernel(output=k.robot_output, update=k.robot_update, params=self.kernel_params())
 
     def output(self, state, u):

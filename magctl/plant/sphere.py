@@ -267,11 +267,11 @@ class Spheres(Block):
         p = self.params
         if rng is not None and self.uses_random:
             if p.sticky_probability > 0:
-                sticky = rng.random((self.n,)) < p.sticky_probability
+                sticky = rng.random((self.n,), at=0) < p.sticky_probability
                 mult = np.where(sticky, p.sticky_mobility, mult)
             if p.release_scatter > 0:
                 sig = np.sqrt(np.log1p(p.release_scatter**2))
-                mult = mult * np.exp(sig * rng.standard_normal((self.n,)) - 0.5 * sig**2)
+                mult = mult * np.exp(sig * rng.standard_normal((self.n,), at=0) - 0.5 * sig**2)
         xy = separate_spheres(xy, self.radius)
         return {"xy": xy, "gap": np.zeros((batch, self.n)), "mobility": mult,
                 "contact": np.zeros(batch, bool)}

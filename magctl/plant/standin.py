@@ -441,7 +441,7 @@ class StandinSpheres(Block):
                   self.SIDE_K, np.array(self.side_scale, float).reshape(-1), 2.0 * self.sphere_radius,
                   float(_STRAIGHT), np.zeros(max(n, 1), bool))
         return Kernel(output=k.standin_spheres_output, update=k.standin_spheres_update, params=params,
-                      noise=(("standard_normal", ()),), position="k")
+                      stream="rng")
 
     def _separate(self, s: np.ndarray, driven: np.ndarray) -> np.ndarray:
         n, gap = s.shape[1], 2.0 * self.sphere_radius

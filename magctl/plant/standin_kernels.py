@@ -14,6 +14,8 @@ import math
 import numba
 import numpy as np
 
+from magctl.core.philox import normal
+
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 
 
@@ -122,9 +124,8 @@ def standin_spheres_update(b, params, state, next_state, inputs, base, noise):
     s, contact, r, direction, attached, pending, passed, releases, last_release, k = state
     ns, ncontact, nr, ndir, nattached, npending, npassed, nreleases, nlast, nk = next_state
     position, = inputs
-    draws, = noise
     # read the trial's scalars, then work on the next state (the same arrays when in place)
-    draw = draws[b, k[b, 0] - base, 0]
+    draw = normal(noise, b, k[b, 0], 0)
     r00, r01 = r[b, 0], r[b, 1]
     dir0, dir1 = direction[b, 0], direction[b, 1]
     rx, ry = position[b, 0], position[b, 1]

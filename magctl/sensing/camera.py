@@ -243,11 +243,10 @@ class Camera(Block):
         fov_w, fov_h = self.field_of_view
         params = (self.n_spheres, self.pixel, self.pixel * self.sigma_px, self.sigma_heading, self.p_drop,
                   float(fov_w), float(fov_h))
-        noise = (("standard_normal", (3 + 2 * self.n_spheres,)), ("random", (1,)))
         if self.latency:
             update = {1: k.camera_update_1, 2: k.camera_update_2}.get(self.latency, k.camera_update)
-            return Kernel(output=k.camera_output, update=update, params=params, noise=noise, position="k")
-        return Kernel(step=k.camera_step, params=params, noise=noise, position="k")
+            return Kernel(output=k.camera_output, update=update, params=params, stream="rng")
+        return Kernel(step=k.camera_step, params=params, stream="rng")
 
     def _sample(self, state, u):
         """The true plant state of the frame delivered now, and whether one exists."""

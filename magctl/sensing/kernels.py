@@ -18,6 +18,8 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic, overload
 
+from magctl.core.philox import normal, uniform
+
 OPTIONS = {"cache": True, "nogil": True, "inline": "always", "error_model": "numpy"}
 jit = numba.njit(**OPTIONS)
 
@@ -43,20 +45,19 @@ def _quantise(x, pixel):
 
 
 @jit
-def _measure(p, b, full, px, py, head, sph, normal, uniform, k, base, mpos, mhead, msph, nmpos, nmhead, nmsph):
+def _measure(p, b, full, px, py, head, sph, key, k, mpos, mhead, msph, nmpos, nmhead, nmsph):
     """``Camera._measure`` of one trial: ``valid = full ∧ (u ≥ p_drop) ∧`` in view; positions
     ``s·round((x + s σ_px n)/s)``, heading ``arg e^{i(ψ + σ_θ n)}``; the held measurement when not valid.
     ``sph`` is read (row ``b``) before the new measurement is written, element by element."""
     n_sph, pixel, sig_pos, sig_head, p_drop, fov_w, fov_h = p
-    q = k - base
-    valid = full and uniform[b, q, 0] >= p_drop and px >= 0 and px <= fov_w and py >= 0 and py <= fov_h
+    valid = full and uniform(key, b, k, 0) >= p_drop and px >= 0 and px <= fov_w and py >= 0 and py <= fov_h
     if valid:
-        nmpos[b, 0] = _quantise(px + sig_pos * normal[b, q, 0], pixel)
-        nmpos[b, 1] = _quantise(py + sig_pos * normal[b, q, 1], pixel)
-        x = head + sig_head * normal[b, q, 2]
+        nmpos[b, 0] = _quantise(px + sig_pos * normal(key, b, k, 0), pixel)
+        nmpos[b, 1] = _quantise(py + sig_pos * normal(key, b, k, 1), pixel)
+        x = head + sig_head * normal(key, b, k, 2)
         nmhead[b, 0] = math.atan2(math.sin(x), math.cos(x))
         for i in range(2 * n_sph):
-            nmsph[b, i] = _quantise(sph[b, i] + sig_pos * normal[b, q, 3 + i], pixel)
+            nmsph[b, i] = _quantise(sph[b, i] + sig_pos * normal(key, b, k, 3 + i), pixel)
     else:
         nmpos[b, 0] = mpos[b, 0]
         nmpos[b, 1] = mpos[b, 1]
@@ -73,8 +74,7 @@ def camera_step(b, params, state, next_state, inputs, outputs, base, noise):
     nk, nmpos, nmhead, nmsph = next_state
     pos, head, sph = inputs
     opos, ohead, osph, ovalid = outputs
-    normal, uniform = noise
-    valid = _measure(params, b, True, pos[b, 0], pos[b, 1], head[b, 0], sph, normal, uniform, k[b, 0], base,
+    valid = _measure(params, b, True, pos[b, 0], pos[b, 1], head[b, 0], sph, noise, k[b, 0],
                      mpos, mhead, msph, nmpos, nmhead, nmsph)
     opos[b, 0] = nmpos[b, 0]
     opos[b, 1] = nmpos[b, 1]
@@ -134,10 +134,9 @@ def _copy_row(b, src, dst):
 @jit
 def _measure_oldest(b, params, state, next_state, base, noise):
     """The frame now oldest in the next state measured at stream position ``k + 1``; ``k`` advanced."""
-    normal, uniform = noise
     k1 = state[0][b, 0] + 1
     spos, shead, ssph, sfull = next_state[1], next_state[2], next_state[3], next_state[4]
-    valid = _measure(params, b, sfull[b, 0], spos[b, 0], spos[b, 1], shead[b, 0], ssph, normal, uniform, k1, base,
+    valid = _measure(params, b, sfull[b, 0], spos[b, 0], spos[b, 1], shead[b, 0], ssph, noise, k1,
                      state[-4], state[-3], state[-2], next_state[-4], next_state[-3], next_state[-2])
     next_state[-1][b, 0] = valid
     next_state[0][b, 0] = k1

@@ -402,12 +402,16 @@ def test_the_contract_check_catches_an_output_that_caches_in_state():
 
 
 def test_the_contract_check_catches_a_sequential_draw():
-    """A block drawing noise sequentially (not by position) gives different numbers on a second call."""
+    """A block drawing noise sequentially (a count of its own, not the state's position) gives different
+    numbers on a second call."""
     from magctl.core.nonlinear import GaussianNoise
 
     class Sequential(GaussianNoise):
+        calls = 0
+
         def output(self, state, u):
-            return {"y": u["u"] + self.sigma * state["rng"].standard_normal(self.inputs["u"].shape)}
+            self.calls += 1
+            return {"y": u["u"] + self.sigma * state["rng"].standard_normal(self.inputs["u"].shape, at=self.calls)}
 
     blk = Sequential("seq", 1.0)
     with pytest.raises(AssertionError, match="twice"):

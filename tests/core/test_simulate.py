@@ -105,15 +105,25 @@ def test_trial_independent_of_batch_and_process():
     assert not np.array_equal(big[16], big[17])  # trials do differ
 
 
-def test_seed_sequence_spawn_is_the_contract():
-    """Trial k draws from SeedSequence(seed).spawn(n)[k]'s child for the block."""
+def test_the_draw_address_is_the_contract():
+    """Trial k's draw i at step p is Philox4x32-10 of (p, i // 2, k, block key) under the seed, turned into a
+    normal by Box–Muller (computed here in plain Python from the four words)."""
+    import math
+
+    from magctl.core.philox import philox4x32
     from magctl.core.random import block_key
 
-    seq = np.random.SeedSequence(11).spawn(20)[17]
-    child = np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, block_key("noise")))
-    steps = np.random.default_rng(child).standard_normal((300, 2))
+    def unit(hi, lo):
+        return ((int(hi) << 32 | int(lo)) >> 11) / 2.0**53
+
+    def draw(seed, trial, path, step, i):
+        w = philox4x32(*(np.uint64(v) for v in (step, i // 2, trial, block_key(path), seed, 0)))
+        r = math.sqrt(-2.0 * math.log(1.0 - unit(w[0], w[1])))
+        return r * (math.cos if i % 2 == 0 else math.sin)(2.0 * math.pi * unit(w[2], w[3]))
+
+    steps = np.array([[draw(11, 17, "noise", p, i) for i in range(2)] for p in range(300)])
     x = _trial_alone(17)
-    assert np.allclose(x[1:], np.cumsum(steps, axis=0)[:-1] * DT)
+    np.testing.assert_allclose(x[1:], np.cumsum(steps, axis=0)[:-1] * DT, rtol=1e-12, atol=1e-15)
 
 
 class Slow(Block):

@@ -76,7 +76,7 @@ def test_retreating_robot_pulls_the_sphere_by_the_release_distance(offset):
     pulled = after_push[0] - s[-1][0]
     # the draw of the step when the retreat started: N(300, 75²) µm
     streams = TrialStreams.for_block(3, [0], "spheres")
-    draws = [streams.standard_normal(())[0] for _ in range(62)]
+    draws = [streams.standard_normal((), at=k)[0] for k in range(62)]
     assert pulled == pytest.approx(300 * UM + 75 * UM * draws[61], rel=1e-9)
     # the drawn amount is exposed: one release, of the pulled distance
     assert states[-1]["releases"][0] == 1
