@@ -11,9 +11,9 @@ its text, so numba's on-disk cache serves the next run; parameters are data, not
 diagrams that differ only in their gains share the compiled code.
 
 Semantics are the interpreted engine's (:meth:`magctl.core.diagram.Schedule.run`): same order of
-evaluation, same per-trial random streams (counter-based: each kernel reads its numbers by address, :mod:`magctl.core.philox`),
-same results to floating-point reassociation. The loop runs trial by trial (each trial's steps in
-turn), which changes nothing since trials never interact.
+evaluation, same per-trial random streams (counter-based: each kernel reads its numbers by address,
+:mod:`magctl.core.philox`), same results to floating-point reassociation. The loop runs trial by trial
+(each trial's steps in turn), which changes nothing since trials never interact.
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from pathlib import Path
 
 import numpy as np
 
-from magctl.core.block import state_get
 from magctl.core.diagram import EXTERNAL, Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.kernel import Kernel, compiled_vars, pack_state, port_width, stream_keys_of, unpack_state

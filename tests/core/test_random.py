@@ -52,7 +52,8 @@ def test_normals_are_standard_normal_and_uncorrelated():
     assert abs(flat.mean()) < 4 / np.sqrt(flat.size)
     assert abs(flat.var() - 1) < 4 * np.sqrt(2 / flat.size)
     # the two normals of one Box–Muller pair, neighbouring steps and neighbouring trials are independent
-    for a, b in ((draws[..., 0], draws[..., 1]), (draws[:, :-1, 2], draws[:, 1:, 2]), (draws[:-1, :, 3], draws[1:, :, 3])):
+    pairs = ((draws[..., 0], draws[..., 1]), (draws[:, :-1, 2], draws[:, 1:, 2]), (draws[:-1, :, 3], draws[1:, :, 3]))
+    for a, b in pairs:
         r = np.corrcoef(a.ravel(), b.ravel())[0, 1]
         assert abs(r) < 5 / np.sqrt(a.size)
 
