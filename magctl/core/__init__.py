@@ -15,7 +15,7 @@ _WHERE = {
     "NotLinearError": "errors", "ParameterError": "errors", "RateError": "errors", "WiringError": "errors",
     "PI": "linear", "Constant": "linear", "Delay": "linear", "Gain": "linear", "Integrator": "linear",
     "StateSpace": "linear", "Sum": "linear",
-    "GaussianNoise": "nonlinear", "NormSaturation": "nonlinear", "clip_norm": "nonlinear",
+    "GaussianNoise": "nonlinear", "NormSaturation": "nonlinear",
     "Port": "ports", "port": "ports",
     "TrialStreams": "random", "trial_seed_sequence": "random",
     "SimResult": "simulation", "simulate": "simulation",

@@ -195,25 +195,53 @@ class Block:
         return {}
 
     def output(self, state: State, u: Signals) -> dict[str, np.ndarray]:
-        """Outputs at the current step from the state and (if feedthrough) the inputs; reads ``state`` only."""
-        raise NotImplementedError(f"{type(self).__name__} must define output()")
+        """Outputs at the current step from the state and (if feedthrough) the inputs; reads ``state`` only.
+
+        A block with a kernel gets this from its kernel (:mod:`magctl.core.kernel_driver`)."""
+        driver = self.kernel_driver()
+        if driver is None:
+            raise NotImplementedError(f"{type(self).__name__} must define output() or kernel()")
+        return driver.step(state, u)[0] if self.feedthrough else driver.output(state)
 
     def update(self, state: State, u: Signals) -> State:
-        """State at the next step, a new dict (``state`` is not modified). Stateless blocks return ``state``."""
-        return state
+        """State at the next step, a new dict (``state`` is not modified). Stateless blocks return ``state``.
+
+        A block with a kernel gets this from its kernel."""
+        driver = self.kernel_driver()
+        if driver is None:
+            return state
+        return driver.step(state, u)[1] if self.feedthrough else driver.update(state, u)
 
     def step(self, state: State, u: Signals) -> tuple[dict[str, np.ndarray], State]:
         """Outputs now and the next state, equal to ``(output(state, u), update(state, u))``.
 
-        The engine calls this once per tick for feedthrough blocks; override it
-        to compute what output and update share only once.
+        The engine calls this once per tick for feedthrough blocks: a block with a kernel runs its step
+        kernel once; a Python block overrides it to compute what output and update share only once.
         """
+        driver = self.kernel_driver()
+        if driver is not None and self.feedthrough:
+            return driver.step(state, u)
         return self.output(state, u), self.update(state, u)
 
     def kernel(self):
-        """The block's compiled form (:class:`magctl.core.kernel.Kernel`), or None: the compiled engine
-        (:mod:`magctl.core.compiled`) runs a diagram whose every leaf has one."""
+        """The block's behaviour as a per-trial kernel (:class:`magctl.core.kernel.Kernel`), or None for a
+        Python block. Both engines run it: the compiled one fused into one loop, the interpreted one through
+        :meth:`kernel_driver`."""
         return None
+
+    def kernel_driver(self):
+        """The driver running :meth:`kernel` over a batch (built on first use), or None for a Python block."""
+        driver = self.__dict__.get("_kernel_driver", False)
+        if driver is False:
+            kernel = self.kernel()
+            if kernel is None:
+                driver = None
+            else:
+                from magctl.core.kernel_driver import KernelDriver
+
+                driver = KernelDriver(self, kernel)
+            self.__dict__["_kernel_driver"] = driver
+        return driver
 
     # --- analysis hooks ------------------------------------------------------------------
     def to_control(self):

@@ -319,10 +319,11 @@ class Schedule:
         self._ratios = [lf.ratio for lf in self.leaves]
         self._feed = [lf.block.feedthrough for lf in self.leaves]
         self._wirings = [lf.wiring for lf in self.leaves]
-        # how a leaf is stepped: its own step(); output then update (Block.step's default, inlined);
-        # output only (no state to advance: Block.update's default returns the state)
-        self._mode = [_STEP if type(b).step is not Block.step else
-                      (_OUTPUT if type(b).update is Block.update else _OUTPUT_UPDATE) for b in self._blocks]
+        # how a leaf is stepped: its own step() or its kernel's; output then update (Block.step's default,
+        # inlined); output only (a Python block with no state to advance: Block.update returns the state)
+        self._mode = [_STEP if (type(b).step is not Block.step or (b.feedthrough and b.kernel_driver())) else
+                      (_OUTPUT if (type(b).update is Block.update and not b.kernel_driver()) else _OUTPUT_UPDATE)
+                      for b in self._blocks]
 
     def signal_names(self) -> list[tuple[int, str, str]]:
         """Every leaf output as (leaf index, port, ``"path.port"``)."""

@@ -12,11 +12,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.batched import rows_times
 from magctl.core.block import Block, StateVar, as_batch
 from magctl.core.errors import WiringError
 from magctl.core.kernel import Kernel
-from magctl.core.nonlinear import vector_norm
 from magctl.core.ports import DIMENSIONLESS, Port
 
 
@@ -56,9 +54,6 @@ class Constant(Block):
     def initial_state(self, batch, rng=None):
         return {"y": as_batch(self.value, self.outputs["y"], batch)}
 
-    def output(self, state, u):
-        return {"y": state["y"]}
-
     def kernel(self):
         from magctl.core import kernels as k
 
@@ -96,10 +91,6 @@ class Gain(Block):
             feedthrough=True,
         )
 
-    def output(self, state, u):
-        x = u["u"]
-        return {"y": x * self.k if self.k.ndim == 0 else rows_times(x, self.k.T)}
-
     def kernel(self):
         from magctl.core import kernels as k
 
@@ -127,19 +118,6 @@ class Sum(Block):
         ins = [Port(f"u{i}", tuple(shape), unit) for i in range(len(signs))]
         super().__init__(name, inputs=ins, outputs=[Port("y", tuple(shape), unit)], dt=dt, feedthrough=True)
         self._names = [p.name for p in ins]
-
-    def output(self, state, u):
-        if len(self._names) == 2:
-            a, b = u[self._names[0]], u[self._names[1]]
-            s0, s1 = self.signs
-            return {"y": (a + b if s1 > 0 else a - b) if s0 > 0 else (-a + b if s1 > 0 else -a - b)}
-        y = u[self._names[0]] * self.signs[0] if self.signs[0] < 0 else u[self._names[0]].copy()
-        for name, s in zip(self._names[1:], self.signs[1:], strict=True):
-            if s > 0:
-                y += u[name]
-            else:
-                y -= u[name]
-        return {"y": y}
 
     def kernel(self):
         from magctl.core import kernels as k
@@ -176,15 +154,6 @@ class Delay(Block):
 
     def initial_state(self, batch, rng=None):
         return {n: as_batch(self.initial, self.inputs["u"], batch) for n in self._names}
-
-    def output(self, state, u):
-        return {"y": state[self._names[0]]}
-
-    def update(self, state, u):
-        names = self._names
-        new = {names[j]: state[names[j + 1]] for j in range(self.d - 1)}
-        new[names[-1]] = u["u"]
-        return new
 
     def kernel(self):
         from magctl.core import kernels as k
@@ -225,12 +194,6 @@ class Integrator(Block):
 
     def initial_state(self, batch, rng=None):
         return {"x": as_batch(self.initial, self.outputs["y"], batch)}
-
-    def output(self, state, u):
-        return {"y": state["x"]}
-
-    def update(self, state, u):
-        return {"x": state["x"] + (self.gain * self.dt) * u["u"]}
 
     def kernel(self):
         from magctl.core import kernels as k
@@ -277,40 +240,6 @@ class PI(Block):
     def initial_state(self, batch, rng=None):
         return {"I": self.inputs["e"].empty(batch)}
 
-    def _excess(self, u):
-        """Per-trial magnitude used against the limit."""
-        if self.norm:
-            if u.ndim == 2:
-                return vector_norm(u)
-            return np.sqrt((u * u).reshape(u.shape[0], -1).sum(axis=1))
-        return np.abs(u).reshape(u.shape[0], -1).max(axis=1) if u.ndim > 1 else np.abs(u)
-
-    def step(self, state, u):
-        e = u["e"]
-        raw = self.kp * e + self.ki * state["I"]
-        if self.limit is None:
-            return {"u": raw, "saturated": np.zeros(raw.shape[0], dtype=bool)}, {"I": state["I"] + self.dt * e}
-        mag = self._excess(raw)
-        sat = mag > self.limit
-        if sat.any():
-            # conditional integration: the verdict on the unsaturated command of this step
-            nxt = {"I": state["I"] + (self.dt * e) * (~sat).reshape((-1,) + (1,) * (e.ndim - 1))}
-            if self.saturate:
-                if self.norm:
-                    scale = np.where(sat, self.limit / np.where(sat, mag, 1.0), 1.0)
-                    raw = raw * scale.reshape((-1,) + (1,) * (raw.ndim - 1))
-                else:
-                    raw = np.clip(raw, -self.limit, self.limit)
-        else:
-            nxt = {"I": state["I"] + self.dt * e}
-        return {"u": raw, "saturated": sat}, nxt
-
-    def output(self, state, u):
-        return self.step(state, u)[0]
-
-    def update(self, state, u):
-        return self.step(state, u)[1]
-
     def kernel(self):
         from magctl.core import kernels as k
 
@@ -356,15 +285,6 @@ class StateSpace(Block):
 
     def initial_state(self, batch, rng=None):
         return {"x": np.broadcast_to(self.x0, (batch, self.x0.size)).copy()}
-
-    def output(self, state, u):
-        y = rows_times(state["x"], self.C.T)
-        if self.feedthrough:
-            y = y + rows_times(u["u"], self.D.T)
-        return {"y": y}
-
-    def update(self, state, u):
-        return {"x": rows_times(state["x"], self.A.T) + rows_times(u["u"], self.B.T)}
 
     def kernel(self):
         from magctl.core import kernels as k

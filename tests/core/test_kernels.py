@@ -1,16 +1,19 @@
-"""Every block's compiled kernel against its numpy form, through the compiled engine.
+"""Every block's kernel against its numpy reference, through both engines.
 
 Each block with a kernel (``Block.kernel()``) is built as in the block contract
 (``test_block_contract.FACTORIES`` and ``VARIANTS``), wrapped in a one-block diagram whose inputs and
-outputs are the block's own, and simulated by both engines with the same plausible inputs and seed:
-every output at every step and the final state must agree to 1e-12 relative (integers and flags
-exactly), and a trial run alone (``trials=[k]``) must give the batch's row ``k``.
+outputs are the block's own, and simulated with the same plausible inputs and seed three ways: its
+numpy reference (``tests/reference``), its kernel through the interpreted engine's driver, its kernel
+fused by the compiled engine. Every output at every step and the final state must agree to 1e-12
+relative (integers and flags exactly), and a trial run alone (``trials=[k]``) must give the batch's
+row ``k``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from reference import reference_of
 from test_block_contract import BATCH, BLOCKS, FACTORIES, VARIANTS, _build, _random_inputs
 
 from magctl.core.block import STREAM, flat_state_vars, state_get
@@ -44,19 +47,32 @@ def assert_close(a, b, where):
         assert np.array_equal(a, b), f"{where}: values differ"
 
 
-def compare_engines(block, overrides, steps=STEPS):
-    d = wrapped(block)
-    u = input_series(block, overrides, steps)
-    ref = simulate(d, steps, batch=BATCH, seed=11, inputs=u, check_finite=False)
-    got = simulate(d, steps, batch=BATCH, seed=11, inputs=u, check_finite=False, engine="compiled")
+def _agree(ref, got, block, label):
     for name in block.outputs:
-        assert_close(ref[name], got[name], f"{block.name}.{name}")
+        assert_close(ref[name], got[name], f"{block.name}.{name} ({label})")
     for (keys, var) in flat_state_vars(block.state_vars()):
         if var.dtype == STREAM:
             continue
-        where = f"{block.name} final state {'.'.join(keys)}"
+        where = f"{block.name} final state {'.'.join(keys)} ({label})"
         assert_close(state_get(ref.final_state["leaves"][0], keys), state_get(got.final_state["leaves"][0], keys),
                      where)
+
+
+def compare_engines(block, overrides, steps=STEPS):
+    """The block's kernel, run by the interpreted engine (its driver) and by the compiled engine, against its
+    numpy reference in ``tests/reference`` (for a block that still carries a numpy form of its own, against
+    that)."""
+    d = wrapped(block)
+    u = input_series(block, overrides, steps)
+    numpy_form = reference_of(block)
+    ref_block = block if numpy_form is None else numpy_form
+    ref = simulate(wrapped(ref_block), steps, batch=BATCH, seed=11, inputs=u, check_finite=False,
+                   engine="interpreted")
+    got = simulate(d, steps, batch=BATCH, seed=11, inputs=u, check_finite=False, engine="compiled")
+    _agree(ref, got, block, "compiled")
+    if numpy_form is not None:
+        interpreted = simulate(d, steps, batch=BATCH, seed=11, inputs=u, check_finite=False, engine="interpreted")
+        _agree(ref, interpreted, block, "interpreted, through the kernel driver")
     alone = simulate(d, steps, batch=1, seed=11, trials=[BATCH - 1], check_finite=False, engine="compiled",
                      inputs={p: v[BATCH - 1:] for p, v in u.items()})
     for name in block.outputs:
@@ -334,3 +350,14 @@ def test_the_generated_step_keeps_no_reference_counts_and_the_stepper_matches():
     heading = np.broadcast_to(0.3 * np.arange(6), (3, 6))
     ref = simulate(d, 6, batch=3, inputs={"speed": speed, "heading": heading})
     assert_close(ref["currents"], stepped, "stepped currents")
+
+
+def test_a_kernelled_block_has_one_implementation():
+    """A block whose numpy form moved to ``tests/reference`` defines no output, update or step of its own: its
+    kernel is its behaviour in both engines."""
+    from reference import REFERENCES
+
+    for lib, ref in REFERENCES.items():
+        assert issubclass(ref, lib)
+        own = sorted({"output", "update", "step"} & set(vars(lib)))
+        assert not own, f"{lib.__name__} still defines {own} beside its kernel"
