@@ -134,6 +134,6 @@ class RefGaussianNoise(NumpyForm, GaussianNoise):
         return {"rng": state["rng"], "k": state["k"] + 1}
 
 
-CORE_REFERENCES = {Constant: RefConstant, Gain: RefGain, Sum: RefSum, Delay: RefDelay, Integrator: RefIntegrator,
+REFERENCES = {Constant: RefConstant, Gain: RefGain, Sum: RefSum, Delay: RefDelay, Integrator: RefIntegrator,
                    PI: RefPI, StateSpace: RefStateSpace, NormSaturation: RefNormSaturation,
                    GaussianNoise: RefGaussianNoise}
