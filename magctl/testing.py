@@ -38,8 +38,15 @@ REFERENCE = (1000.0, 500.0)  # µm
 DELAY = 2
 
 
-def b1_diagram() -> Diagram:
-    """B1 as a magctl diagram (ports in µm to match the benchmark's statement)."""
+def b1_diagram(noise: str = "drawn") -> Diagram:
+    """B1 as a magctl diagram (ports in µm to match the benchmark's statement).
+
+    ``noise="drawn"``: the camera noise comes from the noise block's own per-trial stream.
+    ``noise="input"``: the noise is a diagram input ``n`` (µm, ``(B, T, 2)``), fed as every block-diagram
+    peer gets it (:func:`b1_noise` gives the drawn one's numbers).
+    """
+    if noise not in ("drawn", "input"):
+        raise ValueError(f"b1_diagram: noise={noise!r} must be 'drawn' or 'input'")
     blocks = [
         Constant("ref", REFERENCE, shape=(2,), unit="um"),
         Sum("err", "+-", shape=(2,), unit="um"),
@@ -47,13 +54,16 @@ def b1_diagram() -> Diagram:
         NormSaturation("clip", SPEED_LIMIT, shape=(2,), unit="um/s"),
         Integrator("plant", shape=(2,), in_unit="um/s", out_unit="um"),
         Delay("camera_delay", DELAY, shape=(2,), unit="um"),
-        GaussianNoise("camera_noise", NOISE_SIGMA, shape=(2,), unit="um"),
     ]
-    wires = [
-        ("ref.y", "err.u0"), ("camera_noise.y", "err.u1"), ("err.y", "pi.e"), ("pi.u", "clip.u"),
-        ("clip.y", "plant.u"), ("plant.y", "camera_delay.u"), ("camera_delay.y", "camera_noise.u"),
-    ]
-    return Diagram("b1", blocks, wires, outputs={"p": "plant.y", "y": "camera_noise.y"})
+    wires = [("ref.y", "err.u0"), ("err.y", "pi.e"), ("pi.u", "clip.u"), ("clip.y", "plant.u"),
+             ("plant.y", "camera_delay.u")]
+    if noise == "drawn":
+        blocks.append(GaussianNoise("camera_noise", NOISE_SIGMA, shape=(2,), unit="um"))
+        wires += [("camera_delay.y", "camera_noise.u"), ("camera_noise.y", "err.u1")]
+        return Diagram("b1", blocks, wires, outputs={"p": "plant.y", "y": "camera_noise.y"})
+    blocks.append(Sum("camera", "++", shape=(2,), unit="um"))
+    wires += [("camera_delay.y", "camera.u0"), ("camera.y", "err.u1")]
+    return Diagram("b1", blocks, wires, inputs={"n": "camera.u1"}, outputs={"p": "plant.y", "y": "camera.y"})
 
 
 def b1_noise(seed: int, trials) -> np.ndarray:

@@ -11,8 +11,11 @@ def test_three_implementations_agree():
     noise = b1_noise(seed, trials)
     numpy_p = b1_numpy(noise)
     magctl_p = simulate(b1_diagram(), STEPS, batch=2, seed=seed, trials=trials, record=[])["p"]
+    fed_p = simulate(b1_diagram("input"), STEPS, batch=2, seed=seed, inputs={"n": noise}, record=[],
+                     engine="compiled")["p"]
     control_p = b1_python_control(noise[1])
     assert np.abs(magctl_p - numpy_p).max() < 1e-6
+    assert np.abs(fed_p - numpy_p).max() < 1e-6
     assert np.abs(control_p - numpy_p[1]).max() < 1e-6
     # the loop actually reaches the reference and saturates on the way (speed ≤ 400 µm/s)
     assert np.allclose(numpy_p[:, -1], REFERENCE, atol=20)
