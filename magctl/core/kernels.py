@@ -11,7 +11,7 @@ import math
 
 import numba
 
-from magctl.core.philox import normal
+from magctl.core.philox import normal_pair
 
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 
@@ -201,6 +201,10 @@ def gaussian_noise_step(b, params, state, next_state, inputs, outputs, base, noi
     nk, = next_state
     u, = inputs
     y, = outputs
-    for i in range(y.shape[1]):
-        y[b, i] = u[b, i] + sigma * normal(noise, b, k[b, 0], i)
+    n = y.shape[1]
+    for j in range((n + 1) // 2):
+        z0, z1 = normal_pair(noise, b, k[b, 0], j)
+        y[b, 2 * j] = u[b, 2 * j] + sigma * z0
+        if 2 * j + 1 < n:
+            y[b, 2 * j + 1] = u[b, 2 * j + 1] + sigma * z1
     nk[b, 0] = k[b, 0] + 1

@@ -105,25 +105,83 @@ def test_trial_independent_of_batch_and_process():
     assert not np.array_equal(big[16], big[17])  # trials do differ
 
 
+def _ziggurat_tables(n=256):
+    """Doornik's layer edges for the n-layer ziggurat, r solved here so that the top layer closes."""
+    import math
+
+    from scipy.optimize import brentq
+
+    f = lambda x: math.exp(-x * x / 2)                                    # noqa: E731
+    area = lambda r: r * f(r) + math.sqrt(math.pi / 2) * math.erfc(r / math.sqrt(2))   # noqa: E731
+
+    def edges(r):
+        v, x = area(r), [area(r) / f(r), r]
+        for _ in range(1, n - 1):
+            level = v / x[-1] + f(x[-1]) if x[-1] > 0 else 1.0
+            x.append(math.sqrt(-2 * math.log(level)) if level < 1 else 0.0)   # 0: the layers closed too early
+        return x + [0.0], v
+
+    def top_gap(r):
+        x, v = edges(r)
+        return x[n - 1] * (1 - f(x[n - 1])) - v
+
+    r = brentq(top_gap, 3.0, 4.0, xtol=1e-15)
+    return edges(r)[0], r
+
+
 def test_the_draw_address_is_the_contract():
-    """Trial k's draw i at step p is Philox4x32-10 of (p, i // 2, k, block key) under the seed, turned into a
-    normal by Box–Muller (computed here in plain Python from the four words)."""
+    """Trial k's normal i at step p: the 64-bit half (i mod 2) of Philox4x32-10 of (p, i // 2, k, block key)
+    under the seed, turned into a normal by the 256-layer ziggurat (written here in plain Python from Doornik's
+    description, a rejection reading the block of kind 8 + attempt)."""
     import math
 
     from magctl.core.philox import philox4x32
     from magctl.core.random import block_key
 
+    x_edge, r = _ziggurat_tables()
+    rejected = []
+
     def unit(hi, lo):
         return ((int(hi) << 32 | int(lo)) >> 11) / 2.0**53
 
+    def words(seed, trial, path, step, c1):
+        return philox4x32(*(np.uint64(v) for v in (step, c1, trial, block_key(path), seed, 0)))
+
     def draw(seed, trial, path, step, i):
-        w = philox4x32(*(np.uint64(v) for v in (step, i // 2, trial, block_key(path), seed, 0)))
-        r = math.sqrt(-2.0 * math.log(1.0 - unit(w[0], w[1])))
-        return r * (math.cos if i % 2 == 0 else math.sin)(2.0 * math.pi * unit(w[2], w[3]))
+        w = words(seed, trial, path, step, i // 2)
+        hi, lo = (w[0], w[1]) if i % 2 == 0 else (w[2], w[3])
+        for attempt in range(8):
+            u = 2 * unit(hi, lo) - 1
+            layer = int(lo) & 0xFF
+            x = u * x_edge[layer]
+            if abs(x) < x_edge[layer + 1]:
+                return x
+            rejected.append((step, i))
+            e = words(seed, trial, path, step, (8 + attempt) << 28 | i)
+            if layer == 0:
+                while True:
+                    t, y = -math.log(1 - unit(e[0], e[1])) / r, -math.log(1 - unit(e[2], e[3]))
+                    if 2 * y > t * t:
+                        return math.copysign(r + t, u)
+                    e = philox4x32(*e, np.uint64(seed), np.uint64(0))
+            fx = [math.exp(-v * v / 2) for v in (x_edge[layer], x_edge[layer + 1])]
+            if fx[1] + unit(e[2], e[3]) * (fx[0] - fx[1]) < math.exp(-x * x / 2):
+                return x
+            hi, lo = e[0], e[1]
+        return x
 
     steps = np.array([[draw(11, 17, "noise", p, i) for i in range(2)] for p in range(300)])
+    assert rejected, "no draw of these 600 took the rejection path: pick more steps"
     x = _trial_alone(17)
     np.testing.assert_allclose(x[1:], np.cumsum(steps, axis=0)[:-1] * DT, rtol=1e-12, atol=1e-15)
+
+
+def test_the_ziggurat_constants_are_the_published_ones():
+    from magctl.core.philox import _ZX, ZIGGURAT_R
+
+    x_edge, r = _ziggurat_tables()
+    assert r == pytest.approx(ZIGGURAT_R, rel=1e-14)          # Marsaglia and Tsang 2000: 3.6541528853610088
+    np.testing.assert_allclose(_ZX, x_edge, rtol=1e-12, atol=1e-15)
 
 
 class Slow(Block):
