@@ -316,7 +316,9 @@ class CompiledDiagram:
     def run(self, state: dict, ext: dict[str, np.ndarray], steps: int, batch: int, record: list[str]):
         """``steps`` ticks from ``state`` with the diagram inputs ``ext`` (each ``(B, T, *shape)``).
 
-        Returns the record arrays by name (``(B, T, *shape)``) and the final diagram state.
+        Returns the record arrays by name (``(B, T, *shape)``, views of one contiguous array per dtype), the
+        final diagram state, and whether every recorded float is finite (one pass over the contiguous
+        float record: a strided pass per signal costs several times more).
         """
         sched = self.schedule
         buf = self._buffers(state, batch)
@@ -343,7 +345,8 @@ class CompiledDiagram:
         final = {"tick": int(state["tick"]) + steps, "leaves": self._unpack(buf, state, batch), "held": held}
         out = {name: by_group[g][:, :, off:off + w].reshape((batch, steps, *port.shape))
                for name, (g, off, w, port) in where.items()}
-        return out, final
+        finite = bool(np.isfinite(recs[0].sum())) if recs[0].size else True
+        return out, final, finite
 
     def stepper(self, state: dict, batch: int) -> Stepper:
         """The diagram stepped one tick per call from ``state`` (the rig's form)."""

@@ -105,14 +105,11 @@ def pi_step(b, params, state, next_state, inputs, outputs, base, noise):
     over = False
     mag = 0.0
     if mode == 1:
-        if n == 2:
-            mag = math.hypot(kp * e[b, 0] + ki * integral[b, 0], kp * e[b, 1] + ki * integral[b, 1])
-        else:
-            acc = 0.0
-            for i in range(n):
-                r = kp * e[b, i] + ki * integral[b, i]
-                acc += r * r
-            mag = math.sqrt(acc)
+        acc = 0.0
+        for i in range(n):
+            r = kp * e[b, i] + ki * integral[b, i]
+            acc += r * r
+        mag = math.sqrt(acc)      # not hypot: no overflow is possible here, and sqrt is several times faster
         over = mag > limit
     elif mode == 2:
         for i in range(n):
@@ -180,13 +177,10 @@ def norm_saturation_step(b, params, state, next_state, inputs, outputs, base, no
     u, = inputs
     y, sat = outputs
     n = u.shape[1]
-    if n == 2:
-        mag = math.hypot(u[b, 0], u[b, 1])
-    else:
-        acc = 0.0
-        for i in range(n):
-            acc += u[b, i] * u[b, i]
-        mag = math.sqrt(acc)
+    acc = 0.0
+    for i in range(n):
+        acc += u[b, i] * u[b, i]
+    mag = math.sqrt(acc)
     over = mag > limit
     scale = limit / mag if over else 1.0
     for i in range(n):

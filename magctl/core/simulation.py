@@ -254,8 +254,8 @@ def simulate(
             if engine == "compiled":
                 raise
         else:
-            buffers, final = compiled.run(st, ext, steps, batch, [n for _, _, n in rec_specs])
-            if check_finite:
+            buffers, final, finite = compiled.run(st, ext, steps, batch, [n for _, _, n in rec_specs])
+            if check_finite and not finite:
                 plan = [(i, p, buffers[n]) for i, p, n in rec_specs]
                 _check_finite(sched, plan, 0, steps, tick0_of(st), diagram, buffers, trials, final["leaves"],
                               final["held"])
