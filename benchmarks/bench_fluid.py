@@ -40,7 +40,8 @@ def _frame_inputs(block: Spheres, batch: int, seed: int = 0):
 
 def sphere_frame_cost(quick: bool = False, repeats: int = 3) -> dict:
     """µs per ``Spheres.update`` frame (best of ``repeats`` runs of ``frames`` chained frames), two
-    spheres per trial, for B = 1 and 100, drag modes ``paper`` and ``accurate``, compiled and array forms."""
+    spheres per trial, for B = 1 and 100, drag modes ``paper`` and ``accurate`` (the block's kernel, run over the
+    batch by the interpreted engine's driver)."""
     frames = 10 if quick else 30
     out: dict = {"frames": frames, "spheres_per_trial": 2, "lifted_fraction_at_start": 0.5}
     for mode in ("paper", "accurate"):
@@ -51,19 +52,17 @@ def sphere_frame_cost(quick: bool = False, repeats: int = 3) -> dict:
             lifted.append(float((state["gap"] > 0).mean()))
             state = block.update(state, u)
         out[f"{mode}_lifted_fraction_mean"] = float(np.mean(lifted))
-        for form in ("compiled", "array"):
-            block = Spheres(np.zeros((2, 2)), drag_mode=mode, compiled=form == "compiled")
-            block.prepare()
-            for batch in (1, 100):
-                start, u = _frame_inputs(block, batch)
-                best = np.inf
-                for _ in range(repeats):
-                    state = {k: v.copy() for k, v in start.items()}
-                    t0 = time.perf_counter()
-                    for _ in range(frames):
-                        state = block.update(state, u)
-                    best = min(best, time.perf_counter() - t0)
-                out[f"{mode}_{form}_B{batch}_us_per_frame"] = best / frames * 1e6
+        block.prepare()
+        for batch in (1, 100):
+            start, u = _frame_inputs(block, batch)
+            best = np.inf
+            for _ in range(repeats):
+                state = {k: v.copy() for k, v in start.items()}
+                t0 = time.perf_counter()
+                for _ in range(frames):
+                    state = block.update(state, u)
+                best = min(best, time.perf_counter() - t0)
+            out[f"{mode}_B{batch}_us_per_frame"] = best / frames * 1e6
     return out
 
 

@@ -21,14 +21,18 @@ Three steps each frame (docs/plant-actuator.md):
    ``L di/dt = v − R i``, discretised exactly:
    ``i[k+1] = e^{−h/τ} i[k] + (1 − e^{−h/τ}) v/R`` with ``τ = L/R``. The outputs
    are frame averages, ``ī = v/R + (i[k] − v/R)(τ/h)(1 − e^{−h/τ})``.
+
+The block's behaviour is its kernel, :func:`magctl.plant.kernels.coils_step`, run by both engines; the
+numpy form it is tested against is ``RefCoilActuator`` in ``tests/reference/plant_blocks.py``.
 """
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.batched import rows_times
 from magctl.core.block import Block, StateVar
 from magctl.core.kernel import Kernel
 from magctl.core.ports import Port
@@ -73,17 +77,12 @@ class CoilActuator(Block):
         self.decay = np.exp(-dt / tau)
         # weight of the frame-start current in the frame-average current
         self.avg_weight = tau / dt * (1.0 - self.decay)
-        self._p_z = self.pinv[:, 2].copy()
         self._A_xy = np.ascontiguousarray(self.A[:2].T)  # (6, 2): currents → (B_x, B_y)
         self._vmax_over_r = self.coils.voltage_limit / R
         self._vclip = bool(np.any(self.coils.current_limit > self._vmax_over_r))
         self._inv_imax = 1.0 / self.coils.current_limit
-        pz = np.abs(self._p_z)
-        zc = np.nonzero(pz > 1e-9 * pz.max())[0]
-        # a slice when the oscillating coils are adjacent in the file (cheaper than fancy indexing)
-        contiguous = np.array_equal(zc, np.arange(zc[0], zc[-1] + 1))
-        self._zc = slice(int(zc[0]), int(zc[-1]) + 1) if contiguous else zc
-        self._imax_min = float(self.coils.current_limit.min())
+        pz = np.abs(self.pinv[:, 2])
+        self._zc = np.nonzero(pz > 1e-9 * pz.max())[0].astype(np.int64)  # the coils that carry the oscillation
         self._inv_pz = 1.0 / pz[self._zc]
         self._imax_z = self.coils.current_limit[self._zc]
         self._vmax_z = self.coils.voltage_limit[self._zc]
@@ -99,9 +98,8 @@ class CoilActuator(Block):
 
     def kernel_params(self) -> tuple:
         """The parameters of :func:`magctl.plant.kernels.coil_field` (allocation, limits, RL weights)."""
-        zc = np.arange(self.pinv.shape[0])[self._zc]
         a = self.allocation
-        return (a.per_tesla_xy, a.clamp_currents, self.coils.current_limit, self._inv_imax, zc.astype(np.int64),
+        return (a.per_tesla_xy, a.clamp_currents, self.coils.current_limit, self._inv_imax, self._zc,
                 self._imax_z, self._vmax_z, self._r_z, self._r2, self._two_pi_l, self._inv_pz, self._vclip,
                 np.broadcast_to(self._vmax_over_r, self.decay.shape), self.avg_weight, self.decay, self._A_xy)
 
@@ -114,56 +112,27 @@ class CoilActuator(Block):
         """Steady-state delivered field for a command held long enough for the RL transients to end.
 
         Returns ``(b_static_delivered (B, 2), b_osc_delivered (B,), saturated (B,))``; the same
-        limits as the block, used for speed curves and the drive's inverse.
+        limits as the block, used for speed curves and the drive's inverse. One step of the block's
+        kernel with the transients over (:meth:`_settled`), from rest.
         """
-        u = {"b_static": np.atleast_2d(np.asarray(b_static, float)), "b_osc": np.atleast_1d(np.asarray(b_osc, float)),
-             "freq": np.atleast_1d(np.asarray(freq, float))}
-        i_s, _, s_osc, _, sat = self._solve({"i": 0.0}, u)
-        return rows_times(i_s, self._A_xy), u["b_osc"] * s_osc, sat
+        b_static = np.atleast_2d(np.asarray(b_static, float))
+        b_osc, freq = np.atleast_1d(np.asarray(b_osc, float)), np.atleast_1d(np.asarray(freq, float))
+        batch = np.broadcast_shapes(b_static.shape[:1], b_osc.shape, freq.shape)[0]
+        u = {"b_static": np.broadcast_to(b_static, (batch, 2)), "b_osc": np.broadcast_to(b_osc, (batch,)),
+             "freq": np.broadcast_to(freq, (batch,))}
+        out, _ = self._settled().step(self.initial_state(batch), u)
+        return out["b_static_delivered"], out["b_osc_delivered"], out["saturated"]
 
-    def _solve(self, state, u):
-        # hot path: one vectorised op per line; see the module docstring for the steps
-        i_s = self.allocation.static_currents(u["b_static"])
-        ai = np.abs(i_s)
-        s_static = None
-        if ai.max() > self._imax_min and (ai > self.coils.current_limit).any():
-            s_static = 1.0 / np.maximum((ai * self._inv_imax).max(axis=1), 1.0)
-            i_s *= s_static[:, None]
-            ai *= s_static[:, None]
-        # oscillation: only the coils that carry it (|A⁺ row| > 0); s = min(1, cap / |b_osc|)
-        freq = np.maximum(u["freq"], 0.0)
-        az = ai[:, self._zc]
-        w = freq[:, None] * self._two_pi_l
-        z = np.sqrt(self._r2 + w * w)
-        cap = np.minimum(self._imax_z - az, (self._vmax_z - self._r_z * az) / z)
-        cap *= self._inv_pz
-        cap_min = cap[:, 0]
-        for c in range(1, cap.shape[1]):
-            cap_min = np.minimum(cap_min, cap[:, c])
-        s_osc = np.minimum(cap_min / np.maximum(np.abs(u["b_osc"]), 1e-300), 1.0)
-        if self._vclip:
-            i_s = np.clip(i_s, -self._vmax_over_r, self._vmax_over_r)
-        i_avg = i_s + (state["i"] - i_s) * self.avg_weight
-        sat = s_osc < 1.0 - 1e-12
-        if s_static is not None:
-            sat |= s_static < 1.0
-        return i_s, i_avg, s_osc, freq, sat
-
-    def step(self, state, u):
-        # the allocation and limits are solved once per frame for both the outputs and the next current
-        i_s, i_avg, s_osc, freq, sat = self._solve(state, u)
-        out = {
-            "currents": i_avg,
-            "b_static_delivered": rows_times(i_avg, self._A_xy),
-            "b_osc_delivered": u["b_osc"] * s_osc,
-            "freq_delivered": freq,
-            "saturated": sat,
-        }
-        return out, {"i": i_s + (state["i"] - i_s) * self.decay}
-
-    def output(self, state, u):
-        return self.step(state, u)[0]
-
-    def update(self, state, u):
-        i_s = self._solve(state, u)[0]
-        return {"i": i_s + (state["i"] - i_s) * self.decay}
+    def _settled(self) -> CoilActuator:
+        """This actuator with its RL transients over: each frame's currents are the amplifier's targets
+        ``v/R`` (the weights of the frame-start current in the frame average and in the next current are 0,
+        the limit ``h/τ → ∞``). Built once."""
+        steady = self.__dict__.get("_settled_copy")
+        if steady is None:
+            steady = copy.copy(self)
+            for key in ("_kernel_driver", "_settled_copy"):
+                steady.__dict__.pop(key, None)
+            steady.decay = np.zeros_like(self.decay)
+            steady.avg_weight = np.zeros_like(self.avg_weight)
+            self.__dict__["_settled_copy"] = steady
+        return steady

@@ -8,6 +8,9 @@ frequency. The drive inverts the steady stick-slip speed ``v(f)``
 branch ``0 ≤ f ≤ f_peak`` by interpolating a table computed once from the same
 parameters. Commanded speeds are clipped to ``[0, v_max]``; zero speed turns
 the oscillation off and keeps the aligning field.
+
+The drive's and the fused :class:`ActuatedRobot`'s behaviour is their kernels in :mod:`magctl.plant.kernels`,
+run by both engines; the numpy forms they are tested against are in ``tests/reference/plant_blocks.py``.
 """
 
 from __future__ import annotations
@@ -18,7 +21,6 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.config import load_model, require
-from magctl.core.batched import rows_times
 from magctl.core.block import Block, StateVar, substate
 from magctl.core.diagram import Diagram
 from magctl.core.errors import ParameterError
@@ -127,10 +129,12 @@ class Drive(Block):
         self.nominal_freq = self.frequency_for(s.nominal_speed)
 
     def frequency_for(self, speed) -> np.ndarray:
-        """Field frequency (Hz) commanding ``speed`` (m/s), clipped to ``[0, max_speed]``; 0 for speed 0."""
-        sp = np.clip(np.asarray(speed, dtype=float), 0.0, self.settings.max_speed)
-        f = np.interp(sp, self._v_table, self._f_table)
-        return np.where(sp > 0.0, f, 0.0)
+        """Field frequency (Hz) commanding ``speed`` (m/s), clipped to ``[0, max_speed]``; 0 for speed 0
+        (the block's ``freq`` output, shaped like ``speed``)."""
+        sp = np.asarray(speed, dtype=float)
+        flat = sp.reshape(-1)
+        out, _ = self.step({}, {"speed": flat, "heading": np.zeros(flat.shape)})
+        return out["freq"].reshape(sp.shape)
 
     def kernel_params(self) -> tuple:
         """The parameters of :func:`magctl.plant.kernels.drive_command` (the inverse speed table, limits, fields)."""
@@ -142,19 +146,6 @@ class Drive(Block):
         from magctl.plant import kernels as k
 
         return Kernel(step=k.drive_step, params=self.kernel_params())
-
-    def output(self, state, u):
-        s = self.settings
-        sp = np.minimum(np.maximum(u["speed"], 0.0), s.max_speed)
-        f = np.interp(sp, self._v_table, self._f_table)
-        on = sp > 0.0
-        f *= on
-        psi = u["heading"]
-        b_static = np.empty((psi.shape[0], 2))
-        b_static[:, 0] = np.cos(psi)
-        b_static[:, 1] = np.sin(psi)
-        b_static *= s.static_field
-        return {"b_static": b_static, "b_osc": on * s.osc_field, "freq": f}
 
 
 def actuated_robot(name: str = "plant", *, position=(0.0, 0.0), heading=0.0, variability: bool = True,
@@ -184,8 +175,8 @@ def actuated_robot(name: str = "plant", *, position=(0.0, 0.0), heading=0.0, var
 class ActuatedRobot(Block):
     """Drive → coils → robot fused into one block: the cheap path for batched Monte Carlo.
 
-    Same physics as :func:`actuated_robot` (it calls the three blocks' own methods) with
-    one block call per step instead of three. Inputs ``speed`` () m/s, ``heading`` () rad;
+    Same physics as :func:`actuated_robot` (its kernel runs the three blocks' kernel functions in a row)
+    with one block call per step instead of three. Inputs ``speed`` () m/s, ``heading`` () rad;
     outputs the robot's ``position``, ``heading``, ``velocity``, ``tilt`` and the coils'
     ``saturated`` of the previous frame, all from the state (no feedthrough).
     """
@@ -230,17 +221,3 @@ class ActuatedRobot(Block):
             return Kernel(output=k.actuated_output, update=k.actuated_update_noisy, params=params,
                           stream="robot.rng")
         return Kernel(output=k.actuated_output, update=k.actuated_update, params=params)
-
-    def output(self, state, u):
-        out = self.robot.output(state["robot"], u)
-        out["saturated"] = state["saturated"]
-        return out
-
-    def update(self, state, u):
-        co = self.coils
-        cmd = self.drive.output(None, u)
-        i_s, i_avg, s_osc, freq, sat = co._solve(state["coils"], cmd)
-        delivered = {"b_static_delivered": rows_times(i_avg, co._A_xy), "b_osc_delivered": cmd["b_osc"] * s_osc,
-                     "freq_delivered": freq}
-        i_next = i_s + (state["coils"]["i"] - i_s) * co.decay
-        return {"coils": {"i": i_next}, "robot": self.robot.update(state["robot"], delivered), "saturated": sat}

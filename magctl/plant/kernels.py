@@ -1,12 +1,13 @@
-"""Compiled kernels of the plant blocks: the coil actuator, the drive, the stick-slip robot and the fused
-drive → coils → robot block.
+"""Kernels of the plant blocks: the coil actuator, the drive, the stick-slip robot and the fused
+drive → coils → robot block. They are the blocks' only implementation, run by both engines (the
+interpreted one through :mod:`magctl.core.kernel_driver`).
 
 Each function runs one trial ``b`` in the convention of :mod:`magctl.core.kernel`, with the same
-floating-point operations per element as the block's numpy form (sums in the order numpy's ``einsum``
-makes them; ``np.maximum``/``np.minimum`` with their NaN propagation). Transcendental functions call
-libm, whose last bit may differ from numpy's vectorised loops, so results agree to rounding, not
-always to the bit. Imported only when a diagram is compiled, so that numba stays out of the import
-of ``magctl``.
+floating-point operations per element as the block's numpy reference (``tests/reference/plant_blocks.py``;
+sums in the order numpy's ``einsum`` makes them; ``np.maximum``/``np.minimum`` with their NaN
+propagation). Transcendental functions call libm, whose last bit may differ from numpy's vectorised
+loops, so results agree to rounding, not always to the bit. Imported when a block first runs, so that
+numba stays out of the import of ``magctl``.
 """
 
 from __future__ import annotations
@@ -35,13 +36,13 @@ def nmin(a, b):
 # --- coils ---------------------------------------------------------------------------------------------
 @jit
 def coil_field(cp, b, bs0, bs1, bosc, freq_cmd, i, ni, cur, write_cur):
-    """``CoilActuator._solve`` and the RL step of one trial: minimum-norm allocation ``i_s = A⁺ b``, static
+    """The coil actuator's allocation, limits and RL step for one trial: minimum-norm allocation ``i_s = A⁺ b``, static
     scaling to ``I_max``, oscillation share ``s_osc`` of what current and voltage are left, voltage clip,
     frame-average currents ``ī = i_s + (i − i_s)·(τ/h)(1 − e^{−h/τ})`` (written to ``cur`` when
     ``write_cur``) and next currents ``i_s + (i − i_s)·e^{−h/τ}`` (to ``ni``).
 
     The static scaling is decided per trial (a trial is scaled when one of its coils exceeds its limit);
-    the numpy form decides whether to scale over the batch, which differs only when a trial sits within
+    the numpy reference decides whether to scale over the batch, which differs only when a trial sits within
     rounding of a limit. Returns the delivered ``b_x, b_y``, ``b_osc``, frequency and ``saturated``.
     """
     (per_xy, clamp, imax, inv_imax, zc, imax_z, vmax_z, r_z, r2, two_pi_l, inv_pz,

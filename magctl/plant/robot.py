@@ -12,7 +12,9 @@ Per frame of length ``h`` with the delivered field held (docs/plant-actuator.md)
 * **Tilt** is the cycle-mean pitch ``(2/π) θ_a`` that the fluid model uses (paper §IV-C
   models the robot at a fixed ``π/8``).
 
-The outputs are the state at the start of the frame, so the block has no feedthrough.
+The outputs are the state at the start of the frame, so the block has no feedthrough. The block's
+behaviour is its kernel (:func:`magctl.plant.kernels.robot_advance`), run by both engines; the numpy form it
+is tested against is ``RefStickSlipRobot`` in ``tests/reference/plant_blocks.py``.
 """
 
 from __future__ import annotations
@@ -20,7 +22,6 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.core.batched import rows_times
 from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import WiringError
 from magctl.core.kernel import Kernel
@@ -136,41 +137,6 @@ class StickSlipRobot(Block):
             return Kernel(output=k.robot_output, update=k.robot_update_noisy, params=self.kernel_params(),
                           stream="rng")
         return Kernel(output=k.robot_output, update=k.robot_update, params=self.kernel_params())
-
-    def output(self, state, u):
-        return {"position": state["pos"], "heading": state["psi"], "velocity": state["vel"], "tilt": state["tilt"]}
-
-    def update(self, state, u):
-        # hot path: every line below is one vectorised op over the batch
-        h = self.dt
-        b = u["b_static_delivered"]
-        bmag = np.hypot(b[:, 0], b[:, 1])
-        psi_b = np.arctan2(b[:, 1], b[:, 0])
-        # tan(e/2) is 2π-periodic in e, so e = ψ − ψ_B needs no wrapping
-        t0 = np.tan(0.5 * (state["psi"] - psi_b))
-        k = np.exp(self._half_rate * bmag)  # e^{−(h/2)/τ_ψ}
-        tk = t0 * k
-        psis = np.empty((bmag.shape[0], 3))
-        psis[:, 0] = state["psi"]
-        psis[:, 1] = psi_b + 2.0 * np.arctan(tk)
-        psis[:, 2] = psi_b + 2.0 * np.arctan(tk * k)
-
-        # θ_a = atan(b_osc/|B|) / √(1 + (ωτ_θ)²) with ωτ_θ = c f / |B|  (see _stickslip.rocking_amplitude)
-        freq = np.maximum(u["freq_delivered"], 0.0)
-        theta = np.arctan2(np.abs(u["b_osc_delivered"]), bmag) * bmag / np.maximum(
-            np.hypot(bmag, self._pitch_c * freq), 1e-300)
-        v = freq * np.maximum(self._cos0 - np.cos(theta), 0.0)
-        v *= self._eta_l
-        if self.cv > 0 and state["rng"] is not None:  # no stream: the mean step (a linearisation's path)
-            v *= np.maximum(1.0 + self.cv * state["rng"].standard_normal(at=state["k"]), 0.0)
-        # Simpson's rule over the frame for ∫ v e^{iψ} dt, weights 1, 4, 1
-        vel = np.empty((v.shape[0], 2))
-        vel[:, 0] = rows_times(np.cos(psis), self._simpson)
-        vel[:, 1] = rows_times(np.sin(psis), self._simpson)
-        vel *= v[:, None]
-        psi1 = np.remainder(psis[:, 2] + np.pi, 2.0 * np.pi) - np.pi
-        return {"pos": state["pos"] + vel * h, "psi": psi1, "vel": vel, "tilt": theta * (2.0 / np.pi),
-                "rng": state["rng"], "k": state["k"] + 1}
 
 
 def steady_speed(params: StickSlipParams, b_xy, b_osc, freq) -> np.ndarray:

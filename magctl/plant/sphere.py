@@ -15,8 +15,10 @@ split into sub-steps. Each sub-step
 3. enforces non-penetration against the robot's footprint (including the concave
    front face) and between spheres.
 
-A frame runs for the whole batch in one compiled call (:mod:`magctl.plant.sphere_kernel`), in
-either drag mode; the array form below is its reference (``Spheres(compiled=False)``).
+A frame is the block's kernel (:mod:`magctl.plant.sphere_kernel`, either drag mode), run by both
+engines; the numpy array form it is tested against is ``RefSpheres`` in ``tests/reference/plant_blocks.py``.
+:meth:`Spheres.sphere_velocity` evaluates the same flow and gap balance in numpy at given sphere states
+(outside a frame).
 
 Optional seeded per-trial variability (off by default, ``models/sphere.toml``):
 a sphere may sit on a sticky patch that scales its mobility (§VI-B, "stuck on a
@@ -42,7 +44,6 @@ from magctl.plant.fluid.geometry import Polygon, RobotGeometry
 from magctl.plant.fluid.params import GRAVITY, SphereParams, fluid_viscosity, sphere_params
 from magctl.plant.fluid.surface import pull_off_range
 from magctl.plant.fluid.wall_drag import mobility, normal_factors, wall_table
-from magctl.plant.sphere_kernel import sphere_frame
 
 InitialPositions = np.ndarray | Callable[[int, object], np.ndarray]
 
@@ -65,50 +66,6 @@ def to_world(v, heading):
     c, s = _rot(heading)
     return np.stack([c[:, None] * v[..., 0] - s[:, None] * v[..., 1],
                      s[:, None] * v[..., 0] + c[:, None] * v[..., 1]], axis=-1)
-
-
-def push_out_of_outline(rel: np.ndarray, outline, radius: float, iterations: int = 3):
-    """Move circle centres ``rel (..., 2)`` (robot frame) so circles of ``radius`` do not overlap ``outline``.
-
-    ``outline`` is a ``(V, 2)`` polygon or a :class:`~magctl.plant.fluid.geometry.Polygon`.
-    Returns the corrected centres and a bool array of which ones were in contact.
-    Several passes settle a sphere wedged in the concave front face.
-    """
-    rel = np.asarray(rel, float)
-    x, y, touched = _push_out(rel[..., 0].ravel(), rel[..., 1].ravel(), outline, radius, iterations)
-    if touched.any():
-        rel = np.stack([x, y], axis=-1).reshape(rel.shape)
-    return rel, touched.reshape(rel.shape[:-1])
-
-
-def _push_out(x: np.ndarray, y: np.ndarray, outline, radius: float, iterations: int):
-    """:func:`push_out_of_outline` on flat coordinate arrays; returns new ``x, y`` and ``touched``.
-
-    A pass leaves centres it did not move as they were, so later passes only revisit the
-    centres moved by the pass before.
-    """
-    poly = outline if isinstance(outline, Polygon) else Polygon(outline)
-    touched = np.zeros(x.shape, bool)
-    idx = None                                     # centres still being settled (None: all)
-    for _ in range(iterations):
-        px, py = (x, y) if idx is None else (x[idx], y[idx])
-        dist, nx, ny = poly.distance(px, py)
-        inside = poly.contains(px, py)
-        hit = inside | (dist < radius * (1 - 1e-9))
-        if not hit.any():
-            break
-        rows = np.nonzero(hit)[0] if idx is None else idx[hit]
-        touched[rows] = True
-        d = np.maximum(dist[hit], 1e-15)
-        sign = np.where(inside[hit], -1.0, 1.0)
-        nhx, nhy = nx[hit], ny[hit]
-        ux, uy = (px[hit] - nhx) / d, (py[hit] - nhy) / d
-        if idx is None:
-            x, y = x.copy(), y.copy()
-        x[rows] = nhx + (ux * sign) * radius
-        y[rows] = nhy + (uy * sign) * radius
-        idx = rows
-    return x, y, touched
 
 
 def separate_spheres(xy: np.ndarray, radius: float, iterations: int = 3) -> np.ndarray:
@@ -155,9 +112,6 @@ class Spheres(Block):
         Overrides ε (a calibration knob; see docs/fluid.md).
     dt : float
         Frame period [s].
-    compiled : bool
-        Run frames through the compiled kernel (:mod:`magctl.plant.sphere_kernel`); False: the
-        array form (the reference, same numbers to round-off).
     flow : RobotFlow, optional
         The robot's flow to use instead of :func:`~magctl.plant.fluid.flow.robot_flow`'s (e.g. the
         finite-element box model, :class:`magctl.plant.fluid.fem_box.BoxFlow`); ``geometry``
@@ -169,7 +123,7 @@ class Spheres(Block):
                  domain: Domain | None = None,
                  viscosity: float | None = None, fluid_density: float | None = None,
                  drag_mode: str | None = None, roughness: float | None = None, dt: float = FRAME_PERIOD_S,
-                 compiled: bool = True, flow: RobotFlow | None = None):
+                 flow: RobotFlow | None = None):
         self.params = params if params is not None else sphere_params()
         self.init = initial_positions
         n = self._count(initial_positions)
@@ -208,8 +162,7 @@ class Spheres(Block):
         # and Goren & O'Neill's wall factors in the accurate mode
         lam0, g0 = normal_factors(self.mode, r, 0.0, self.roughness)
         self._inv_lambda_contact, self._flow_push_contact = 1.0 / float(lam0), float(g0)
-        self.compiled = bool(compiled)
-        # the accurate mode's resistance functions as arrays, for lifted spheres in the compiled frame
+        # the accurate mode's resistance functions as arrays, for lifted spheres in the kernel
         self._wall = tuple(wall_table()) if self.mode == "accurate" else _no_wall_table()
         poly = self._footprint
         self._edges = tuple(np.ascontiguousarray(a) for a in (poly.x0, poly.y0, poly.dx, poly.dy, poly.ab2, poly.y1))
@@ -240,10 +193,7 @@ class Spheres(Block):
         and load or compile the frame kernel, so a real-time loop does not stall on its first frame."""
         state = self.initial_state(1)
         still = {"position": np.zeros((1, 2)), "heading": np.zeros(1), "velocity": np.zeros((1, 2))}
-        if self.compiled:
-            self.compiled_frame(state, still)
-        else:
-            _ = self.flow
+        self.update(state, still)
 
     @property
     def uses_random(self) -> bool:
@@ -276,12 +226,12 @@ class Spheres(Block):
         return {"xy": xy, "gap": np.zeros((batch, self.n)), "mobility": mult,
                 "contact": np.zeros(batch, bool)}
 
-    def output(self, state, u):
-        return {"spheres": state["xy"].copy(), "contact": state["contact"].copy()}
-
     # --- physics ----------------------------------------------------------------------------
     def sphere_velocity(self, xy, gap, mult, pos, heading, vel):
-        """In-plane sphere velocity ``(B, N, 2)`` and gap rate ``(B, N)`` for the robot state given."""
+        """In-plane sphere velocity ``(B, N, 2)`` and gap rate ``(B, N)`` for the robot state given.
+
+        The flow look-up, mobility (eq 4) and gap balance (eq 8-9) of a sub-step in numpy, at the sphere
+        states given; a frame (sub-steps and contacts) is the kernel's."""
         c, s = _rot(np.asarray(heading, float))
         vel = np.asarray(vel, float)
         vbx, vby = c * vel[:, 0] + s * vel[:, 1], -s * vel[:, 0] + c * vel[:, 1]
@@ -346,11 +296,6 @@ class Spheres(Block):
         wx, wy = c * ux - s * uy, s * ux + c * uy                       # back to the world frame
         return wx, wy, self._gap_rate(uz, gap), k
 
-    def update(self, state, u):
-        if not self.compiled:
-            return self._update_arrays(state, u)
-        return self.compiled_frame(state, u)
-
     def _frame_args(self) -> tuple:
         """The arguments of :func:`~magctl.plant.sphere_kernel.trial_frame` after the robot's motion,
         up to the wall table: sub-steps, flow, footprint and the balance's constants."""
@@ -361,22 +306,9 @@ class Spheres(Block):
                 (self.buoyant_weight + self.pull_off) / self.zeta, self.params.adhesion_range, self._k_contact,
                 self.mode == "paper", self.roughness, self._inv_lambda_contact, self._flow_push_contact)
 
-    def compiled_frame(self, state, u) -> dict:
-        """One frame by :func:`~magctl.plant.sphere_kernel.sphere_frame`: the next state."""
-        batch = state["xy"].shape[0]
-        xy = np.array(state["xy"], float).reshape(batch, 2 * self.n)
-        gap = state["gap"].copy()
-        mult = state["mobility"]
-        heading = np.asarray(u["heading"], float)
-        contact = sphere_frame(
-            xy, gap, mult, _complex(np.asarray(u["position"], float)),
-            _complex(np.asarray(u["velocity"], float)), np.cos(heading) + 1j * np.sin(heading),
-            *self._frame_args(), self._wall)
-        return {"xy": xy.reshape(batch, self.n, 2), "gap": gap, "mobility": mult, "contact": contact}
-
     def kernel(self):
-        """The compiled engine's form (:func:`~magctl.plant.sphere_kernel.spheres_update`): the same
-        sub-steps as :meth:`compiled_frame`, one trial per call. Solves the flow if not yet done."""
+        """The block's frame (:func:`~magctl.plant.sphere_kernel.spheres_update`), one trial per call, run by
+        both engines. Solves the flow if not yet done."""
         from magctl.core.kernel import Kernel
         from magctl.plant import sphere_kernel as k
 
@@ -386,74 +318,9 @@ class Spheres(Block):
                        for a in (*self._frame_args(), *self._wall, *work))
         return Kernel(output=k.spheres_output, update=k.spheres_update, params=params)
 
-    def _update_arrays(self, state, u):
-        """One frame in numpy array operations (the reference form of the compiled frame)."""
-        # Plane points and vectors are complex numbers x + iy inside the frame: a rotation by the
-        # heading is then one multiplication by e^{±iθ} (fewer array operations per sub-step).
-        pos = _complex(np.asarray(u["position"], float))
-        heading = np.asarray(u["heading"], float)
-        vel = _complex(np.asarray(u["velocity"], float))
-        z = _complex(state["xy"])
-        gap, mult = state["gap"].copy(), state["mobility"]
-        n_sub = self.params.substeps
-        tau = self.dt / n_sub
-        contact = np.zeros(len(heading), bool)
-        # the robot's heading and velocity are held over the frame: rotate once
-        turn = (np.cos(heading) + 1j * np.sin(heading))[:, None]        # body → world
-        back = turn.conj()                                               # world → body
-        vb = vel[:, None] * back
-        vbx, vby = vb.real, vb.imag
-        k_rest = np.minimum(np.full(gap.shape, self._k_contact) * mult, 1.0)   # every sphere on the glass
-        # robot positions at the middle and the end of every sub-step, (B, n_sub)
-        steps = np.arange(n_sub, dtype=float)
-        p_mid = pos[:, None] + vel[:, None] * (steps + 0.5) * tau
-        p_end = pos[:, None] + vel[:, None] * (steps + 1) * tau
-        for k in range(n_sub):
-            k_now = self._capped(mult, gap) if (gap > 0).any() else k_rest
-            rel = (z - p_mid[:, k, None]) * back                        # robot frame
-            ux, uy, uz = self.flow.lookup_components(rel.real, rel.imag, vbx, vby)
-            z += k_now * ((ux + 1j * uy) * turn) * tau
-            gap = np.maximum(gap + self._gap_rate(uz, gap) * tau, 0.0)
-            z, touched = self._contacts(z, p_end[:, k], turn)
-            contact |= touched
-        return {"xy": np.stack([z.real, z.imag], axis=-1), "gap": gap, "mobility": mult, "contact": contact}
-
-    def _contacts(self, z, pos, turn):
-        """Non-penetration of the robot's footprint and between spheres after a sub-step.
-
-        ``z`` sphere centres (B, N) and ``pos`` robot positions (B,) as complex numbers, ``turn``
-        = e^{iθ} (B, 1). Only spheres within reach of the robot (per trial and sphere) are tested.
-        """
-        touched = np.zeros(len(z), bool)
-        d = z - pos[:, None]
-        near = np.abs(d) < self.reach
-        if near.any():
-            b, i = np.nonzero(near)
-            rel = d[b, i] * turn[b, 0].conj()
-            # beyond the footprint's bounding box grown by R a sphere can neither touch nor overlap it
-            box = (np.abs(rel.real) < self._box[0]) & (np.abs(rel.imag) < self._box[1])
-            if not box.all():
-                b, i, rel = b[box], i[box], rel[box]
-            rx2, ry2, hit = _push_out(rel.real, rel.imag, self._footprint, self.radius, 3)
-            if hit.any():
-                b, i = b[hit], i[hit]
-                z = z.copy()
-                z[b, i] = pos[b] + (rx2[hit] + 1j * ry2[hit]) * turn[b, 0]
-                touched[b] = True
-        if self.n > 1:
-            z = _complex(separate_spheres(np.stack([z.real, z.imag], axis=-1), self.radius))
-        return z, touched
-
-
-def _complex(xy: np.ndarray) -> np.ndarray:
-    """Points ``(..., 2)`` as complex numbers ``x + iy`` (a fresh array)."""
-    z = np.empty(xy.shape[:-1], complex)
-    z.real, z.imag = xy[..., 0], xy[..., 1]
-    return z
-
 
 def _no_wall_table() -> tuple:
-    """The compiled frame's table argument in the paper mode, which never reads it: read-only arrays
+    """The kernel's table argument in the paper mode, which never reads it: read-only arrays
     of a :class:`~magctl.plant.fluid.wall_drag.WallTable`'s types, so both modes share one compilation."""
     arrays = (np.zeros(2), np.zeros((8, 1, 4)), np.ones(8))
     for a in arrays:

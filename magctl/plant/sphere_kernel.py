@@ -1,15 +1,15 @@
-"""Compiled sphere sub-steps: one frame of :class:`magctl.plant.sphere.Spheres` for a whole batch.
+"""Compiled sphere sub-steps: one frame of :class:`magctl.plant.sphere.Spheres`, the block's only implementation.
 
-The array form (``Spheres._update_arrays``) makes about 150 numpy calls per sub-step; at the
-batch sizes of a study (≈ 100 trials) each call is dominated by its fixed cost, not
-by the arithmetic. This module runs the same frame — flow look-up in the robot-frame
-map, inertia-free move ``V_p = k U`` (eq 4), gap balance (eq 8–9; in the ``accurate`` mode
-with Brenner's and Goren & O'Neill's wall factors, ``Spheres._gap_rate``), non-penetration of
-the footprint and between spheres — as one numba-compiled loop over trials, spheres
-and sub-steps, with the same operations in the same order per trial. One trial's frame is
-:func:`trial_frame`; the batch frame :func:`sphere_frame` calls it for every trial, and the block's
-kernel for the compiled engine (:func:`spheres_output`, :func:`spheres_update`, the convention of
-:mod:`magctl.core.kernel`) calls it for the trial it is given.
+The numpy array form (``RefSpheres`` in ``tests/reference/plant_blocks.py``, the reference this module is
+tested against) makes about 150 numpy calls per sub-step; at the batch sizes of a study (≈ 100 trials)
+each call is dominated by its fixed cost, not by the arithmetic. This module runs the same frame — flow
+look-up in the robot-frame map, inertia-free move ``V_p = k U`` (eq 4), gap balance (eq 8–9; in the
+``accurate`` mode with Brenner's and Goren & O'Neill's wall factors, ``Spheres._gap_rate``),
+non-penetration of the footprint and between spheres — as one numba-compiled loop over spheres and
+sub-steps per trial, with the same operations in the same order. One trial's frame is
+:func:`trial_frame`; the block's kernel (:func:`spheres_output`, :func:`spheres_update`, the convention of
+:mod:`magctl.core.kernel`) calls it for the trial it is given, in both engines (the interpreted one
+through :mod:`magctl.core.kernel_driver`); :func:`sphere_frame` calls it for every trial of a batch.
 
 Off the flow map it sums the flow's far-field point forces (``RobotFlow.points/forces``)
 as Blake Stokeslets — singular ones (``eps = 0``) for the boundary-element flow — as the
@@ -22,7 +22,7 @@ blend of :mod:`magctl.plant.fluid.wall_drag`, whose shared definitions are compi
 numba's on-disk cache of this module is keyed on this file only: after editing the formulas it
 compiles from ``wall_drag.py`` (``near_contact_terms``, ``far_field_terms``, ``smoothstep``,
 ``blend``), delete ``magctl/plant/__pycache__/sphere_kernel*.nb*`` (the kernel tests would
-otherwise fail against the edited array form).
+otherwise fail against the edited reference).
 """
 
 from __future__ import annotations
@@ -268,7 +268,7 @@ def trial_frame(b, xy, gap, mult, pos, vel, turn, frame, flow, footprint, table,
     sphere touched the robot. Every sub-step: the flow at each centre (map in the robot frame, or
     the Stokeslets off it), the inertia-free move ``V_p = k U`` of eq 4 with the mobility capped at
     the free-sphere limit 1, the gap balance of eq 8–9, then non-penetration of the footprint and
-    between spheres (``Spheres._update_arrays``, the same operations in the same order).
+    between spheres (the reference ``RefSpheres.update``, the same operations in the same order).
 
     ``xy (B, 2N)`` centres ``(x₀, y₀, x₁, …)`` [m], ``gap (B, N)`` δ [m], ``mult (B, N)`` mobility
     multipliers; ``pos, vel, turn`` the robot's position, held velocity and ``e^{iθ}`` as complex
@@ -403,7 +403,7 @@ def spheres_output(b, params, state, outputs):
 @jit
 def spheres_update(b, params, state, next_state, inputs, base, noise):
     """``Spheres.update``: one frame of trial ``b`` by :func:`trial_frame` (the heading's ``e^{iθ}`` as
-    ``Spheres.compiled_frame`` forms it). No draws: the mobility multipliers are drawn at step 0."""
+    the reference forms it). No draws: the mobility multipliers are drawn at step 0."""
     (n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height, x0, y0, dx, dy, ab2, y1,
      radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode, roughness,
      inv_lambda_contact, flow_push_contact, knots, coef, signs, near_lo, near_hi, far_lo, far_hi,

@@ -32,6 +32,9 @@ Compositions (the blocks are the same objects in each):
 
 Parameters come from ``models/rig.toml`` ``[standin]`` (geometry, field of view) and
 ``models/push.toml`` ``[release]`` (``D_p,r``); see :func:`standin_params`.
+
+Each block's behaviour is its kernel in :mod:`magctl.plant.standin_kernels`, run by both engines; the numpy
+forms they are tested against are in ``tests/reference/plant_blocks.py``.
 """
 
 from __future__ import annotations
@@ -46,7 +49,7 @@ from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import MagctlError
 from magctl.core.kernel import Kernel
 from magctl.core.ports import Port
-from magctl.plant.robot import ROBOT_INPUTS, steady_speed
+from magctl.plant.robot import ROBOT_INPUTS
 
 __all__ = ["FieldGait", "KinematicRobot", "StandinParams", "StandinSpheres", "StandinTracker", "StraightToTarget",
            "standin_params"]
@@ -89,10 +92,6 @@ def standin_params() -> StandinParams:
                          sphere_radius=float(sd.sphere_radius), side_range=float(sd.side_range),
                          workspace_half=float(sd.workspace_half), release_mean=float(release.mean),
                          release_std=float(release.std))
-
-
-def _norm(v: np.ndarray) -> np.ndarray:
-    return np.sqrt(np.einsum("...i,...i->...", v, v))
 
 
 # --- the robot ------------------------------------------------------------------------------------------
@@ -142,16 +141,6 @@ class KinematicRobot(Block):
     def initial_state(self, batch, rng=None):
         return {"x": np.broadcast_to(self.start, (batch, 2)).copy(), "h": np.full(batch, self.heading0),
                 "v": np.zeros((batch, 2))}
-
-    def output(self, state, u):
-        return {"position": state["x"], "heading": state["h"], "velocity": state["v"]}
-
-    def update(self, state, u):
-        speed, heading = u["speed"], u["heading"]
-        v = speed[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
-        steer = u["steer"] if "steer" in u else speed > 0
-        # new arrays: the outputs handed out this frame stay untouched
-        return {"x": state["x"] + self.dt * v, "h": np.where(steer, heading, state["h"]), "v": v}
 
     def kernel(self):
         from magctl.plant import standin_kernels as k
@@ -209,13 +198,6 @@ class FieldGait(Block):
                          outputs=[Port("speed", (), "m/s"), Port("heading", (), "rad"),
                                   Port("steer", (), "1", "bool")], dt=dt, feedthrough=True)
 
-    def output(self, state, u):
-        bs = u["b_static_delivered"]
-        b_xy = _norm(bs)
-        on = b_xy > 0
-        speed = np.where(on, steady_speed(self.robot, b_xy, u["b_osc_delivered"], u["freq_delivered"]), 0.0)
-        return {"speed": speed, "heading": np.arctan2(bs[:, 1], bs[:, 0]), "steer": on}
-
     def kernel(self):
         from magctl.plant import standin_kernels as k
 
@@ -251,11 +233,6 @@ class StraightToTarget(Block):
         super().__init__(name, inputs=[Port("target", (2,), "m"), Port("speed_cap", (), "m/s"),
                                        Port("position", (2,), "m")],
                          outputs=[Port("speed", (), "m/s"), Port("heading", (), "rad")], dt=dt, feedthrough=True)
-
-    def output(self, state, u):
-        d = u["target"] - u["position"]
-        cap = np.where(u["speed_cap"] > 0, np.minimum(u["speed_cap"], self.v_max), 0.0)
-        return {"speed": np.minimum(cap, _norm(d) / self.dt), "heading": np.arctan2(d[:, 1], d[:, 0])}
 
     def kernel(self):
         from magctl.plant import standin_kernels as k
@@ -368,71 +345,6 @@ class StandinSpheres(Block):
                 "passed": np.zeros((batch, n), dtype=bool), "releases": np.zeros(batch),
                 "last_release": np.zeros(batch), "rng": rng, "k": 0}
 
-    def output(self, state, u):
-        return {"spheres": state["s"], "contact": state["contact"], "releases": state["releases"],
-                "last_release": state["last_release"]}
-
-    def update(self, state, u):
-        r0, r = state["r"], u["position"]
-        draw = state["rng"].standard_normal((), at=state["k"]) if state["rng"] is not None else np.zeros(r.shape[0])
-        s = state["s"]
-        if s.shape[1] == 0:
-            return {**state, "r": r.copy(), "k": state["k"] + 1}
-        step = r - r0
-        size = _norm(step)
-        moving = size > 1e-12
-        d = np.where(moving[:, None], step / np.where(moving, size, 1.0)[:, None], 0.0)
-        straight = moving & (np.einsum("bi,bi->b", d, state["dir"]) > _STRAIGHT)
-        passed = state["passed"] & straight[:, None]  # one displacement per straight pass
-        dd = np.broadcast_to(d[:, None, :], s.shape)
-
-        # 1. side pass, eq 22
-        rel0 = s - r0[:, None, :]
-        a0 = np.einsum("bni,bni->bn", rel0, dd)
-        a1 = np.einsum("bni,bni->bn", s - r[:, None, :], dd)
-        lat = np.abs(dd[..., 0] * rel0[..., 1] - dd[..., 1] * rel0[..., 0])
-        cross = (straight[:, None] & ~passed & (a0 > 0) & (a1 <= 0) & (lat > self.contact_distance)
-                 & (lat < self.side_range))
-        amp = self.SIDE_A * (self.side_scale[:, None] if self.side_scale.ndim else self.side_scale)
-        s = s + (cross * amp * np.exp(-self.SIDE_K * lat))[..., None] * dd
-        passed = passed | cross
-
-        # 2. release: the sphere follows a robot that moves away from it
-        away = moving[:, None] & (np.einsum("bni,bni->bn", s - r[:, None, :], dd) < 0)
-        release = state["attached"] & away
-        amount = np.maximum(0.0, self.release_mean + self.release_std * draw)
-        pending = np.where(release, amount[:, None], state["pending"])
-        follow = np.where(away, np.minimum(pending, size[:, None]), 0.0)
-        s = s + follow[..., None] * dd
-        pending = pending - follow
-        attached = state["attached"] & ~release
-        started = release.any(axis=1)
-
-        # 3. contact: carried along d in front of a moving robot, else pushed out along the line of centres
-        c = self.contact_distance
-        rel = s - r[:, None, :]
-        along = np.einsum("bni,bni->bn", rel, dd)
-        lat = np.abs(dd[..., 0] * rel[..., 1] - dd[..., 1] * rel[..., 0])
-        reach = np.sqrt(np.maximum(c * c - lat * lat, 0.0))
-        carried = moving[:, None] & (along > -1e-12) & (lat < c) & (along < reach * (1 - 1e-9))
-        s = s + (carried * (reach - along))[..., None] * dd
-        rel = s - r[:, None, :]
-        dist = _norm(rel)
-        over = dist < c * (1 - 1e-9)  # a rounding-level overlap (a carried or following sphere) is none
-        s = np.where(over[..., None], r[:, None, :] + rel * (c / np.where(dist > 0, dist, 1.0))[..., None], s)
-        over |= carried
-        # a sphere left exactly at contact distance still touches (unless the robot is leaving it): whether
-        # rounding puts it a hair inside or outside must not decide whether it is released later
-        touching = over | ((dist < c * (1 + 1e-9)) & ~away)
-
-        # 4. sphere-sphere: the sphere the robot did not drive gives way
-        s = self._separate(s, over | (follow > 0))
-        return {"s": s, "contact": over.any(axis=1), "r": r.copy(), "dir": np.where(moving[:, None], d, state["dir"]),
-                "attached": attached | touching, "pending": np.where(touching, 0.0, pending), "passed": passed,
-                "releases": state["releases"] + release.sum(axis=1),
-                "last_release": np.where(started, amount, state["last_release"]), "rng": state["rng"],
-                "k": state["k"] + 1}
-
     def kernel(self):
         from magctl.plant import standin_kernels as k
 
@@ -442,24 +354,6 @@ class StandinSpheres(Block):
                   float(_STRAIGHT), np.zeros(max(n, 1), bool))
         return Kernel(output=k.standin_spheres_output, update=k.standin_spheres_update, params=params,
                       stream="rng")
-
-    def _separate(self, s: np.ndarray, driven: np.ndarray) -> np.ndarray:
-        n, gap = s.shape[1], 2.0 * self.sphere_radius
-        if n < 2 or gap <= 0:
-            return s
-        s = s.copy()
-        for i in range(n):
-            for j in range(i + 1, n):
-                sep = s[:, j] - s[:, i]
-                dist = _norm(sep)
-                fix = np.where(dist < gap, gap - dist, 0.0)
-                if not fix.any():
-                    continue
-                v = sep / np.where(dist > 0, dist, 1.0)[:, None]
-                move_j = ~driven[:, j]
-                s[:, j] += np.where(move_j, fix, 0.0)[:, None] * v
-                s[:, i] -= np.where(move_j, 0.0, fix)[:, None] * v
-        return s
 
 
 # --- the tracker ------------------------------------------------------------------------------------------
@@ -521,21 +415,6 @@ class StandinTracker(Block):
                 "s": np.broadcast_to(self.spheres0, (batch, *self.spheres0.shape)).copy(),
                 "lost": np.zeros(batch, dtype=bool), "k": 0}
 
-    def output(self, state, u):
-        return {"robot_est": state["r"], "heading_est": state["h"], "velocity_est": state["v"],
-                "spheres_est": state["s"], "lost": state["lost"]}
-
-    def update(self, state, u):
-        p = u["position"]
-        k = state["k"] + 1
-        t = k * self.dt  # the time at which this estimate is shown
-        lost = np.any(np.abs(p) > self.half_width, axis=1)
-        if _within(t, self.blackout):
-            lost = np.ones_like(lost)
-        s = np.full_like(u["spheres"], np.nan) if _within(t, self.sphere_loss) else u["spheres"].copy()
-        return {"r": p.copy(), "h": u["heading"].copy(), "v": (p - state["r"]) / self.dt, "s": s, "lost": lost,
-                "k": k}
-
     def kernel(self):
         from magctl.plant import standin_kernels as k
 
@@ -545,6 +424,3 @@ class StandinTracker(Block):
                       params=(float(self.dt), self.half_width, self.blackout is not None, *black,
                               self.sphere_loss is not None, *loss))
 
-
-def _within(t: float, window) -> bool:
-    return window is not None and window[0] <= t < window[1]

@@ -1,10 +1,11 @@
-"""Compiled kernels of the stand-in plant's blocks (:mod:`magctl.plant.standin`).
+"""Kernels of the stand-in plant's blocks (:mod:`magctl.plant.standin`): the blocks' only implementation,
+run by both engines (the interpreted one through :mod:`magctl.core.kernel_driver`).
 
 Each function runs one trial ``b`` in the convention of :mod:`magctl.core.kernel`, with the same
-floating-point operations per element as the block's numpy form (``_norm``'s ``einsum`` over two
-elements is ``x₀x₀ + x₁x₁``; ``np.arctan2`` is ``math.atan2``; ``np.minimum``/``np.maximum`` keep
-numpy's NaN rule). Imported only when a diagram is compiled, so that numba stays out of the import
-of ``magctl``.
+floating-point operations per element as the block's numpy reference (``tests/reference/plant_blocks.py``;
+``_norm``'s ``einsum`` over two elements is ``x₀x₀ + x₁x₁``; ``np.arctan2`` is ``math.atan2``;
+``np.minimum``/``np.maximum`` keep numpy's NaN rule). Imported when a block first runs, so that numba
+stays out of the import of ``magctl``.
 """
 
 from __future__ import annotations

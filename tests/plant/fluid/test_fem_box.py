@@ -251,8 +251,11 @@ def test_maps_are_cached_by_every_input(box_flow):
 
 
 @needs_fem
-def test_spheres_run_the_side_pass_with_the_box_flow(box_flow):
+def test_spheres_run_the_side_pass_with_the_box_flow(box_flow, monkeypatch):
+    from reference import reference_of
+
     from magctl.core.errors import ParameterError
+    from magctl.plant.fluid import scenarios
     from magctl.plant.fluid.scenarios import sidepush_curve
     from magctl.plant.sphere import Spheres
 
@@ -260,7 +263,10 @@ def test_spheres_run_the_side_pass_with_the_box_flow(box_flow):
     gaps = np.array([400e-6, 550e-6])
     res = sidepush_curve(gaps, travel=0.5e-3, flow=flow)
     assert np.isfinite(res.displacement).all() and not res.contact.any() and np.all(res.displacement > 0)
-    arrays = sidepush_curve(gaps, travel=0.5e-3, flow=flow, compiled=False)
+    # the block's kernel against the numpy array form (tests/reference) on the same box flow
+    monkeypatch.setattr(scenarios, "_spheres", lambda initial, **kw: reference_of(Spheres(initial, **kw)))
+    arrays = sidepush_curve(gaps, travel=0.5e-3, flow=flow)
+    monkeypatch.undo()
     np.testing.assert_allclose(arrays.displacement, res.displacement, rtol=1e-6)
     other = RobotGeometry(flow.geometry.outline * 0.9, flow.geometry.thickness, flow.geometry.tilt)
     with pytest.raises(ParameterError, match="another robot geometry"):

@@ -1,11 +1,13 @@
-"""Contact geometry: frame transforms, non-penetration against the star outline, sphere separation."""
+"""Contact geometry: frame transforms, non-penetration against the star outline (the array form's push-out,
+``tests/reference/plant_blocks.py``; the kernel is checked against that form), sphere separation."""
 
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from reference.plant_blocks import push_out_of_outline
 
 from magctl.plant.fluid.geometry import RobotGeometry, points_in_polygon, polygon_distance
-from magctl.plant.sphere import push_out_of_outline, separate_spheres, to_body, to_world
+from magctl.plant.sphere import separate_spheres, to_body, to_world
 
 R = 105e-6
 GEOM = RobotGeometry.from_params()

@@ -1,4 +1,5 @@
-"""The compiled sphere frame against the array form it replaces (magctl.plant.sphere_kernel)."""
+"""The sphere frame's kernel (magctl.plant.sphere_kernel), the block's only implementation, against the numpy
+array form it replaced (``RefSpheres``, tests/reference/plant_blocks.py)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from reference import reference_of
 
 import magctl.loops
 from magctl.plant.fluid import wall_drag
@@ -39,9 +41,10 @@ def _random_frame(block: Spheres, batch: int, seed: int, spread: float = 1.0e-3)
 
 
 def _both_forms(block: Spheres, state, u):
-    """One frame by the array form and by the compiled frame, from copies of the same state."""
-    reference = block._update_arrays({k: v.copy() for k, v in state.items()}, u)
-    compiled = block.compiled_frame({k: v.copy() for k, v in state.items()}, u)
+    """One frame by the array form (the reference) and by the block (its kernel), from copies of the same
+    state."""
+    reference = reference_of(block).update({k: v.copy() for k, v in state.items()}, u)
+    compiled = block.update({k: v.copy() for k, v in state.items()}, u)
     return reference, compiled
 
 
@@ -59,10 +62,17 @@ def test_compiled_frame_matches_the_array_form(mode, n_spheres):
     np.testing.assert_allclose(compiled["xy"], reference["xy"], rtol=0, atol=1e-15)
     np.testing.assert_allclose(compiled["gap"], reference["gap"], rtol=0, atol=1e-18)
     np.testing.assert_array_equal(compiled["contact"], reference["contact"])
-    # the block's own update is the compiled frame
-    full = block.update({k: v.copy() for k, v in state.items()}, u)
-    np.testing.assert_array_equal(full["xy"], compiled["xy"])
-    np.testing.assert_array_equal(full["gap"], compiled["gap"])
+    # the block's update (its kernel, trial by trial) is the kernel module's batch frame, sphere_frame
+    from magctl.plant.sphere_kernel import sphere_frame
+
+    xy = np.array(state["xy"], float).reshape(len(state["xy"]), -1)
+    gap = state["gap"].copy()
+    pos, vel = (u[k][:, 0] + 1j * u[k][:, 1] for k in ("position", "velocity"))
+    turn = np.cos(u["heading"]) + 1j * np.sin(u["heading"])
+    contact = sphere_frame(xy, gap, state["mobility"], pos, vel, turn, *block._frame_args(), block._wall)
+    np.testing.assert_allclose(compiled["xy"], xy.reshape(compiled["xy"].shape), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(compiled["gap"], gap, rtol=0, atol=1e-18)
+    np.testing.assert_array_equal(compiled["contact"], contact)
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -82,7 +92,7 @@ def test_spheres_off_the_map_are_summed_directly(mode):
 
 def test_lifted_spheres_over_many_frames_in_the_accurate_mode():
     """Spheres lifted from the glass to a radius and more, driven for 20 frames in the accurate mode:
-    every frame of the compiled form follows the array form to 1e-15 m, while the gaps cross the
+    every frame of the kernel follows the array form to 1e-15 m, while the gaps cross the
     table's whole range and the lower and upper blends (δ/a from below 2e-6 to above 67; a roughness
     ε of 10 pm lets the gap reach the near-contact expansions)."""
     block = Spheres(np.zeros((3, 2)), drag_mode="accurate", roughness=1e-11)
@@ -93,9 +103,10 @@ def test_lifted_spheres_over_many_frames_in_the_accurate_mode():
     ratio = (state["gap"] + block.roughness) / block.radius
     assert (ratio < 2e-6).sum() > 5 and (ratio > 67).sum() > 5
     ref, comp = state, {k: v.copy() for k, v in state.items()}
+    array_form = reference_of(block)
     for _ in range(20):
-        ref = block._update_arrays(ref, u)
-        comp = block.compiled_frame(comp, u)
+        ref = array_form.update(ref, u)
+        comp = block.update(comp, u)
         np.testing.assert_allclose(comp["xy"], ref["xy"], rtol=0, atol=1e-15)
         np.testing.assert_allclose(comp["gap"], ref["gap"], rtol=1e-14, atol=1e-18)
         np.testing.assert_array_equal(comp["contact"], ref["contact"])
@@ -142,11 +153,11 @@ def test_compiled_wall_functions_equal_the_array_form():
 
 def test_closed_loop_release_identical_in_both_forms(monkeypatch):
     """Eight closed-loop front pushes in the accurate drag mode at the calibrated roughness
-    (ε = 15.86 µm), where spheres lift near the robot in many frames: the compiled frame and the
-    array form give the same pull-back, overshoot, stop gap and retract per trial to 1e-12 m."""
+    (ε = 15.86 µm), where spheres lift near the robot in many frames: the kernel and the array form
+    give the same pull-back, overshoot, stop gap and retract per trial to 1e-12 m."""
     accurate = dataclasses.replace(sphere_params(), drag_mode="accurate")
     monkeypatch.setattr(magctl.loops, "sphere_params", lambda: accurate)
-    monkeypatch.setenv("MAGCTL_ENGINE", "interpreted")   # the block's two numpy-side forms, not its kernel
+    monkeypatch.setenv("MAGCTL_ENGINE", "interpreted")   # Spheres.update: the kernel, then the reference
     lifted = []
     compiled_update = Spheres.update
 
@@ -156,8 +167,8 @@ def test_closed_loop_release_identical_in_both_forms(monkeypatch):
 
     monkeypatch.setattr(Spheres, "update", counted)
     fast = in_task_release(15.86e-6, trials=8)
-    assert sum(lifted) > 50                     # frames with a lifted sphere, all compiled
-    monkeypatch.setattr(Spheres, "update", Spheres._update_arrays)
+    assert sum(lifted) > 50                     # frames with a lifted sphere, all by the kernel
+    monkeypatch.setattr(Spheres, "update", lambda self, state, u: reference_of(self).update(state, u))
     slow = in_task_release(15.86e-6, trials=8)
     for name in ("pull_back", "overshoot", "stop_gap", "retract"):
         np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=0, atol=1e-12)
@@ -175,7 +186,7 @@ def test_kernel_uses_the_adhesion_and_substeps_of_the_parameters():
     base = dataclasses.replace(sphere_params(), drag_mode="paper")   # eq 9: the flow lifts freely
     plain = Spheres(np.zeros((1, 2)), params=base)
     state, u = _random_frame(plain, 200, seed=11)
-    default = plain.compiled_frame({k: v.copy() for k, v in state.items()}, u)
+    default = plain.update({k: v.copy() for k, v in state.items()}, u)
     for params in (dataclasses.replace(base, adhesion=True), dataclasses.replace(base, substeps=7)):
         block = Spheres(np.zeros((1, 2)), params=params)
         reference, compiled = _both_forms(block, state, u)
