@@ -1,8 +1,7 @@
-"""A gate between camera and tracker that drops every frame in a time window: forced tracking loss."""
+"""A gate between camera and tracker that drops every frame in a time window: forced tracking loss (its behaviour:
+its kernel, :func:`magctl.sensing.kernels.blackout_step`)."""
 
 from __future__ import annotations
-
-import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.core.block import Block, StateVar
@@ -38,12 +37,3 @@ class Blackout(Block):
 
         t0, t1 = self.window if self.window is not None else (0.0, 0.0)
         return Kernel(step=k.blackout_step, params=(self.window is not None, t0, t1, self.dt))
-
-    def output(self, state, u):
-        w = self.window
-        if w is not None and w[0] <= state["k"] * self.dt < w[1]:
-            return {"valid_out": np.zeros_like(u["valid"])}
-        return {"valid_out": u["valid"]}
-
-    def update(self, state, u):
-        return {"k": state["k"] + 1}

@@ -19,6 +19,11 @@ outputs repeat the last delivered value.
 Pixel ``(row i, column j)`` has its centre at ``(x, y) = (j·s, i·s)`` with
 ``s`` the pixel size (7.5 µm, §VI-B), so a quantised coordinate is
 ``s·round(x/s)``.
+
+Positions mode is implemented once, by the per-trial kernels of
+:mod:`magctl.sensing.kernels` (both engines run them; the batched numpy form they
+are tested against is in ``tests/reference/sensing_blocks.py``). Images mode has
+no kernel and runs in Python.
 """
 
 from __future__ import annotations
@@ -39,11 +44,6 @@ MODES = ("positions", "images")
 def camera_params() -> Params:
     """``models/camera.toml`` (tables ``camera``, ``render``, ``tracker``)."""
     return load_model("camera")
-
-
-def quantise(x: np.ndarray, pixel: float) -> np.ndarray:
-    """Round coordinates (m) to the nearest pixel centre: ``s·round(x/s)``."""
-    return pixel * np.round(x / pixel)
 
 
 # --- rendering --------------------------------------------------------------------------------
@@ -222,16 +222,21 @@ class Camera(Block):
 
     def initial_state(self, batch, rng=None):
         L, n = self.latency, self.n_spheres
+        pos, head, sph = self.primed if self.primed is not None else (np.zeros(2), 0.0, np.zeros((n, 2)))
         st = {"rng": rng, "k": 0}
         for j in range(L, 0, -1):
-            pos, head, sph = self.primed if self.primed is not None else (np.zeros(2), 0.0, np.zeros((n, 2)))
             st |= {f"pos{j}": np.broadcast_to(pos, (batch, 2)).copy(), f"head{j}": np.full(batch, head),
                    f"sph{j}": np.broadcast_to(sph, (batch, n, 2)).copy(),
                    f"full{j}": np.full(batch, self.primed is not None)}
         if self.mode == "positions":
             st |= {"meas_pos": np.zeros((batch, 2)), "meas_head": np.zeros(batch), "meas_sph": np.zeros((batch, n, 2))}
             if L:
-                st |= self._measure(st, self._sample(st, None), 0)
+                st["valid"] = np.zeros(batch, dtype=bool)  # no frame yet
+                if self.primed is not None:
+                    # running at rest: step −1 held the same frames and received the same one, and its update
+                    # measured the frame delivered at step 0 (stream position 0)
+                    at_rest = {"position": st["pos1"], "heading": st["head1"], "spheres": st["sph1"]}
+                    st = self.update(st | {"k": -1}, at_rest)
         return st
 
     def kernel(self):
@@ -248,61 +253,36 @@ class Camera(Block):
             return Kernel(output=k.camera_output, update=update, params=params, stream="rng")
         return Kernel(step=k.camera_step, params=params, stream="rng")
 
-    def _sample(self, state, u):
-        """The true plant state of the frame delivered now, and whether one exists."""
-        if self.latency == 0:
-            b = u["position"].shape[0]
-            return u["position"], u["heading"], u["spheres"], np.ones(b, dtype=bool)
-        L = self.latency
-        return state[f"pos{L}"], state[f"head{L}"], state[f"sph{L}"], state[f"full{L}"]
-
-    def _draws(self, state, batch, k):
-        """Step ``k``'s draws: standard normals ``(B, 3 + 2N)`` and one uniform ``(B, 1)``; none without a stream."""
-        rng = state["rng"]
-        if rng is None:
-            return np.zeros((batch, 3 + 2 * self.n_spheres)), np.ones((batch, 1))
-        return rng.standard_normal((3 + 2 * self.n_spheres,), at=k), rng.random((1,), at=k)
-
-    def _measure(self, state, sample, k) -> dict:
-        """The positions-mode measurement of step ``k`` from ``sample``, holding ``state``'s last one if invalid."""
-        pos, head, sph, full = sample
-        b = pos.shape[0]
-        normal, uniform = self._draws(state, b, k)
-        valid = full & (uniform[:, 0] >= self.p_drop) & self._in_view(pos)
-        s = self.pixel
-        n = self.n_spheres
-        robot = quantise(pos + s * self.sigma_px * normal[:, :2], s)
-        heading = np.angle(np.exp(1j * (head + self.sigma_heading * normal[:, 2])))
-        spheres = quantise(sph + s * self.sigma_px * normal[:, 3:].reshape(b, n, 2), s)
-        return {"meas_pos": np.where(valid[:, None], robot, state["meas_pos"]),
-                "meas_head": np.where(valid, heading, state["meas_head"]),
-                "meas_sph": np.where(valid[:, None, None], spheres, state["meas_sph"]), "valid": valid}
-
-    def _in_view(self, pos):
-        fov_w, fov_h = self.field_of_view
-        return (pos[:, 0] >= 0) & (pos[:, 0] <= fov_w) & (pos[:, 1] >= 0) & (pos[:, 1] <= fov_h)
-
-    @staticmethod
-    def _positions_out(m: dict) -> dict:
-        return {"robot_meas": m["meas_pos"], "heading_meas": m["meas_head"], "spheres_meas": m["meas_sph"],
-                "valid": m["valid"]}
-
+    # --- images mode: no kernel, Python ---------------------------------------------------------
     def output(self, state, u):
+        """Positions mode: the kernel (:meth:`Block.output`). Images mode: the frame delivered now, rendered
+        (blank when dropped), and ``valid`` when delivered with the robot in view."""
         if self.mode == "positions":
-            if self.latency:
-                return self._positions_out(state)
-            return self._positions_out(self._measure(state, self._sample(state, u), state["k"]))
-        pos, head, sph, full = self._sample(state, u)
-        normal, uniform = self._draws(state, pos.shape[0], state["k"])
-        delivered = full & (uniform[:, 0] >= self.p_drop)
-        return {"image": self._render(state, pos, head, sph, delivered), "valid": delivered & self._in_view(pos)}
+            return super().output(state, u)
+        L = self.latency
+        if L:
+            pos, head, sph, full = state[f"pos{L}"], state[f"head{L}"], state[f"sph{L}"], state[f"full{L}"]
+        else:
+            pos, head, sph, full = u["position"], u["heading"], u["spheres"], np.ones(u["heading"].shape[0], bool)
+        rng = state["rng"]
+        delivered = full if rng is None else full & (rng.random((1,), at=state["k"])[:, 0] >= self.p_drop)
+        fov_w, fov_h = self.field_of_view
+        in_view = (pos[:, 0] >= 0) & (pos[:, 0] <= fov_w) & (pos[:, 1] >= 0) & (pos[:, 1] <= fov_h)
+        return {"image": self._render(state, pos, head, sph, delivered), "valid": delivered & in_view}
 
-    def step(self, state, u):
-        if self.mode == "positions" and not self.latency:
-            m = self._measure(state, self._sample(state, u), state["k"])
-            return self._positions_out(m), {"rng": state["rng"], "k": state["k"] + 1, "meas_pos": m["meas_pos"],
-                                            "meas_head": m["meas_head"], "meas_sph": m["meas_sph"]}
-        return self.output(state, u), self.update(state, u)
+    def update(self, state, u):
+        """Positions mode: the kernel (:meth:`Block.update`). Images mode: the latency pipeline moves on by
+        one frame (arrays passed along, never written)."""
+        if self.mode == "positions":
+            return super().update(state, u)
+        new = {"rng": state["rng"], "k": state["k"] + 1}
+        if self.latency:
+            for j in range(self.latency, 1, -1):
+                for x in ("pos", "head", "sph", "full"):
+                    new[f"{x}{j}"] = state[f"{x}{j - 1}"]
+            new |= {"pos1": u["position"], "head1": u["heading"], "sph1": u["spheres"],
+                    "full1": np.ones(u["heading"].shape[0], dtype=bool)}
+        return new
 
     def _render(self, state, pos, head, sph, delivered):
         rng = state["rng"]
@@ -316,20 +296,3 @@ class Camera(Block):
             if not delivered[b]:
                 frames[b] = self.params.render.background
         return frames
-
-    def update(self, state, u):
-        if self.mode == "positions" and not self.latency:
-            return self.step(state, u)[1]
-        new = {"rng": state["rng"], "k": state["k"] + 1}
-        if self.latency:
-            # the pipeline moves on by one frame; arrays are passed along, never written
-            for j in range(self.latency, 1, -1):
-                for x in ("pos", "head", "sph", "full"):
-                    new[f"{x}{j}"] = state[f"{x}{j - 1}"]
-            new |= {"pos1": u["position"], "head1": u["heading"], "sph1": u["spheres"],
-                    "full1": np.ones(u["heading"].shape[0], dtype=bool)}
-            if self.mode == "positions":
-                new |= {"meas_pos": state["meas_pos"], "meas_head": state["meas_head"], "meas_sph": state["meas_sph"]}
-                new |= self._measure(new, self._sample(new, None), new["k"])
-        return new
-

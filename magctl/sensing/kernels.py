@@ -1,11 +1,12 @@
-"""Compiled kernels of the sensing blocks: the camera (positions mode), the blackout gate and the tracker
-(Kalman and raw modes).
+"""Kernels of the sensing blocks: the camera (positions mode), the blackout gate and the tracker (Kalman and
+raw modes). They are these blocks' implementation, run by both engines.
 
 Each function runs one trial ``b`` in the convention of :mod:`magctl.core.kernel`, with the same
-floating-point operations per element as the block's numpy form (``np.round`` is round-half-even,
+floating-point operations per element as the block's numpy reference (``tests/reference/sensing_blocks.py``,
+which they are tested against; ``np.round`` is round-half-even,
 ``np.rint``; the tracker's ``F P Fᵀ`` is numpy's ``matmul``, whose 2 × 2 products are fused
-multiply-adds). Imported only when a diagram is compiled, so that numba stays out of the import of
-``magctl``.
+multiply-adds). Imported only when a block's kernel is first asked for, so that numba stays out of the
+import of ``magctl``.
 """
 
 from __future__ import annotations
@@ -40,13 +41,13 @@ def fma(typingctx, a, b, c):
 # --- camera --------------------------------------------------------------------------------------------
 @jit
 def _quantise(x, pixel):
-    """``quantise``: ``s·round(x/s)``, round half to even."""
+    """``s·round(x/s)``: to the nearest pixel centre, round half to even."""
     return pixel * np.rint(x / pixel)
 
 
 @jit
 def _measure(p, b, full, px, py, head, sph, key, k, mpos, mhead, msph, nmpos, nmhead, nmsph):
-    """``Camera._measure`` of one trial: ``valid = full ∧ (u ≥ p_drop) ∧`` in view; positions
+    """The positions-mode measurement of one trial: ``valid = full ∧ (u ≥ p_drop) ∧`` in view; positions
     ``s·round((x + s σ_px n)/s)``, heading ``arg e^{i(ψ + σ_θ n)}``; the held measurement when not valid.
     ``sph`` is read (row ``b``) before the new measurement is written, element by element."""
     n_sph, pixel, sig_pos, sig_head, p_drop, fov_w, fov_h = p

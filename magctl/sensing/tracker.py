@@ -9,13 +9,16 @@ Three modes:
     A constant-velocity Kalman filter per object and axis (state ``[p, v]``,
     ``F = [[1, T], [0, 1]]``, ``H = [1, 0]``, white-noise acceleration ``Q`` from
     :func:`filterpy.common.Q_discrete_white_noise`, ``R = (σ_px·s)² + s²/12`` with
-    the quantisation variance ``s²/12``). The batched predict/update is written
-    with numpy so B trials run in lockstep; filterpy's per-trial ``KalmanFilter``
-    is the reference it is tested against. With ``predict_frames = d`` it
+    the quantisation variance ``s²/12``). With ``predict_frames = d`` it
     reports ``p + d·T·v``, extrapolating across the camera latency.
 ``"particle"`` (images mode of the camera)
     A particle filter on the image gradient per object
     (:mod:`magctl.sensing.particle_filter`), resampled with filterpy.
+
+Raw and Kalman modes are implemented once, by the per-trial kernel
+:func:`magctl.sensing.kernels.tracker_step` (both engines run it); it is tested
+against a batched numpy form (``tests/reference/sensing_blocks.py``) and against
+filterpy's per-trial ``KalmanFilter``. Particle mode has no kernel and runs in Python.
 
 Tracking loss: after ``max_coast`` frames without a valid detection (or
 before the first one) ``lost`` is true and the estimates are not invented:
@@ -163,82 +166,38 @@ class Tracker(Block):
                   ahead)
         return Kernel(step=k.tracker_step, params=params)
 
-    def _posterior(self, state, u):
-        """State after this frame's measurement (fresh arrays; ``state`` is not modified)."""
-        valid = np.asarray(u["valid"], dtype=bool)
-        z = np.concatenate([u["robot_meas"][:, None, :], u["spheres_meas"]], axis=1)  # (B, M, 2)
-        x, P, init = state["x"], state["P"], state["init"]
-        if self.mode == "raw":
-            xn = x.copy()
-            xn[..., 1] = np.where((valid & init)[:, None, None], (z - x[..., 0]) / self.dt, 0.0)
-            xn[..., 0] = np.where(valid[:, None, None], z, x[..., 0])
-            return xn, P, init | valid
-        # predict (trials not yet initialised are overwritten below)
-        xp = np.einsum("ij,bmaj->bmai", self.F, x)
-        Pp = self.F @ P @ self.F.T + self.Q                         # F P Fᵀ + Q (matmul: a 3-operand einsum is slow)
-        # update, H = [1, 0]: S = P00 + R, K = P[:, 0] / S
-        S = Pp[..., 0, 0] + self.R                                  # (B, M)
-        K = Pp[..., :, 0] / S[..., None]                            # (B, M, 2)
-        innov = z - xp[..., 0]                                      # (B, M, 2 axes)
-        xu = xp + K[:, :, None, :] * innov[..., None]
-        Pu = Pp - K[..., :, None] * Pp[..., 0, :][..., None, :]
-        upd = valid & init
-        if upd.all():                       # the usual frame: every trial tracked and measured
-            return xu, Pu, init | valid
-        upd = upd[:, None, None, None]
-        xn = np.where(upd, xu, xp)
-        Pn = np.where(upd, Pu, Pp)
-        start = (valid & ~init)[:, None, None, None]
-        x0 = np.zeros_like(x)
-        x0[..., 0] = z
-        P0 = np.zeros_like(P)
-        P0[..., 0, 0] = self.R
-        P0[..., 1, 1] = START_VELOCITY_VAR
-        xn = np.where(start, x0, np.where(init[:, None, None, None], xn, x))
-        Pn = np.where(start, P0, np.where(init[:, None, None, None], Pn, P))
-        return xn, Pn, init | valid
-
+    # --- particle mode: no kernel, Python ----------------------------------------------------------
     def step(self, state, u):
-        """Estimates now and the filter state after this frame's measurement, computed once."""
-        valid = np.asarray(u["valid"], dtype=bool)
-        new = dict(state)
-        if self.mode == "particle":
-            pfs = [copy.deepcopy(pf) for pf in state["pf"]]  # the filters step in place: step copies
-            pos, heading, vel, sph, found = self._particle(pfs, u)
-            started = np.array([pf.started for pf in pfs], dtype=bool)
-            missed = np.where(found, 0, state["missed"] + 1)
-            lost = ~started | (missed > self.max_coast)
-            new["pf"] = pfs
-        else:
-            missed = np.where(valid, 0, state["missed"] + 1)
-            x, P, init = self._posterior(state, u)
-            heading = np.where(valid, u["heading_meas"], state["heading"])
-            lost = ~init | (missed > self.max_coast)
-            ahead = self.predict_frames * self.dt if self.mode == "kalman" else 0.0
-            p = x[..., 0] + ahead * x[..., 1]
-            pos, vel, sph = p[:, 0].copy(), x[:, 0, :, 1].copy(), p[:, 1:].copy()
-            new |= {"x": x, "P": P, "init": init}
+        """Raw and Kalman modes: the kernel (:meth:`Block.step`). Particle mode: each trial's filters stepped
+        on copies of themselves, then the loss rules of the module docstring."""
+        if self.mode != "particle":
+            return super().step(state, u)
+        pfs = [copy.deepcopy(pf) for pf in state["pf"]]  # the filters step in place: step copies
+        pos, heading, vel, sph, found = self._particle(pfs, u)
+        started = np.array([pf.started for pf in pfs], dtype=bool)
+        missed = np.where(found, 0, state["missed"] + 1)
+        lost = ~started | (missed > self.max_coast)
+        new = dict(state) | {"pf": pfs, "heading": heading, "missed": missed}
         vel = np.where(lost[:, None], 0.0, vel)
         if self.on_loss == "hold":
             pos = np.where(lost[:, None], state["held_pos"], pos)
             sph = np.where(lost[:, None, None], state["held_sph"], sph)
             new |= {"held_pos": pos, "held_sph": sph}
-        new |= {"heading": heading, "missed": missed}
-        if self.on_loss == "nan":
-            nan = lost[:, None]
-            pos = np.where(nan, np.nan, pos)
-            vel = np.where(nan, np.nan, vel)
-            sph = np.where(nan[..., None], np.nan, sph)
+        else:
+            pos = np.where(lost[:, None], np.nan, pos)
+            vel = np.where(lost[:, None], np.nan, vel)
+            sph = np.where(lost[:, None, None], np.nan, sph)
             heading = np.where(lost, np.nan, heading)
         return {"robot_est": pos, "heading_est": heading, "velocity_est": vel, "spheres_est": sph, "lost": lost}, new
 
     def output(self, state, u):
+        """``step``'s outputs (the kernel in raw and Kalman modes)."""
         return self.step(state, u)[0]
 
     def update(self, state, u):
+        """``step``'s next state (the kernel in raw and Kalman modes)."""
         return self.step(state, u)[1]
 
-    # --- particle mode -------------------------------------------------------------------------
     def _particle(self, pfs, u):
         b = u["image"].shape[0]
         pos, vel = np.zeros((b, 2)), np.zeros((b, 2))
