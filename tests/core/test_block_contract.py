@@ -139,7 +139,7 @@ FACTORIES = {
     "StickSlipRobot": (lambda cls: cls("robot", position=(1e-3, 1e-3)), FIELD),
     "Drive": lambda cls: cls("drive"),
     "ActuatedRobot": lambda cls: cls("plant", position=(1e-3, 1e-3)),
-    "Spheres": (lambda cls: cls(SPHERES, compiled=False), ROBOT_NEAR),
+    "Spheres": (lambda cls: cls(SPHERES), ROBOT_NEAR),
     "FieldGait": (lambda cls: cls("gait", _robot_params()), FIELD),
     "StraightToTarget": (lambda cls: cls("servo", v_max=1e-3),
                          {"target": lambda rng, k: np.array([[2e-3, 1e-3]] * BATCH),
@@ -187,6 +187,8 @@ def _build(name):
 
 def _variants() -> dict:
     """Other configurations of the same classes, whose code paths differ enough to be run too."""
+    from magctl.control.push.assembly import AssemblyTask, FrontThenSideAssemblyTask
+    from magctl.control.push.front import FrontPushTask
     from magctl.control.push.side import SidePushTask
     from magctl.control.servo import Servo
     from magctl.core.linear import PI
@@ -217,12 +219,21 @@ def _variants() -> dict:
             arrive_tol=500 * UM, settle_frames=1),
         "SidePushTask, fixed gap": lambda: SidePushTask("side", goal=(2.5e-3, 1.5e-3), fixed_gap=500 * UM,
                                                         arrive_tol=500 * UM, settle_frames=1),
+        "SidePushTask, curve learning, fixed gap": lambda: SidePushTask(
+            "side", goal=(2.5e-3, 1.5e-3), learning="curve", model="exp-fit", fixed_gap=450 * UM, arrive_tol=500 * UM,
+            settle_frames=1),
+        "FrontPushTask, release model": lambda: FrontPushTask("front", goal=(2.5e-3, 1.5e-3), n_spheres=2,
+                                                              learning="release", arrive_tol=500 * UM, settle_frames=1),
+        "AssemblyTask, curve learning": lambda: AssemblyTask("assembly", learning="curve", model="exp-fit",
+                                                             arrive_tol=500 * UM, settle_frames=1),
+        "FrontThenSideAssemblyTask, curve learning": lambda: FrontThenSideAssemblyTask(
+            "front_side", learning="curve", model="exp-fit", arrive_tol=500 * UM, settle_frames=1),
         "StickSlipRobot, no variability": lambda: StickSlipRobot("robot", variability=False),
         "KinematicRobot, steer input": lambda: KinematicRobot("robot", start=(1e-3, 1e-3), steer_input=True),
         "StandinTracker, sphere loss": lambda: StandinTracker("tracker", 2, 1.6e-3, sphere_loss=(0.3, np.inf)),
         # eq 4-5 and 9 as printed, with adhesion, sticky patches and release scatter drawn at step 0
         "Spheres, paper drag, adhesion, scattered": lambda: Spheres(
-            SPHERES, compiled=False, drag_mode="paper",
+            SPHERES, drag_mode="paper",
             params=dataclasses.replace(sphere_params(), adhesion=True, sticky_probability=0.5, release_scatter=0.3)),
     }
 
