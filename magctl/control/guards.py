@@ -5,7 +5,8 @@
 
 What a task does while tracking is lost is the servo's ``hold`` input (it stops the robot and
 freezes its integral) and, for push tasks, their lost-frame limit; both run in the studies too.
-Status codes are :class:`magctl.control.status.Status`.
+Status codes are :class:`magctl.control.status.Status`. Each block's behaviour is its kernel in
+:mod:`magctl.control.kernels` (numpy references: ``tests/reference/control_blocks.py``).
 """
 
 from __future__ import annotations
@@ -13,8 +14,6 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.control.status import Status
-from magctl.core.batched import norm
 from magctl.core.block import Block, StateVar
 from magctl.core.ports import Port
 
@@ -25,11 +24,6 @@ class ArrivalStatus(Block):
     def __init__(self, name: str, dt: float = FRAME_PERIOD_S):
         super().__init__(name, inputs=[Port("arrived", (), "1", "bool"), Port("lost", (), "1", "bool")],
                          outputs=[Port("status", (), "1", "int64")], dt=dt, feedthrough=True)
-
-    def output(self, state, u):
-        lost, arrived = u["lost"].astype(bool), u["arrived"].astype(bool)
-        status = np.where(lost, Status.TRACKING_LOST, np.where(arrived, Status.CONVERGED, Status.RUNNING))
-        return {"status": status.astype(np.int64)}
 
     def kernel(self):
         """The compiled status (:func:`magctl.control.kernels.arrival_status_step`)."""
@@ -58,16 +52,6 @@ class Patrol(Block):
 
     def initial_state(self, batch, rng=None):
         return {"i": np.zeros(batch, dtype=np.int64), "lap": np.zeros(batch)}
-
-    def output(self, state, u):
-        running = np.full(state["i"].shape, Status.RUNNING, dtype=np.int64)
-        return {"target": self.waypoints[state["i"]], "status": running, "lap": state["lap"].copy()}
-
-    def update(self, state, u):
-        arrived = norm(u["robot_est"] - self.waypoints[state["i"]]) < self.tol
-        i = np.where(arrived, (state["i"] + 1) % len(self.waypoints), state["i"])
-        lap = state["lap"] + (arrived & (i == 0))
-        return {"i": i, "lap": lap}
 
     def kernel(self):
         """The compiled patrol (:func:`magctl.control.kernels.patrol_output`, ``patrol_update``)."""

@@ -118,46 +118,6 @@ class Servo(Block):
     def initial_state(self, batch, rng=None):
         return {"I": np.zeros((batch, 2)), "heading": np.zeros(batch)}
 
-    def step(self, state, u):
-        """The law once per frame: the command and the next integral (conditional integration or clamp)."""
-        e = u["target"] - u["robot_est"]
-        ok = np.isfinite(e).all(axis=1)
-        if "hold" in u:
-            ok &= ~np.asarray(u["hold"], dtype=bool)
-        e = np.where(ok[:, None], e, 0.0)
-        dist = np.sqrt(np.einsum("bi,bi->b", e, e))
-        arrived = ok & (dist < self.arrive_tol)
-        cap = self.speed_max
-        if "speed_cap" in u:
-            cap = np.minimum(cap, np.maximum(u["speed_cap"], 0.0))
-        raw = self.kp * e + self.ki * state["I"]
-        mag = np.sqrt(np.einsum("bi,bi->b", raw, raw))
-        sat = mag > cap
-        speed = np.minimum(mag, cap)
-        if self.constant_speed:
-            speed = np.broadcast_to(cap, mag.shape).astype(float)
-            sat = mag > 0
-        moving = ok & ~arrived
-        speed = np.where(moving, speed, 0.0)
-        heading = np.where(mag > 0, np.arctan2(raw[:, 1], raw[:, 0]), state["heading"])
-        sat = sat & moving
-        out = {"speed": speed, "heading": heading, "arrived": arrived & ok, "saturated": sat}
-
-        integrate = ok & ~arrived
-        if self.anti_windup:
-            integrate &= ~sat
-        I = state["I"] + self.dt * e * integrate[:, None]
-        if not self.anti_windup and self.ki > 0:
-            mag = self.ki * np.sqrt(np.einsum("bi,bi->b", I, I))
-            I = I * np.where(mag > cap, cap / np.where(mag > 0, mag, 1.0), 1.0)[:, None]
-        return out, {"I": I, "heading": heading}
-
-    def output(self, state, u):
-        return self.step(state, u)[0]
-
-    def update(self, state, u):
-        return self.step(state, u)[1]
-
     def kernel(self):
         """The compiled law (:func:`magctl.control.kernels.servo_step` and its variants by optional inputs)."""
         from magctl.control import kernels as k
