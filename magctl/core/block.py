@@ -229,6 +229,12 @@ class Block:
         :meth:`kernel_driver`."""
         return None
 
+    def handle_event(self, state: State, u: Signals) -> State:
+        """The Python part of a kernelled block, for the trials whose kernel raised its event flag
+        (``Kernel.event``): ``state`` and ``u`` hold those trials only; returns their state with the flag
+        cleared. Called by both engines at the end of the tick in which the flag was raised."""
+        raise NotImplementedError(f"{type(self).__name__}'s kernel raises an event but the block handles none")
+
     def kernel_driver(self):
         """The driver running :meth:`kernel` over a batch (built on first use), or None for a Python block."""
         driver = self.__dict__.get("_kernel_driver", False)

@@ -26,7 +26,16 @@ from magctl.core import codegen
 from magctl.core.codegen import JIT, fingerprint, kernel_name, param_value
 from magctl.core.diagram import EXTERNAL, Diagram
 from magctl.core.errors import MagctlError
-from magctl.core.kernel import Kernel, compiled_vars, pack_state, port_width, stream_keys_of, unpack_state
+from magctl.core.kernel import (
+    Kernel,
+    compiled_vars,
+    event_index,
+    handle_events,
+    pack_state,
+    port_width,
+    stream_keys_of,
+    unpack_state,
+)
 
 GROUPS = {"float64": "F", "int64": "I", "bool": "B"}
 """Buffer of each dtype."""
@@ -138,6 +147,8 @@ class CompiledDiagram:
         self.params = {g: np.asarray(v, dtype=dt[g]) if v else np.zeros(1, dtype=dt[g]) for g, v in pbufs.items()}
         self.param_tuples = tuple(tuple(param_value(v) for v in k.params) for k in kernels)
         self.noisy = [i for i, k in enumerate(kernels) if k.stream]
+        self.events = {i: event_index(lf.block, k, self.vars[i])
+                       for i, (lf, k) in enumerate(zip(sched.leaves, kernels, strict=True)) if k.event}
 
         imports, views = {}, []
         for i, k in enumerate(kernels):
@@ -215,18 +226,26 @@ class CompiledDiagram:
                      for v in views]
         step_views = [f"{v.split(' ')[0]} = {param_exprs[int(v.split(' ')[0][1:])]}" if v.endswith("= PARAMS")
                       else v for v in views]
+        # an event flag raised in a tick stops the loop after that tick's record: run_steps returns 1 with
+        # STOP = (trial, next step, leaf), Python handles the event and calls it again from there
+        event_lines = []
+        for i, v in self.events.items():
+            event_lines += [f"if s{i}_{v}[b, 0]:", "    STOP[0] = b", "    STOP[1] = k + 1", f"    STOP[2] = {i}"]
+            event_lines += [f"    RANT[{j}] = ran{j}" for j in multirate]
+            event_lines += ["    return 1"]
         lines = head + ["", "", JIT,
-                        f"def run_steps(T, tick0, EXT, RECOFF, RECF, RECI, RECB, PT, {args}):"]
+                        f"def run_steps(B0, K0, STOP, RANT, T, tick0, EXT, RECOFF, RECF, RECI, RECB, PT, {args}):"]
         lines += _indent(run_views, 1)
         lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 1)
-        lines += ["    for b in range(B):"]
-        lines += _indent([f"ran{i} = RAN[{i}]" for i in multirate], 2)
-        lines += ["        for k in range(T):", "            tick = tick0 + k"]
+        lines += ["    for b in range(B0, B):", "        resumed = b == B0 and K0 > 0"]
+        lines += _indent([f"ran{i} = RANT[{i}] if resumed else RAN[{i}]" for i in multirate], 2)
+        lines += ["        for k in range(K0 if resumed else 0, T):", "            tick = tick0 + k"]
         for e, (name, slot) in enumerate(self.ext_slots.items()):
             lines += [f"            for c in range({slot.width}):",
                       f"                x_{name}[b, c] = EXT[{e}][b, k, c]"]
         lines += _indent(tick_lines, 3)
         lines += _indent(self._record_lines(), 3)
+        lines += _indent(event_lines, 3)
         lines += ["    return 0", "", "", JIT,
                   f"def step_once(tick, {args}):"]
         lines += _indent(step_views, 1)
@@ -303,6 +322,23 @@ class CompiledDiagram:
             leaves.append(unpack_state(lf.block, arrays, state["leaves"][i], self.vars[i]))
         return leaves
 
+    def handle_events(self, buf: dict, state: dict, batch: int, i: int, rows: np.ndarray) -> None:
+        """Leaf ``i``'s Python event handler for the trials ``rows``, on the compiled buffers: their state
+        rows and the inputs the leaf saw in the tick that raised the flag (still in the output buffers)."""
+        lf = self.schedule.leaves[i]
+
+        def rows_of(group_bufs, slot):
+            return group_bufs[slot.group][batch * slot.offset:batch * (slot.offset + slot.width)].reshape(
+                batch, slot.width)
+
+        arrays = [rows_of(buf["S"], s) for s in self.state_slots[i]]
+        inputs = {}
+        for port, j, q in lf.wiring:
+            slot = self.ext_slots[q] if j == EXTERNAL else self.out_slots[j][q]
+            src = rows_of(buf["X"] if j == EXTERNAL else buf["O"], slot)
+            inputs[port] = src[rows].reshape((rows.size, *lf.block.inputs[port].shape))
+        handle_events(lf.block, arrays, inputs, rows, state["leaves"][i], self.events[i], self.vars[i])
+
     def outputs_of(self, buf: dict, batch: int, i: int) -> dict[str, np.ndarray]:
         lf = self.schedule.leaves[i]
         out = {}
@@ -337,8 +373,13 @@ class CompiledDiagram:
         by_group = dict(zip("FIB", recs, strict=True))
         ext_arrays = tuple(np.ascontiguousarray(np.asarray(ext[name], dtype=sched.inputs[name].dtype).reshape(
             batch, steps, -1)) for name in self.ext_slots)
-        self.module().run_steps(steps, int(state["tick"]), ext_arrays, rec_off, *recs, self.param_tuples,
-                                *self._args(buf, batch, noise))
+        stop, rant = np.zeros(3, dtype=np.int64), np.zeros(len(sched.leaves), dtype=np.bool_)
+        b0 = k0 = 0
+        args = (steps, int(state["tick"]), ext_arrays, rec_off, *recs, self.param_tuples,
+                *self._args(buf, batch, noise))
+        while self.module().run_steps(b0, k0, stop, rant, *args):
+            b0, k0, leaf = (int(x) for x in stop)
+            self.handle_events(buf, state, batch, leaf, np.array([b0]))
         held = list(state["held"])
         for i in self.multirate:
             held[i] = self.outputs_of(buf, batch, i)
@@ -389,6 +430,12 @@ class Stepper:
                 raise MagctlError(f"compiled step: diagram input {name!r}: {err}") from None
         self._fn(self._tick, *self._args)
         self._tick += 1
+        c = self.compiled
+        for i, v in c.events.items():     # events of every trial at this tick, handled before the next one
+            slot = c.state_slots[i][v]
+            flags = self._buf["S"][slot.group][self.batch * slot.offset:self.batch * (slot.offset + 1)]
+            if flags.any():
+                c.handle_events(self._buf, self._like, self.batch, i, np.flatnonzero(flags))
         return dict(self._out)
 
     @property

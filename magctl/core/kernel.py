@@ -52,6 +52,12 @@ class Kernel:
         Outputs from the state, then the next state (blocks without feedthrough).
     params : tuple
         The functions' ``params``: floats, ints, bools and contiguous arrays.
+    event : str
+        A bool state entry (top level, one per trial) that the kernel sets when the block needs Python at the
+        end of this tick — work a kernel cannot do, such as an IPOPT plan or a path search. Both engines then
+        call ``block.handle_event(state, u)`` with the next state and this tick's inputs of the flagged trials
+        only (batch = their number) before the next tick; it returns their state with the flag cleared. The
+        compiled loop leaves its numba code only for those trials, at those ticks, and resumes.
     stream : str
         The state entry holding the block's :class:`~magctl.core.random.TrialStreams` when its kernel draws
         noise (``"rng"``; a dotted path such as ``"robot.rng"`` names an entry of a nested state); empty
@@ -67,6 +73,7 @@ class Kernel:
     update: Callable | None = None
     params: tuple = ()
     stream: str = ""
+    event: str = ""
     in_place: bool = True
 
     def __post_init__(self):
@@ -130,3 +137,30 @@ def stream_keys_of(kernel: Kernel, state: dict, batch: int) -> np.ndarray:
     if rng.batch != batch:
         raise MagctlError(f"the state's streams hold {rng.batch} trials, not {batch}")
     return rng.keys
+
+
+def event_index(block: Block, kernel: Kernel, variables=None) -> int:
+    """Position of the kernel's event flag among :func:`compiled_vars` (``-1`` without an event)."""
+    if not kernel.event:
+        return -1
+    for v, (keys, var) in enumerate(compiled_vars(block) if variables is None else variables):
+        if keys == (kernel.event,):
+            if var.dtype != "bool" or not var.batched or var.shape:
+                raise MagctlError(f"block {block.name!r}: event flag {kernel.event!r} must be a per-trial bool")
+            return v
+    raise MagctlError(f"block {block.name!r}: its kernel's event flag {kernel.event!r} is not a state entry")
+
+
+def handle_events(block: Block, arrays: Sequence[np.ndarray], inputs: dict, rows: np.ndarray, like: dict,
+                  flag: int, variables=None) -> None:
+    """Run ``block.handle_event`` for the trials ``rows`` of the kernel state ``arrays`` (``(B, n)`` each,
+    updated in place) with their inputs ``inputs`` (already the rows' values); ``like`` supplies the state
+    entries a kernel does not hold (streams)."""
+    variables = compiled_vars(block) if variables is None else variables
+    sub = unpack_state(block, [a[rows] for a in arrays], like, variables)
+    new = block.handle_event(sub, inputs)
+    packed = pack_state(block, new, len(rows), variables)
+    if packed[flag].any():
+        raise MagctlError(f"block {block.name!r}: handle_event left its event flag set")
+    for arr, value in zip(arrays, packed, strict=True):
+        arr[rows] = value
