@@ -37,7 +37,7 @@ docs: $(DEV_STAMP)
 	$(BIN)/mkdocs build --strict --site-dir site
 
 bench: $(DEV_STAMP)
-	$(BIN)/python benchmarks/run.py --out benchmarks/results.json
+	$(BIN)/python benchmarks/run.py
 
 lint: $(DEV_STAMP)
 	$(BIN)/ruff check magctl analysis tests benchmarks docs/notebooks
