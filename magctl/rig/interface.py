@@ -132,6 +132,20 @@ class Observation:
     lost: bool
     currents: np.ndarray = field(default_factory=lambda: np.zeros(6))
 
+    def write_inputs(self, targets: dict[str, np.ndarray]) -> None:
+        """The observation written into B = 1 input arrays in place (those of ``targets`` only, by name)."""
+        for name, target in targets.items():
+            if name == "robot_est":
+                target[0] = self.robot_est
+            elif name == "heading_est":
+                target[0] = self.heading_est
+            elif name == "spheres_est":
+                target[0] = self.spheres_est
+            elif name == "lost":
+                target[0] = self.lost
+            else:
+                raise KeyError(name)
+
     def controller_inputs(self) -> dict[str, np.ndarray]:
         """The observation as B = 1 signals named as in docs/interfaces.md."""
         return {

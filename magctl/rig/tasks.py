@@ -158,12 +158,12 @@ class Controller:
         return self._state if self._stepper is None else self._stepper.state
 
     def step(self, obs: Observation) -> tuple[Command, dict[str, np.ndarray]]:
-        signals = obs.controller_inputs()
-        u = {n: signals[n] for n in self._inputs}
         if self._stepper is not None:
-            outs = self._stepper.step(u)
+            obs.write_inputs(self._stepper.inputs)
+            outs = self._stepper.step_in_place()
         else:
-            outs, self._state = self.diagram.step(self._state, u)
+            signals = obs.controller_inputs()
+            outs, self._state = self.diagram.step(self._state, {n: signals[n] for n in self._inputs})
         cmd = Command(np.array(outs["b_static"][0], dtype=float), float(outs["b_osc"][0]), float(outs["freq"][0]))
         return cmd, outs
 
