@@ -204,9 +204,10 @@ def test_front_push_needs_the_learning_law_on_the_sim_rig():
         if naive.exit_status == "failed":
             naive_failed += 1
             assert naive.final["outputs"]["attempt"] == 10
-            # still short of the goal along the push line after 10 attempts: every retreat pulls the sphere back
-            short = FRONT_GOAL[0] - naive.final["spheres_um"][0][0] * 1e-6
-            assert EPS_P < short < 500e-6
+            # still short of the goal along the push line after 10 attempts (every retreat pulls the sphere back)
+            # and outside ε_p: the release's shortfall with the cross-track scatter of the pushes
+            error = FRONT_GOAL - np.array(naive.final["spheres_um"][0]) * 1e-6
+            assert 0 < error[0] < 500e-6 and np.hypot(*error) > EPS_P
         assert learning.exit_status == "done" and 1 <= learning.final["outputs"]["attempt"] < 10
         assert np.hypot(*(np.array(learning.final["spheres_um"][0]) * 1e-6 - FRONT_GOAL)) < EPS_P
     assert naive_failed >= 2
