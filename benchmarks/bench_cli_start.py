@@ -16,6 +16,8 @@ import sys
 import time
 from pathlib import Path
 
+from rows import fmt, row
+
 ROOT = Path(__file__).resolve().parents[1]
 TARGET_S = 0.5
 HEAVY = ("numpy", "control", "scipy", "matplotlib", "numba", "magpylib", "zmq", "distributed")
@@ -48,6 +50,12 @@ def run(quick: bool = False) -> dict:
         "runs": n,
         "target_s": TARGET_S,
         "met": median <= TARGET_S and not heavy,
+        "rows": [
+            row("`magctl --help` in a fresh interpreter, median wall time", median, "s", le=TARGET_S,
+                note=f"best {fmt(best)} s of {n}; bare `python -c pass` {fmt(statistics.median(bare))} s"),
+            row("heavy modules (numpy, scipy, numba, …) imported by `magctl --help`", len(heavy), "modules", le=0,
+                note=", ".join(heavy)),
+        ],
     }
 
 

@@ -21,6 +21,7 @@ import time
 from unittest import mock
 
 import numpy as np
+from rows import fmt, row
 
 import magctl.loops
 from magctl import FRAME_PERIOD_S
@@ -147,6 +148,13 @@ def run(quick: bool = False) -> dict:
     out["front_large_batch"] = {"batch": big, "step_ms": 2e3 * wall / frames, "speed_x": speed}
     out["speed_met"] = all(out[name]["speed_met"] for name in EXPERIMENTS)
     out["drag_modes"] = drag_modes(quick)
+    big_note = f"front push at B = {big:,}: {speed:,.0f}×"
+    out["rows"] = [
+        row(f"closed-loop {name} push trial ({EXPERIMENTS[name].label}), {BATCH} trials in lockstep, one core, "
+            "real-time factor", out[name]["speed_x"], "×", ge=SPEED_TARGET,
+            note=f"{fmt(out[name]['step_ms'])} ms per frame" + (f"; {big_note}" if name == "front" else ""))
+        for name in EXPERIMENTS
+    ]
     return out
 
 

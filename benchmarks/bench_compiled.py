@@ -25,6 +25,7 @@ import tempfile
 import time
 
 import numpy as np
+from rows import row
 
 from magctl import FRAME_PERIOD_S
 from magctl.core import simulate
@@ -199,14 +200,6 @@ def compile_times() -> dict:
     return {"first_compile_s": times[0], "cached_s": times[1]}
 
 
-def _row(name: str, value: float, unit: str, *, le: float | None = None, ge: float | None = None,
-         note: str = "") -> dict:
-    """One README row: the measured value against its target (``≤ le`` or ``≥ ge``), the verdict computed here."""
-    met = value <= le if le is not None else value >= ge
-    target = f"≤ {le:g} {unit}" if le is not None else f"≥ {ge:,.0f} {unit}"
-    return {"name": name, "target": target, "value": float(value), "unit": unit, "met": bool(met), "note": note}
-
-
 def run(quick: bool = False) -> dict:
     out = {"targets": TARGETS, "quoted": QUOTED}
     out["b1"] = b1(quick)
@@ -217,24 +210,24 @@ def run(quick: bool = False) -> dict:
     ratio, step = b["ratio_to_numpy"], b["batch1_per_step_us"]
     col = QUOTED["collimator_2_2_jax"]
     out["rows"] = [
-        _row("B1 per trial, B = 1 000, noise fed as an input, ratio to the numpy loop", ratio["compiled_fed"], "×",
-             le=T["b1_fed_ratio_le"], note=f"hand numba loop {ratio['numba_loop']:.2f}×; Collimator 2.2 "
-                                            f"{col['b1_fed_ratio_to_numpy']}× (quoted)"),
-        _row("B1 per trial, B = 1 000, noise drawn from the per-trial streams, ratio to the numpy loop",
-             ratio["compiled_drawn"], "×", le=T["b1_drawn_ratio_le"]),
-        _row("B1 per step at B = 1 inside simulate, noise fed", step["compiled_fed"], "µs", le=T["b1_fed_step_us_le"],
-             note=f"Collimator 2.2 {col['b1_per_step_us']} µs (quoted)"),
-        _row("B1 per step at B = 1 inside simulate, noise drawn", step["compiled_drawn"], "µs",
-             le=T["b1_drawn_step_us_le"]),
-        _row("memory kept after three B = 1 000 runs", b["kept_after_3_runs_mb"], "MB", le=T["kept_mb_le"]),
-        _row("rig: whole controller step, observation → command (front push)",
-             out["rig_path"]["controller_step_us"].get("compiled", np.inf), "µs", le=T["rig_step_us_le"]),
-        _row("closed-loop front push, B = 100, real-time factor", c.get("front_compiled_B100_speed_x", 0.0), "×",
-             ge=T["front_b100_speed_x_ge"]),
-        _row("closed-loop side push, B = 100, real-time factor", c.get("side_compiled_B100_speed_x", 0.0), "×",
-             ge=T["side_b100_speed_x_ge"]),
-        _row("first compile of the closed loop, empty caches", out["compile"].get("first_compile_s", np.inf), "s",
-             le=T["first_compile_s_le"]),
+        row("B1 per trial, B = 1 000, noise fed as an input, ratio to the numpy loop", ratio["compiled_fed"], "×",
+            le=T["b1_fed_ratio_le"], note=f"hand numba loop {ratio['numba_loop']:.2f}×; Collimator 2.2 "
+                                           f"{col['b1_fed_ratio_to_numpy']}× (quoted)"),
+        row("B1 per trial, B = 1 000, noise drawn from the per-trial streams, ratio to the numpy loop",
+            ratio["compiled_drawn"], "×", le=T["b1_drawn_ratio_le"]),
+        row("B1 per step at B = 1 inside simulate, noise fed", step["compiled_fed"], "µs", le=T["b1_fed_step_us_le"],
+            note=f"Collimator 2.2 {col['b1_per_step_us']} µs (quoted)"),
+        row("B1 per step at B = 1 inside simulate, noise drawn", step["compiled_drawn"], "µs",
+            le=T["b1_drawn_step_us_le"]),
+        row("memory kept after three B = 1 000 runs", b["kept_after_3_runs_mb"], "MB", le=T["kept_mb_le"]),
+        row("rig: whole controller step, observation → command (front push)",
+            out["rig_path"]["controller_step_us"].get("compiled", np.inf), "µs", le=T["rig_step_us_le"]),
+        row("closed-loop front push, B = 100, real-time factor", c.get("front_compiled_B100_speed_x", 0.0), "×",
+            ge=T["front_b100_speed_x_ge"]),
+        row("closed-loop side push, B = 100, real-time factor", c.get("side_compiled_B100_speed_x", 0.0), "×",
+            ge=T["side_b100_speed_x_ge"]),
+        row("first compile of the closed loop, empty caches", out["compile"].get("first_compile_s", np.inf), "s",
+            le=T["first_compile_s_le"]),
     ]
     return out
 

@@ -17,6 +17,8 @@ import threading
 import time
 from pathlib import Path
 
+from rows import row
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT / "tests" / "rig"))
@@ -74,7 +76,42 @@ def run(quick: bool = False) -> dict:
     met = {f"{mode}_{k}": v for mode, r in out.items() for k, v in r["met"].items()}
     return {**out, "targets": {"messages_each": n, "server_exits": 0, "invalid_applied": 0, "unanswered": 0,
                                "watchdog_after_ms_max": "100 + one frame (133.3)"},
-            "met": met, "all_met": all(met.values()), "load_avg_1min": os.getloadavg()[0]}
+            "met": met, "all_met": all(met.values()), "load_avg_1min": os.getloadavg()[0],
+            "rows": _rows(out, n)}
+
+
+def _rows(out: dict, n: int) -> list[dict]:
+    """The README's rows, per mode: messages, server exits, invalid commands applied, replies, watchdog."""
+    import math
+
+    from magctl.config import load_model
+
+    params = load_model("rig")
+    # the fuzzer's own bound: 100 ms + one frame, and 1 ns for the float sums of lock-step time's frames
+    bound_ms = (params.watchdog.timeout + 1.0 / params.runtime.rate + 1e-9) * 1e3
+    rows = []
+    for mode, label, clock in (("lockstep", "lock-step", "simulated time"), ("realtime", "real time", "wall clock")):
+        m = out[mode]["measured"]
+        name = f"rig protocol fuzzer, {label}, beside {N_CROWD} flooding clients"
+        after = m["watchdog_after_ms"] or {}
+        applied = m["server_applied"]
+        rows += [
+            row(f"{name}: messages sent by the fuzzer", m["messages_fuzzer"], "messages", ge=n,
+                note=f"{m['messages_crowd']:,} more from the flooding clients"),
+            row(f"{name}: server exits", m["server_exits"], "exits", le=0),
+            row(f"{name}: invalid commands applied", m["invalid_applied"], "commands", le=0,
+                note="the fuzzer's invalid commands the server applied, and any stranger's write it accepted"),
+            row(f"{name}: commands the server applied beyond the owner's accepted writes",
+                math.nan if applied is None else abs(applied - m["accepted_writes"]), "commands", le=0,
+                note=f"{m['accepted_writes']:,} accepted writes"),
+            row(f"{name}: unanswered or malformed replies", m["unanswered"] + m["malformed_replies"], "replies",
+                le=0),
+            row(f"{name}: coil watchdog, slowest trip after the last valid command ({clock})", after.get("max"), "ms",
+                le=bound_ms, note=f"p99 {after['p99']:.4g} ms of {after['n']:,} trips" if after else "no trip seen"),
+            row(f"{name}: rounds whose watchdog trip was late, early or missing", m["watchdog_late"], "rounds", le=0,
+                note=f"of {m['watchdog_checked']:,} trips checked"),
+        ]
+    return rows
 
 
 if __name__ == "__main__":

@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from rows import fmt, row
+
 ROOT = Path(__file__).resolve().parents[1]
 
 TARGETS = {"overruns": 0, "jitter_p99_ms": 2.0, "compute_p99_ms": 1.0}
@@ -67,7 +69,37 @@ def run(quick: bool = False) -> dict:
     return {**out, "measured": measured, "targets": {**TARGETS, "plant_frame_p99_ms": PLANT_TARGET_MS},
             "met": met, "all_met": all(met.values()),
             "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                        "load_avg_1min": os.getloadavg()[0]}}
+                        "load_avg_1min": os.getloadavg()[0]},
+            "rows": _rows(out, plant)}
+
+
+def _rows(soaks: dict, plant: dict) -> list[dict]:
+    """The README's rows: per soak (default scheduling, SCHED_FIFO where it ran) the whole run, overruns, jitter and
+    compute; and the plant's frame."""
+    from magctl.config import load_model
+
+    period = 1.0 / load_model("rig").runtime.rate
+    rows = []
+    for key, label in (("default", "default scheduling"), ("rt_priority", "SCHED_FIFO")):
+        if key not in soaks:
+            continue
+        m = soaks[key]["measured"]
+        name = f"rig soak, {m['duration_s']:g} s against `serve-sim` (physical plant), {label}"
+        # the time the runtime's schedule covered (ticks run and ticks skipped): a run cut short (the coil watchdog,
+        # an error) stops at least a frame before its duration; to the ms, as the schedule adds up periods
+        ran = round((m["ticks"] + m["overruns"]) * period, 3)
+        rows += [
+            row(f"{name}: time run", ran, "s", ge=m["duration_s"],
+                note=f"{m['ticks']} ticks; exit status {m['exit_status']}"),
+            row(f"{name}: coil watchdog trips on the server", m["server_watchdog_trips"], "trips", le=0),
+            row(f"{name}: overruns", m["overruns"], "ticks", le=TARGETS["overruns"]),
+            row(f"{name}: tick jitter p99", m["jitter_p99_ms"], "ms", le=TARGETS["jitter_p99_ms"],
+                note=f"max {fmt(m['jitter_max_ms'])} ms" if m["jitter_max_ms"] is not None else ""),
+            row(f"{name}: controller compute p99", m["compute_p99_ms"], "ms", le=TARGETS["compute_p99_ms"]),
+        ]
+    rows.append(row("rig server's plant frame (physics, B = 1) p99", plant["plant_frame_p99_ms"], "ms",
+                    le=PLANT_TARGET_MS, note=f"a third of the 33 ms frame; max {fmt(plant['plant_frame_max_ms'])} ms"))
+    return rows
 
 
 RT_PRIORITY = 10

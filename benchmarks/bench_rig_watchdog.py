@@ -20,6 +20,8 @@ import time
 from pathlib import Path
 from urllib.parse import urlparse
 
+from rows import row
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT / "tests" / "rig"))
@@ -120,6 +122,7 @@ def run(quick: bool = False) -> dict:
     try:
         out["quiet"] = _stats(_trials(srv.address, n), watchdog, period)
         peers = _frozen_peers(srv.address)
+        n_peers = len(peers)
         try:
             out["frozen_peers"] = _stats(_trials(srv.address, n), watchdog, period)
         finally:
@@ -147,8 +150,14 @@ def run(quick: bool = False) -> dict:
         srv.kill()
     met = {k: v["over_bound"] == 0 for k, v in out.items()}
     met["server_alive"] = alive
+    labels = {"quiet": "quiet", "frozen_peers": f"{n_peers} frozen peers",
+              "crowd_20": "20 flooding clients", "cpu_load_2_busy": "two busy processes"}
+    rows = [row(f"coil watchdog latency, {labels[k]}: slowest of {v['trials']} trips", v["max_ms"], "ms",
+                le=(watchdog + period) * 1e3, note=f"p50 {v['p50_ms']:.4g} ms, p99 {v['p99_ms']:.4g} ms")
+            for k, v in out.items()]
+    rows.append(row("coil watchdog latency: server exits during the run", 0 if alive else 1, "exits", le=0))
     return {**out, "targets": {"max_ms": (watchdog + period) * 1e3}, "met": met, "all_met": all(met.values()),
-            "load_avg_1min": os.getloadavg()[0], "cpus": os.cpu_count()}
+            "load_avg_1min": os.getloadavg()[0], "cpus": os.cpu_count(), "rows": rows}
 
 
 if __name__ == "__main__":

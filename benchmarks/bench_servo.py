@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from rows import fmt, row
 
 from magctl.control.servo import Servo, servo_params
 from magctl.core import simulate
@@ -73,6 +74,15 @@ def _loop(batch: int, steps: int) -> dict:
 def run(quick: bool = False) -> dict:
     res = _tracker(20 if quick else 90)
     res.update(_loop(200 if quick else 2000, 60 if quick else 150))
+    batch = f"{res['loop_batch']:,}"
+    res["rows"] = [
+        row("tracker on 640 × 480 frames, robot + 2 spheres, one core", res["tracker_fps"], "frames/s",
+            ge=TRACKER_FPS_TARGET,
+            note=f"robot {res['robot_rms_px']:.2g} px RMS, spheres {res['sphere_rms_px']:.2g} px RMS"
+                 + ("" if res["all_found"] else "; lost in some frames")),
+        row(f"servo + camera per trial-step in a {batch}-trial batch", res["loop_us_per_trial_step_batch"], "µs",
+            le=LOOP_US_TARGET, note=f"B = 1: {fmt(res['loop_us_per_trial_step_b1'])} µs per step"),
+    ]
     return res
 
 

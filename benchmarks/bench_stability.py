@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from rows import row
 
 from magctl.stability import iteration as S
 
@@ -47,6 +48,13 @@ def run(quick: bool = False) -> dict:
         "front_attempt_map_trials": trials, "front_attempt_map_s": front_map,
         "front_markov_chain_s": markov, "side_nonlinear_gain_range_s": side_range,
         "side_push_task_frame_us_per_trial": task_frame,
+        "rows": [
+            row(f"{n:,} × {n:,} (gain, model ratio) stability grid, eq 20", paper, "s",
+                le=SWEEP_TARGET_S),
+            row(f"{n:,} × {n:,} (gain, model ratio) stability grid, with the feed-forward state",
+                full, "s", le=SWEEP_TARGET_S,
+                note="spot-checked against python-control's eigenvalues" + ("" if agree else ": **disagrees**")),
+        ],
     }
 
 
