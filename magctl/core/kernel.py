@@ -96,14 +96,21 @@ def compiled_vars(block: Block) -> list[tuple[tuple[str, ...], StateVar]]:
     return out
 
 
-def pack_state(block: Block, state: dict, batch: int, variables=None) -> list[np.ndarray]:
+def pack_state(block: Block, state: dict, batch: int, variables=None, copy: bool = True) -> list[np.ndarray]:
     """``state`` as the kernel's arrays: one ``(B, n)`` array per entry of :func:`compiled_vars` (or of
-    ``variables``, that list computed once)."""
+    ``variables``, that list computed once). ``copy=False`` returns views of ``state``'s own arrays where
+    their layout allows (for a kernel that only reads them)."""
     arrays = []
     for keys, var in (compiled_vars(block) if variables is None else variables):
         value = np.asarray(state_get(state, keys), dtype=var.dtype)
-        rows = value.reshape(value.shape[0], -1) if var.batched else value.reshape(1, -1)
-        arrays.append(np.array(np.broadcast_to(rows, (batch, var.size)), dtype=var.dtype))
+        if var.batched and value.shape[:1] == (batch,):
+            rows = value.reshape(batch, var.size)
+            # a read-only or strided array is copied: the kernels are compiled for writable C-contiguous arrays
+            view = not copy and rows.flags.c_contiguous and rows.flags.writeable
+            arrays.append(rows if view else rows.copy())
+        else:
+            rows = value.reshape(value.shape[0], -1) if var.batched else value.reshape(1, -1)
+            arrays.append(np.array(np.broadcast_to(rows, (batch, var.size)), dtype=var.dtype))
     return arrays
 
 

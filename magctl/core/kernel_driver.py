@@ -68,6 +68,8 @@ class KernelDriver:
         self.block, self.kernel = block, kernel
         self.params = tuple(codegen.param_value(v) for v in kernel.params)
         self.vars = compiled_vars(block)
+        self._in_ports = [(name, port, port_width(port)) for name, port in block.inputs.items()]
+        self._out_ports = [(name, port, port_width(port)) for name, port in block.outputs.items()]
         self.flag = event_index(block, kernel, self.vars)
         self._loops: dict[str, object] = {}
 
@@ -92,17 +94,22 @@ class KernelDriver:
 
     def _inputs(self, u, batch: int) -> tuple:
         arrays = []
-        for name, port in self.block.inputs.items():
+        for name, port, width in self._in_ports:
             arr = np.asarray(u[name], dtype=port.dtype)
-            arrays.append(np.ascontiguousarray(np.broadcast_to(arr, (batch, *port.shape)).reshape(batch, -1)))
+            if arr.shape[:1] == (batch,) and arr.size == batch * width:
+                rows = arr.reshape(batch, width)
+                # the kernels are compiled for writable C-contiguous arrays: anything else is copied
+                arrays.append(rows if rows.flags.c_contiguous and rows.flags.writeable else rows.copy())
+            else:
+                arrays.append(np.ascontiguousarray(np.broadcast_to(arr, (batch, *port.shape)).reshape(batch, width)))
         return tuple(arrays)
 
     def _outputs(self, batch: int) -> tuple:
-        return tuple(np.zeros((batch, port_width(p)), dtype=p.dtype) for p in self.block.outputs.values())
+        return tuple(np.zeros((batch, width), dtype=port.dtype) for _, port, width in self._out_ports)
 
     def _shaped(self, outputs: tuple, batch: int) -> dict[str, np.ndarray]:
         return {name: arr.reshape((batch, *port.shape))
-                for (name, port), arr in zip(self.block.outputs.items(), outputs, strict=True)}
+                for (name, port, _), arr in zip(self._out_ports, outputs, strict=True)}
 
     def _noise(self, state, batch: int):
         return stream_keys_of(self.kernel, state, batch) if self.kernel.stream else ()
@@ -121,7 +128,7 @@ class KernelDriver:
     def step(self, state, u):
         """Outputs and next state of a feedthrough block (its ``step`` kernel)."""
         batch = self._batch(state, u)
-        packed = tuple(pack_state(self.block, state, batch, self.vars))
+        packed = tuple(pack_state(self.block, state, batch, self.vars, copy=False))
         nxt = tuple(a.copy() for a in packed)
         outs = self._outputs(batch)
         ins = self._inputs(u, batch)
@@ -132,7 +139,7 @@ class KernelDriver:
     def output(self, state):
         """Outputs of a block without feedthrough (its ``output`` kernel)."""
         batch = self._batch(state, {})
-        packed = tuple(pack_state(self.block, state, batch, self.vars))
+        packed = tuple(pack_state(self.block, state, batch, self.vars, copy=False))
         outs = self._outputs(batch)
         self._run("output", self.kernel.output)(batch, self.params, packed, (), (), outs, ())
         return self._shaped(outs, batch)
@@ -140,7 +147,7 @@ class KernelDriver:
     def update(self, state, u):
         """Next state of a block without feedthrough (its ``update`` kernel)."""
         batch = self._batch(state, u)
-        packed = tuple(pack_state(self.block, state, batch, self.vars))
+        packed = tuple(pack_state(self.block, state, batch, self.vars, copy=False))
         nxt = tuple(a.copy() for a in packed)
         ins = self._inputs(u, batch)
         self._run("update", self.kernel.update)(batch, self.params, packed, nxt, ins, (), self._noise(state, batch))
