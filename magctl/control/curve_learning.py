@@ -34,6 +34,38 @@ from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
 
+COST_RISE_TOL = 1e-9
+"""A Gauss–Newton step of the update counts as not raising ``J`` when it raises it by less than this fraction of
+``1 + J``: far above the rounding of ``J`` (~1e-16; near the mode successive steps change ``J`` by that much
+either way, and numpy's and libm's ``exp`` differ in the last bit), far below any rise the halving guards against.
+Without it a step is halved or not by rounding noise, and the two engines' estimates part by ~1e-6."""
+
+
+HALVINGS = 30
+"""Most halvings of one Gauss–Newton step (after them the step is taken as it is)."""
+
+
+def cholesky3(p00, p10, p11, p20, p21, p22):
+    """The lower Cholesky factor ``L`` of a symmetric positive-definite 3×3 matrix from its lower triangle
+    (element-wise: scalars or arrays of them), as ``(l00, l10, l11, l20, l21, l22)``."""
+    l00 = np.sqrt(p00)
+    l10 = p10 / l00
+    l20 = p20 / l00
+    l11 = np.sqrt(p11 - l10 * l10)
+    l21 = (p21 - l20 * l10) / l11
+    l22 = np.sqrt(p22 - l20 * l20 - l21 * l21)
+    return l00, l10, l11, l20, l21, l22
+
+
+def quadratic3(chol, d0, d1, d2):
+    """``dᵀ P⁻¹ d = |L⁻¹ d|²`` with ``chol`` = :func:`cholesky3` of ``P`` (forward substitution, a sum of squares:
+    no cancellation, whatever the conditioning of ``P``)."""
+    l00, l10, l11, l20, l21, l22 = chol
+    y0 = d0 / l00
+    y1 = (d1 - l10 * y0) / l11
+    y2 = (d2 - l20 * y0 - l21 * y1) / l22
+    return y0 * y0 + y1 * y1 + y2 * y2
+
 
 class CurveLearningLaw(Block):
     """Extended Kalman estimate of the per-attempt curve ``D_s,act = exp(a − b·x) − c`` over push attempts.
@@ -120,46 +152,78 @@ class CurveLearningLaw(Block):
         ``h(θ) = exp(a − b·x) − c`` with Jacobian ``H = (e, −x·e, −1)``, ``e = exp(a − b·x)``, and variance
         ``R = (σ_pass·e⁻)² + σ_meas²`` at the predicted estimate. The update is Gauss–Newton on the negative
         log posterior ``J(θ) = (θ − θ⁻)ᵀP⁻⁻¹(θ − θ⁻) + (z − h(θ))²/R`` (the iterated EKF), each step halved
-        until ``J`` does not rise: a pass many times the prior's prediction would otherwise throw the
-        exponential's linearisation far past the mode. One iteration is the plain EKF step whenever that step
-        lowers ``J``. Covariance in Joseph form at the last linearisation; ``b ≥ b_min`` kept.
+        until ``J`` does not rise by more than :data:`COST_RISE_TOL` (a pass many times the prior's prediction
+        would otherwise throw the exponential's linearisation far past the mode). One iteration is the plain
+        EKF step whenever that step lowers ``J``. Covariance in Joseph form at the last linearisation;
+        ``b ≥ b_min`` kept.
+
+        Every product is written out per element (:func:`cholesky3`, :func:`quadratic3` for the prior term,
+        no LAPACK, no einsum), in the order the compiled kernel
+        (:func:`magctl.control.kernels.curve_update`) repeats for one trial.
         """
         theta, cov = state["theta"], state["cov"]
         x = (np.asarray(u["gap"], dtype=float) - self.reference_gap) / self.reference_gap
         z = np.asarray(u["displacement"], dtype=float)
         p = cov + self.drift
-        p_inv = np.linalg.inv(p)
-        e0 = np.exp(theta[:, 0] - theta[:, 1] * x)
+        chol = cholesky3(p[:, 0, 0], p[:, 1, 0], p[:, 1, 1], p[:, 2, 0], p[:, 2, 1], p[:, 2, 2])
+        th = theta[:, 0], theta[:, 1], theta[:, 2]
+        e0 = np.exp(th[0] - th[1] * x)
         r = self.pass_rel_var * e0 * e0 + self.measure_var
 
         def cost(t):
-            d = t - theta
-            miss = z - (np.exp(t[:, 0] - t[:, 1] * x) - t[:, 2])
-            return np.einsum("bi,bij,bj->b", d, p_inv, d) + miss * miss / r
+            miss = z - (np.exp(t[0] - t[1] * x) - t[2])
+            return quadratic3(chol, t[0] - th[0], t[1] - th[1], t[2] - th[2]) + miss * miss / r
 
-        it, j_it = theta, cost(theta)
+        it, j_it = th, cost(th)
         for _ in range(self.iterations):
-            e = np.exp(it[:, 0] - it[:, 1] * x)
-            h = np.stack([e, -x * e, -np.ones_like(e)], axis=-1)
-            ph = np.einsum("bij,bj->bi", p, h)
-            gain = ph / (np.einsum("bi,bi->b", h, ph) + r)[:, None]
-            innovation = z - (e - it[:, 2]) - np.einsum("bi,bi->b", h, theta - it)
-            step = theta + gain * innovation[:, None] - it
-            trial, j_trial = it + step, cost(it + step)
-            for _halving in range(30):
-                worse = ~(j_trial <= j_it)
+            e = np.exp(it[0] - it[1] * x)
+            h = e, -x * e, -np.ones_like(e)
+            ph = tuple(p[:, i, 0] * h[0] + p[:, i, 1] * h[1] + p[:, i, 2] * h[2] for i in range(3))
+            s = h[0] * ph[0] + h[1] * ph[1] + h[2] * ph[2] + r
+            gain = tuple(ph[i] / s for i in range(3))
+            innovation = z - (e - it[2]) - (h[0] * (th[0] - it[0]) + h[1] * (th[1] - it[1])
+                                           + h[2] * (th[2] - it[2]))
+            step = tuple(th[i] + gain[i] * innovation - it[i] for i in range(3))
+            trial = tuple(it[i] + step[i] for i in range(3))
+            j_trial = cost(trial)
+            for _halving in range(HALVINGS):
+                worse = ~(j_trial <= j_it + COST_RISE_TOL * (1.0 + j_it))
                 if not worse.any():
                     break
-                step = np.where(worse[:, None], 0.5 * step, step)
-                trial = np.where(worse[:, None], it + step, trial)
+                step = tuple(np.where(worse, 0.5 * step[i], step[i]) for i in range(3))
+                trial = tuple(np.where(worse, it[i] + step[i], trial[i]) for i in range(3))
                 j_trial = np.where(worse, cost(trial), j_trial)
             it, j_it = trial, np.minimum(j_trial, j_it)
-        new_theta = it
-        ikh = np.eye(3) - gain[:, :, None] * h[:, None, :]
-        new_cov = np.einsum("bij,bjk,blk->bil", ikh, p, ikh) + r[:, None, None] * gain[:, :, None] * gain[:, None, :]
-        new_theta[:, 1] = np.maximum(new_theta[:, 1], self.b_min)
-        m = np.asarray(mask, dtype=bool)
-        return {"theta": np.where(m[:, None], new_theta, theta), "cov": np.where(m[:, None, None], new_cov, cov)}
+        new_theta = np.stack([it[0], np.maximum(it[1], self.b_min), it[2]], axis=-1)
+        # Joseph form: A = (I − K·H)·P⁻, then A·(I − K·H)ᵀ + R·K·Kᵀ
+        ikh = [[(1.0 if i == j else 0.0) - gain[i] * h[j] for j in range(3)] for i in range(3)]
+        a = [[ikh[i][0] * p[:, 0, j] + ikh[i][1] * p[:, 1, j] + ikh[i][2] * p[:, 2, j] for j in range(3)]
+             for i in range(3)]
+        rows = [np.stack([a[i][0] * ikh[j][0] + a[i][1] * ikh[j][1] + a[i][2] * ikh[j][2] + r * gain[i] * gain[j]
+                          for j in range(3)], axis=-1) for i in range(3)]
+        new_cov = np.stack(rows, axis=-2)
+        keep = ~np.asarray(mask, dtype=bool)
+        return {"theta": np.where(keep[:, None], theta, new_theta), "cov": np.where(keep[:, None, None], cov, new_cov)}
+
+    def kernel(self):
+        """The compiled law (:func:`magctl.control.kernels.curve_output`, ``curve_update``): the same iterated
+        EKF step per trial."""
+        from magctl.control import kernels as k
+        from magctl.core.kernel import Kernel
+
+        return Kernel(output=k.curve_output, update=k.curve_update_step, params=self.kernel_params())
+
+    def kernel_params(self) -> tuple:
+        """``(cp, iterations)``: the law's floats as :mod:`magctl.control.kernels` indexes them (``C_*``) and
+        the Gauss–Newton iterations."""
+        from magctl.control import kernels as k
+
+        cp = np.zeros(k.N_CP)
+        cp[[k.C_GREF, k.C_PASS_VAR, k.C_MEAS_VAR, k.C_B_MIN]] = (self.reference_gap, self.pass_rel_var,
+                                                                 self.measure_var, self.b_min)
+        cp[k.C_EXP_A0] = np.exp(self.prior_mean[0])  # as output() computes it
+        cp[k.C_DRIFT:k.C_DRIFT + 9] = self.drift.ravel()
+        return cp, self.iterations
 
     # --- the inversion -----------------------------------------------------------------------------
     def displacement(self, state, gap) -> np.ndarray:
@@ -183,9 +247,13 @@ class CurveLearningLaw(Block):
         Taken at the gap the passes are made at (the contact threshold, while the sphere is far): there the
         passes measure the curve directly, whereas its value at ``g_ref`` is an extrapolation along ``b``.
         """
+        return self.displacement(state, gap) / self.prior_displacement(gap)
+
+    def prior_displacement(self, gap):
+        """The prior's attempt ``exp(a₀ − b₀·x) − c₀`` at ``gap`` (m)."""
         a0, b0, c0 = self.prior_mean
         x = (np.asarray(gap, dtype=float) - self.reference_gap) / self.reference_gap
-        return self.displacement(state, gap) / (np.exp(a0 - b0 * x) - c0)
+        return np.exp(a0 - b0 * x) - c0
 
 
 def curve_learning_law(prior=None, name: str = "side_law", **overrides) -> CurveLearningLaw:

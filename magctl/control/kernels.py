@@ -1,10 +1,13 @@
-"""Compiled kernels of the controller blocks: the PI servo, the learning law, the go-to status and the patrol.
+"""Compiled kernels of the controller blocks: the PI servo, the learning laws, the go-to status and the patrol.
 
 Each function runs one trial ``b`` in the convention of :mod:`magctl.core.kernel`, with the same
 floating-point operations per element as the block's numpy form (``np.minimum``/``np.maximum``
-propagate NaN, as :func:`nan_min` / :func:`nan_max` do here). The push tasks' kernels are in
-:mod:`magctl.control.push.kernels`. Imported only when a diagram is compiled, so that numba stays out
-of the import of ``magctl``.
+propagate NaN, as :func:`nan_min` / :func:`nan_max` do here). The learning laws are the eq 13/18 integrator
+(:class:`~magctl.control.learning.LearningLaw`), the side push's curve-learning law
+(:class:`~magctl.control.curve_learning.CurveLearningLaw`, an iterated EKF over fixed-size state) and the front
+push's release-model law (:class:`~magctl.control.release_model.ReleasePolicyLaw`, a nearest-neighbour policy);
+the push tasks call the same functions from :mod:`magctl.control.push.kernels`. Imported only when a diagram is
+compiled, so that numba stays out of the import of ``magctl``.
 """
 
 from __future__ import annotations
@@ -13,10 +16,19 @@ import math
 
 import numba
 
+from magctl.control.curve_learning import COST_RISE_TOL, HALVINGS
+from magctl.control.status import Status
+
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 
-RUNNING, CONVERGED, TRACKING_LOST = 0, 1, 3
+RUNNING, CONVERGED, TRACKING_LOST = int(Status.RUNNING), int(Status.CONVERGED), int(Status.TRACKING_LOST)
 """Status codes (:class:`magctl.control.status.Status`)."""
+
+# curve-learning law: its float parameters ``cp`` (CurveLearningLaw.kernel_params)
+C_GREF, C_PASS_VAR, C_MEAS_VAR, C_B_MIN, C_EXP_A0 = range(5)
+C_DRIFT = 5
+"""The drift covariance ``Q``, row-major, in ``cp[C_DRIFT:C_DRIFT + 9]``."""
+N_CP = 14
 
 
 @jit
@@ -179,3 +191,262 @@ def patrol_update(b, params, state, next_state, inputs, base, noise):
     nk = (k + 1) % waypoints.shape[0] if arrived else k
     nlap[b, 0] = lap[b, 0] + (1.0 if (arrived and nk == 0) else 0.0)
     ni[b, 0] = nk
+
+
+# --- curve-learning law (magctl.control.curve_learning) -----------------------------------------------------
+@jit
+def cholesky3(p00, p10, p11, p20, p21, p22):
+    """:func:`magctl.control.curve_learning.cholesky3`: the lower Cholesky factor of a 3×3 covariance."""
+    l00 = math.sqrt(p00)
+    l10 = p10 / l00
+    l20 = p20 / l00
+    l11 = math.sqrt(p11 - l10 * l10)
+    l21 = (p21 - l20 * l10) / l11
+    l22 = math.sqrt(p22 - l20 * l20 - l21 * l21)
+    return l00, l10, l11, l20, l21, l22
+
+
+@jit
+def quadratic3(chol, d0, d1, d2):
+    """:func:`magctl.control.curve_learning.quadratic3`: ``dᵀ P⁻¹ d`` by forward substitution."""
+    l00, l10, l11, l20, l21, l22 = chol
+    y0 = d0 / l00
+    y1 = (d1 - l10 * y0) / l11
+    y2 = (d2 - l20 * y0 - l21 * y1) / l22
+    return y0 * y0 + y1 * y1 + y2 * y2
+
+
+@jit
+def curve_cost(t0, t1, t2, th0, th1, th2, chol, z, x, r):
+    """The negative log posterior ``J(θ)`` of one pass: the prior term and ``(z − h(θ))²/R``."""
+    miss = z - (math.exp(t0 - t1 * x) - t2)
+    return quadratic3(chol, t0 - th0, t1 - th1, t2 - th2) + miss * miss / r
+
+
+@jit
+def curve_update(b, cp, iterations, theta, cov, ntheta, ncov, gap, z):
+    """:meth:`CurveLearningLaw.update_where` for trial ``b``: the iterated EKF step from the pass ``(D_g, D_s,act)``
+    on ``D_s = exp(a − b·x) − c`` (docs/push-control.md §6, the side push's replacement for eq 17–18), written to
+    ``ntheta``, ``ncov`` (which may be ``theta``, ``cov``: everything is read first). ``cov`` is the 3×3
+    covariance row-major. The operations are the numpy form's, element by element."""
+    gref = cp[C_GREF]
+    x = (gap - gref) / gref
+    p = ((cov[b, 0] + cp[C_DRIFT], cov[b, 1] + cp[C_DRIFT + 1], cov[b, 2] + cp[C_DRIFT + 2]),
+         (cov[b, 3] + cp[C_DRIFT + 3], cov[b, 4] + cp[C_DRIFT + 4], cov[b, 5] + cp[C_DRIFT + 5]),
+         (cov[b, 6] + cp[C_DRIFT + 6], cov[b, 7] + cp[C_DRIFT + 7], cov[b, 8] + cp[C_DRIFT + 8]))
+    chol = cholesky3(p[0][0], p[1][0], p[1][1], p[2][0], p[2][1], p[2][2])
+    th0 = theta[b, 0]
+    th1 = theta[b, 1]
+    th2 = theta[b, 2]
+    e0 = math.exp(th0 - th1 * x)
+    r = cp[C_PASS_VAR] * e0 * e0 + cp[C_MEAS_VAR]
+    it0, it1, it2 = th0, th1, th2
+    j_it = curve_cost(it0, it1, it2, th0, th1, th2, chol, z, x, r)
+    h = (0.0, 0.0, -1.0)
+    g = (0.0, 0.0, 0.0)
+    for _ in range(iterations):
+        e = math.exp(it0 - it1 * x)
+        h = (e, -x * e, -1.0)
+        ph0 = p[0][0] * h[0] + p[0][1] * h[1] + p[0][2] * h[2]
+        ph1 = p[1][0] * h[0] + p[1][1] * h[1] + p[1][2] * h[2]
+        ph2 = p[2][0] * h[0] + p[2][1] * h[1] + p[2][2] * h[2]
+        s = h[0] * ph0 + h[1] * ph1 + h[2] * ph2 + r
+        g = (ph0 / s, ph1 / s, ph2 / s)
+        innovation = z - (e - it2) - (h[0] * (th0 - it0) + h[1] * (th1 - it1) + h[2] * (th2 - it2))
+        s0 = th0 + g[0] * innovation - it0
+        s1 = th1 + g[1] * innovation - it1
+        s2 = th2 + g[2] * innovation - it2
+        t0 = it0 + s0
+        t1 = it1 + s1
+        t2 = it2 + s2
+        j_trial = curve_cost(t0, t1, t2, th0, th1, th2, chol, z, x, r)
+        for _halving in range(HALVINGS):
+            if j_trial <= j_it + COST_RISE_TOL * (1.0 + j_it):
+                break
+            s0 = 0.5 * s0
+            s1 = 0.5 * s1
+            s2 = 0.5 * s2
+            t0 = it0 + s0
+            t1 = it1 + s1
+            t2 = it2 + s2
+            j_trial = curve_cost(t0, t1, t2, th0, th1, th2, chol, z, x, r)
+        it0, it1, it2 = t0, t1, t2
+        j_it = nan_min(j_trial, j_it)
+    # Joseph form at the last linearisation: (I − K·H) P⁻ (I − K·H)ᵀ + R·K·Kᵀ
+    ikh = (((1.0 - g[0] * h[0]), (0.0 - g[0] * h[1]), (0.0 - g[0] * h[2])),
+           ((0.0 - g[1] * h[0]), (1.0 - g[1] * h[1]), (0.0 - g[1] * h[2])),
+           ((0.0 - g[2] * h[0]), (0.0 - g[2] * h[1]), (1.0 - g[2] * h[2])))
+    for i in range(3):
+        a0 = ikh[i][0] * p[0][0] + ikh[i][1] * p[1][0] + ikh[i][2] * p[2][0]
+        a1 = ikh[i][0] * p[0][1] + ikh[i][1] * p[1][1] + ikh[i][2] * p[2][1]
+        a2 = ikh[i][0] * p[0][2] + ikh[i][1] * p[1][2] + ikh[i][2] * p[2][2]
+        for m in range(3):
+            ncov[b, 3 * i + m] = a0 * ikh[m][0] + a1 * ikh[m][1] + a2 * ikh[m][2] + r * g[i] * g[m]
+    ntheta[b, 0] = it0
+    ntheta[b, 1] = nan_max(it1, cp[C_B_MIN])
+    ntheta[b, 2] = it2
+
+
+@jit
+def curve_displacement(theta, b, cp, gap):
+    """:meth:`CurveLearningLaw.displacement`: the estimated attempt ``exp(a − b·x) − c`` at ``gap``."""
+    gref = cp[C_GREF]
+    return math.exp(theta[b, 0] - theta[b, 1] * (gap - gref) / gref) - theta[b, 2]
+
+
+@jit
+def curve_gap(theta, b, cp, d_des, min_gap):
+    """:meth:`CurveLearningLaw.gap`: the gap the estimate says gives ``d_des``, not below ``min_gap``."""
+    a = theta[b, 0]
+    want = d_des + theta[b, 2]
+    floor = 0.01 * math.exp(a)
+    g = cp[C_GREF] * (1.0 + (a - math.log(nan_max(want, floor))) / theta[b, 1])
+    return nan_max(g, min_gap)
+
+
+@jit
+def curve_correction(theta, b, cp):
+    """The law's output ``y``: the estimate's displacement at ``g_ref`` minus the prior's."""
+    return math.exp(theta[b, 0]) - cp[C_EXP_A0]
+
+
+@jit
+def curve_output(b, params, state, outputs):
+    """:class:`~magctl.control.curve_learning.CurveLearningLaw`: ``y = exp(a) − exp(a₀)``."""
+    cp, iterations = params
+    theta, cov = state
+    y, = outputs
+    y[b, 0] = curve_correction(theta, b, cp)
+
+
+@jit
+def curve_update_step(b, params, state, next_state, inputs, base, noise):
+    """:class:`~magctl.control.curve_learning.CurveLearningLaw`: one iterated EKF step per attempt."""
+    cp, iterations = params
+    theta, cov = state
+    ntheta, ncov = next_state
+    gap, z = inputs
+    curve_update(b, cp, iterations, theta, cov, ntheta, ncov, gap[b, 0], z[b, 0])
+
+
+# --- release-model law (magctl.control.release_model) -------------------------------------------------------
+@jit
+def _d2(xs0, xs1, pos, q0, q1):
+    """Squared scaled distance of logged attempt ``pos`` from the query, as the tree computes it."""
+    d0 = xs0[pos] - q0
+    d1 = xs1[pos] - q1
+    return d0 * d0 + d1 * d1
+
+
+@jit
+def _before(d2a, ra, d2b, rb):
+    """``(d², row)`` a comes before b: nearer, or as near and earlier in the map."""
+    return d2a < d2b or (d2a == d2b and ra < rb)
+
+
+@jit
+def release_nearest(b, xs0, xs1, srow, nb, q0, q1):
+    """The ``k = nb.shape[1]`` logged later attempts nearest ``(q0, q1)`` (scaled), nearest first, ties to the
+    earlier map row (:meth:`ReleasePolicy.nearest`), as positions in the ``xs0``-sorted table, in ``nb[b]``.
+
+    Walks outwards from the query's place in the sorted first coordinate and stops a side once its first-coordinate
+    distance alone exceeds the k-th nearest's distance (no later point on that side can be nearer)."""
+    k = nb.shape[1]
+    n = xs0.shape[0]
+    lo = 0
+    hi = n
+    while lo < hi:  # first position with xs0 >= q0
+        mid = (lo + hi) // 2
+        if xs0[mid] < q0:
+            lo = mid + 1
+        else:
+            hi = mid
+    left = lo - 1
+    right = lo
+    m = 0
+    while left >= 0 or right < n:
+        if m == k:
+            worst = _d2(xs0, xs1, nb[b, k - 1], q0, q1)
+            if left >= 0:
+                dl = xs0[left] - q0
+                if dl * dl > worst:
+                    left = -1
+            if right < n:
+                dr = xs0[right] - q0
+                if dr * dr > worst:
+                    right = n
+            if left < 0 and right >= n:
+                break
+        if left >= 0 and (right >= n or q0 - xs0[left] <= xs0[right] - q0):
+            pos = left
+            left -= 1
+        else:
+            pos = right
+            right += 1
+        d2 = _d2(xs0, xs1, pos, q0, q1)
+        row = srow[pos]
+        if m == k:
+            last = nb[b, k - 1]
+            if not _before(d2, row, _d2(xs0, xs1, last, q0, q1), srow[last]):
+                continue
+            j = k - 1
+        else:
+            j = m
+            m += 1
+        while j > 0 and _before(d2, row, _d2(xs0, xs1, nb[b, j - 1], q0, q1), srow[nb[b, j - 1]]):
+            nb[b, j] = nb[b, j - 1]
+            j -= 1
+        nb[b, j] = pos
+
+
+@jit
+def release_choose(b, scale, deltas, xs0, xs1, srow, succ, nb, d, previous):
+    """:meth:`ReleasePolicy.choose` for one trial: the index of the candidate ``δ`` whose ``k`` nearest logged
+    later attempts at ``(d + δ, R_prev)`` hold the most that would have ended within ε_p (the first such), with those
+    attempts' map rows left in ``nb[b]``."""
+    k = nb.shape[1]
+    q1 = previous / scale
+    best = 0
+    best_count = -1
+    for j in range(deltas.shape[0]):
+        release_nearest(b, xs0, xs1, srow, nb, (d + deltas[j]) / scale, q1)
+        count = 0
+        for i in range(k):
+            if succ[j, nb[b, i]]:
+                count += 1
+        if count > best_count:
+            best = j
+            best_count = count
+    release_nearest(b, xs0, xs1, srow, nb, (d + deltas[best]) / scale, q1)
+    for i in range(k):
+        nb[b, i] = srow[nb[b, i]]
+    return best
+
+
+@jit
+def release_update(b, scale, deltas, xs0, xs1, srow, succ, x, nb, e):
+    """:meth:`ReleasePolicyLaw.update_where` for trial ``b``: ``δ ← δ*(|e|, e + δ)`` (a finite ``e`` only)."""
+    if math.isfinite(e):
+        best = release_choose(b, scale, deltas, xs0, xs1, srow, succ, nb, abs(e), e + x[b, 0])
+        x[b, 0] = deltas[best]
+
+
+@jit
+def release_output(b, params, state, outputs):
+    """:class:`~magctl.control.release_model.ReleasePolicyLaw`: ``y = δ``."""
+    x, nb = state
+    y, = outputs
+    y[b, 0] = x[b, 0]
+
+
+@jit
+def release_update_step(b, params, state, next_state, inputs, base, noise):
+    """:class:`~magctl.control.release_model.ReleasePolicyLaw`: the next attempt's ``δ`` from the last one's error."""
+    scale, deltas, xs0, xs1, srow, succ = params
+    x, nb = state
+    nx, nnb = next_state
+    e, = inputs
+    nx[b, 0] = x[b, 0]
+    for i in range(nb.shape[1]):
+        nnb[b, i] = nb[b, i]
+    release_update(b, scale, deltas, xs0, xs1, srow, succ, nx, nnb, e[b, 0])

@@ -16,10 +16,11 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
+from magctl.control.phases import FINISHED, SIDE_PHASE_OFFSET, AssemblyStage
 from magctl.control.push.common import (
     ATTEMPT_LIMIT,
-    FINISHED,
     RUNNING,
+    curve_dummies,
     select_state,
     sphere_radii,
     task_parameters,
@@ -107,7 +108,7 @@ class FrontThenSideAssemblyTask(Block):
     and ``stage`` says which stage runs (1 or 2).
     """
 
-    SIDE_PHASE_OFFSET = 10
+    SIDE_PHASE_OFFSET = SIDE_PHASE_OFFSET
 
     def __init__(self, name: str = "front_side_assembly", *, n_spheres: int = 2, moved: int = 0, fixed: int = 1,
                  front_attempts: int = 1, radii=None, eps_as: float | None = None, **side_options):
@@ -137,14 +138,14 @@ class FrontThenSideAssemblyTask(Block):
                 substate("side", self.side.state_vars(), "the side-push stage"))
 
     def initial_state(self, batch, rng=None):
-        return {"stage": np.ones(batch, dtype=np.int64), "front": self.front.initial_state(batch),
+        return {"stage": np.full(batch, AssemblyStage.FRONT, dtype=np.int64), "front": self.front.initial_state(batch),
                 "side": self.side.initial_state(batch)}
 
     def step(self, state, u):
         """One frame: the running stage's outputs; stage 2 starts the frame after stage 1 ended short of eq 21."""
         f_out, f_new = self.front.step(state["front"], u)
         s_out, s_new = self.side.step(state["side"], u)
-        in_side = state["stage"] == 2
+        in_side = state["stage"] == AssemblyStage.SIDE
         handover = ~in_side & (f_out["status"] == ATTEMPT_LIMIT)
         out = {k: np.where(in_side.reshape((-1,) + (1,) * (np.ndim(s_out[k]) - 1)), s_out[k],
                            f_out[k] if k in f_out else np.zeros_like(s_out[k]))
@@ -154,8 +155,8 @@ class FrontThenSideAssemblyTask(Block):
                                 out["phase"])
         out["status"] = np.where(handover, RUNNING, out["status"])
         out["phase"] = np.where(handover, self.SIDE_PHASE_OFFSET, out["phase"])
-        out["stage"] = np.where(in_side, 2, 1).astype(np.int64)
-        new = {"stage": np.where(in_side | handover, 2, 1).astype(np.int64),
+        out["stage"] = np.where(in_side, AssemblyStage.SIDE, AssemblyStage.FRONT).astype(np.int64)
+        new = {"stage": np.where(in_side | handover, AssemblyStage.SIDE, AssemblyStage.FRONT).astype(np.int64),
                "front": f_new, "side": select_state(in_side, s_new, state["side"])}
         return out, new
 
@@ -166,14 +167,19 @@ class FrontThenSideAssemblyTask(Block):
         return self.step(state, u)[1]
 
     def kernel(self):
-        """The compiled frame (:func:`magctl.control.push.kernels.front_then_side_step`): both stages' kernels."""
+        """The compiled frame (:func:`magctl.control.push.kernels.front_then_side_step`, or
+        ``front_then_curve_side_step`` with the curve-learning law in the side stage): both stages' kernels."""
         from magctl.control.push import kernels as k
         from magctl.core.kernel import Kernel
 
         side = self.side._side_kernel_params()
-        if side is None or not (self.front._kernel_law_ok() and self.side._kernel_law_ok()):
+        law = self.side._law_kind()
+        if side is None or self.front._law_kind() != k.LAW_INTEGRATOR or law not in (k.LAW_INTEGRATOR, k.LAW_CURVE):
             return None
-        return Kernel(step=k.front_then_side_step, params=(*self.front._front_kernel_params(), *side))
+        front = self.front._front_kernel_with_dummies()
+        if law == k.LAW_CURVE:
+            return Kernel(step=k.front_then_curve_side_step, params=(*front, *side))
+        return Kernel(step=k.front_then_side_step, params=(*front, *side, *curve_dummies()))
 
 
 __all__ = ["AssemblyTask", "FrontAssemblyTask", "FrontThenSideAssemblyTask"]

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from magctl.config import load_model
+from magctl.control.phases import FINISHED, START
 from magctl.control.status import Status
 from magctl.core.batched import norm
 from magctl.core.checks import check_positive
@@ -249,9 +250,7 @@ def goal_distance(table: str) -> float:
 
 
 # --- the batched attempt-level state machine shared by every push task ---------------------------
-START = 0
-FINISHED = 99
-"""Phase of a trial whose status is no longer ``RUNNING``."""
+# START and FINISHED (magctl.control.phases) begin and end every push task's phases.
 
 
 class PushTask:
@@ -376,8 +375,9 @@ class PushTask:
             new["target"] = np.where(mask[:, None], r, new["target"])
 
     def _kernel_params(self, **task: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The float and int parameter arrays and the law's gain of the compiled kernels
-        (:mod:`magctl.control.push.kernels`); ``task`` sets the task's own float entries by name."""
+        """The float and int parameter arrays and the integrator law's gain (a dummy 0 for the other laws) of the
+        compiled kernels (:mod:`magctl.control.push.kernels`); ``task`` sets the task's own float entries by
+        name. ``ip[LAW]`` says which law the task has."""
         from magctl.control.push import kernels as k
 
         fp = np.zeros(k.N_FP)
@@ -387,15 +387,26 @@ class PushTask:
         for name, value in task.items():
             fp[getattr(k, name)] = value
         idx = self.sphere_indices
-        ip[[k.MAX_ATTEMPTS, k.SETTLE_FRAMES, k.MAX_LOST, k.TIMEOUT, k.I0, k.I1, k.PAIR]] = (
+        law = self._law_kind()
+        ip[[k.MAX_ATTEMPTS, k.SETTLE_FRAMES, k.MAX_LOST, k.TIMEOUT, k.I0, k.I1, k.PAIR, k.LAW]] = (
             self.max_attempts, self.settle_frames, self.max_lost_frames, self.phase_timeout_frames,
-            idx[0], idx[-1], len(idx) > 1)
-        return fp, ip, np.atleast_1d(np.asarray(self.law.gain, dtype=float)).copy()
+            idx[0], idx[-1], len(idx) > 1, law)
+        gain = self.law.gain if law == k.LAW_INTEGRATOR else 0.0
+        return fp, ip, np.atleast_1d(np.asarray(gain, dtype=float)).copy()
+
+    def _law_kind(self) -> int | None:
+        """The kernels' code of the task's law (:data:`magctl.control.push.kernels.LAW_INTEGRATOR` …), None for a
+        law they do not know."""
+        from magctl.control.curve_learning import CurveLearningLaw
+        from magctl.control.learning import LearningLaw
+        from magctl.control.push import kernels as k
+        from magctl.control.release_model import ReleasePolicyLaw
+
+        return {LearningLaw: k.LAW_INTEGRATOR, CurveLearningLaw: k.LAW_CURVE,
+                ReleasePolicyLaw: k.LAW_RELEASE}.get(type(self.law))
 
     def _kernel_law_ok(self) -> bool:
-        from magctl.control.learning import LearningLaw
-
-        return type(self.law) is LearningLaw
+        return self._law_kind() is not None
 
     def _spheres_found(self, new, spheres) -> np.ndarray:
         idx = list(self.sphere_indices)
@@ -423,6 +434,18 @@ class PushTask:
         new["status"] = np.where(conv, CONVERGED, np.where(limit, ATTEMPT_LIMIT, new["status"]))
         return mask & ~conv & ~limit
 
+
+
+def release_dummies() -> tuple:
+    """The release law's tables and neighbours for a front-push kernel whose law is the integrator (never read)."""
+    return (1.0, np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1, dtype=np.int64), np.zeros((1, 1), dtype=bool),
+            np.zeros((1, 1), dtype=np.int64))
+
+
+def curve_dummies() -> tuple:
+    """The curve law's ``law.cov``, ``push_out`` and ``push_out_n`` for a side-push kernel whose law is the
+    integrator (never read)."""
+    return np.zeros((1, 9)), np.zeros((1, 1)), np.zeros((1, 1), dtype=np.int64)
 
 
 def select_state(mask: np.ndarray, a: dict, b: dict) -> dict:

@@ -20,13 +20,13 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.control.learning import front_push_law
+from magctl.control.phases import FINISHED, START, FrontPhase
 from magctl.control.push.common import (
-    FINISHED,
-    START,
     PushTask,
     around,
     arrived,
     goal_distance,
+    release_dummies,
     sphere_radii,
     with_defaults,
 )
@@ -36,7 +36,8 @@ from magctl.core.block import Block
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 
-APPROACH, PUSH, RETRACT, SETTLE = 1, 2, 3, 4
+APPROACH, PUSH, RETRACT, SETTLE = (int(FrontPhase.APPROACH), int(FrontPhase.PUSH), int(FrontPhase.RETRACT),
+                                   int(FrontPhase.SETTLE))
 LEARNING = {"eq13": "the paper's eq 13 law (K_c, δ(0))",
             "release": "the controller that models its own release (magctl.control.release_model)"}
 
@@ -120,14 +121,22 @@ class FrontPushTask(PushTask, Block):
         raise MagctlError(f"front push {name!r}: learning={p['learning']!r} is not one of {', '.join(LEARNING)}")
 
     def kernel(self):
-        """The compiled frame (:func:`magctl.control.push.kernels.front_step`); None with a law without a
-        kernel (the release-model controller)."""
+        """The compiled frame (:func:`magctl.control.push.kernels.front_step` with eq 13,
+        ``release_front_step`` with the release-model law); None with a law the kernels do not know."""
         from magctl.control.push import kernels as k
         from magctl.core.kernel import Kernel
 
-        if not self._kernel_law_ok():
-            return None
-        return Kernel(step=k.front_step, params=self._front_kernel_params())
+        law = self._law_kind()
+        if law == k.LAW_RELEASE:
+            return Kernel(step=k.release_front_step,
+                          params=(*self._front_kernel_params(), *self.law.policy.kernel_tables()))
+        if law == k.LAW_INTEGRATOR:
+            return Kernel(step=k.front_step, params=self._front_kernel_with_dummies())
+        return None
+
+    def _front_kernel_with_dummies(self) -> tuple:
+        """:func:`magctl.control.push.kernels.front_step`'s parameters (eq 13: the release law's are dummies)."""
+        return (*self._front_kernel_params(), *release_dummies())
 
     def _front_kernel_params(self) -> tuple:
         radii = getattr(self, "radii", (0.0, 0.0))

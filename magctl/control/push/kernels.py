@@ -1,18 +1,27 @@
 """Compiled kernels of the push tasks: the shared frame of :class:`~magctl.control.push.common.PushTask` and
 each task's attempt-level state machine, one trial at a time.
 
-Every push task's state starts with the 8 common entries (``phase``, ``status``, ``attempt``, ``frames``,
-``lost_frames``, ``target``, ``speed``, ``law.x``) followed by 7 of its own; a kernel copies the state to the
-next state, then works on the next state only (so the engine may pass the same arrays). The frame is
-:func:`frame_begin` (lost-frame count, failures: ``PushTask._frame`` up to ``_step``), the task's own
-``_step`` on a trial that is running, tracked and has its spheres, then :func:`frame_end` (the outputs).
+Every push task's state starts with the 7 common entries (``phase``, ``status``, ``attempt``, ``frames``,
+``lost_frames``, ``target``, ``speed``) and its learning law's state, followed by 7 entries of its own; a kernel
+copies the state to the next state, then works on the next state only (so the engine may pass the same arrays,
+except for the side push answering dirt, whose kernel re-reads the state and says ``in_place=False``). The frame
+is :func:`frame_begin` (lost-frame count, failures: ``PushTask._frame`` up to ``_step``), the task's own ``_step``
+on a trial that is running, tracked and has its spheres, then :func:`frame_end` (the outputs).
 
-Parameters come as a float array ``fp`` and an int array ``ip`` indexed by the constants below, the law's
-gain (length 1, or one per trial) and, for the side push, the tabulated model's arrays. Side-push models
-(``F`` of eq 17) are a kind code: :data:`MODEL_EXP` (eq 22, ``fp[M0]`` = A, ``fp[M1]`` = k),
-:data:`MODEL_LIN` (eq 23, slope, intercept) or :data:`MODEL_TABLE` (gaps, log displacements, rates).
-The arithmetic is the numpy form's, element by element (``norm``, ``unit``, ``cross``, ``rotate`` of
-:mod:`magctl.core.batched`, :func:`~magctl.control.push.common.around`).
+The frames take a task's 15 entries with the law's first entry in the 8th place: ``law.x`` of the eq 13/18
+integrator, ``law.x`` (``δ``) of the release-model law, whose ``law.neighbours`` comes as ``nb``, or ``law.theta``
+of the curve-learning law, whose ``law.cov``, ``push_out`` and ``push_out_n`` come as three more arrays. Which law
+the task has is ``ip[LAW]`` (:data:`LAW_INTEGRATOR`, :data:`LAW_CURVE`, :data:`LAW_RELEASE`); a task without the
+others' arrays is given small dummies, never read.
+
+Parameters come as a float array ``fp`` and an int array ``ip`` indexed by the constants below, the integrator's
+gain (length 1, or one per trial), for the side push the tabulated model's arrays and the curve law's ``cp``
+(:mod:`magctl.control.kernels` ``C_*``), for the front push the release law's tables. Side-push models (``F`` of
+eq 17) are a kind code: :data:`MODEL_EXP` (eq 22, ``fp[M0]`` = A, ``fp[M1]`` = k), :data:`MODEL_LIN` (eq 23,
+slope, intercept) or :data:`MODEL_TABLE` (gaps, log displacements, rates). The arithmetic is the numpy form's,
+element by element (``norm``, ``unit``, ``cross``, ``rotate``, ``perp`` of :mod:`magctl.core.batched`,
+:func:`~magctl.control.push.common.around`). Status codes and phases are :mod:`magctl.control.status`'s and
+:mod:`magctl.control.phases`'s.
 """
 
 from __future__ import annotations
@@ -21,29 +30,54 @@ import math
 
 import numba
 
-from magctl.control.kernels import law_gain, nan_max, nan_min
+from magctl.control.kernels import (
+    curve_correction,
+    curve_displacement,
+    curve_gap,
+    curve_update,
+    law_gain,
+    nan_max,
+    nan_min,
+    release_update,
+)
+from magctl.control.phases import (
+    FINISHED,
+    FRONT_PHASE_OFFSET,
+    SIDE_PHASE_OFFSET,
+    START,
+    AssemblyStage,
+    DirtStage,
+    FrontPhase,
+    SidePhase,
+)
+from magctl.control.status import Status
 
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 heavy = numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 """A frame too large to inline: compiled once, called (inlining it would multiply compile time)."""
 
-# status codes (magctl.control.status.Status) and phases (common.py, front.py, side.py)
-RUNNING, CONVERGED, ATTEMPT_LIMIT, TRACKING_LOST, SPHERE_LOST, STALLED = 0, 1, 2, 3, 4, 5
-START, FINISHED = 0, 99
-F_APPROACH, F_PUSH, F_RETRACT, F_SETTLE = 1, 2, 3, 4
-S_REPOSITION, S_PASS, S_SETTLE = 1, 2, 3
-SIDE_PHASE_OFFSET = 10
+RUNNING, CONVERGED, ATTEMPT_LIMIT = int(Status.RUNNING), int(Status.CONVERGED), int(Status.ATTEMPT_LIMIT)
+TRACKING_LOST, SPHERE_LOST, STALLED = int(Status.TRACKING_LOST), int(Status.SPHERE_LOST), int(Status.STALLED)
+F_APPROACH, F_PUSH = int(FrontPhase.APPROACH), int(FrontPhase.PUSH)
+F_RETRACT, F_SETTLE = int(FrontPhase.RETRACT), int(FrontPhase.SETTLE)
+S_REPOSITION, S_PASS, S_SETTLE = int(SidePhase.REPOSITION), int(SidePhase.PASS), int(SidePhase.SETTLE)
+DIRT_SIDE, DIRT_FRONT = int(DirtStage.SIDE), int(DirtStage.FRONT)
+ASSEMBLY_FRONT, ASSEMBLY_SIDE = int(AssemblyStage.FRONT), int(AssemblyStage.SIDE)
 
 # int parameters
-MAX_ATTEMPTS, SETTLE_FRAMES, MAX_LOST, TIMEOUT, I0, I1, PAIR, MODEL, FIXED = range(9)
-N_IP = 9
-# float parameters: common, then front, then side
+MAX_ATTEMPTS, SETTLE_FRAMES, MAX_LOST, TIMEOUT, I0, I1, PAIR, MODEL, FIXED, LAW, ITERATIONS, MAX_FRONTS = range(12)
+N_IP = 12
+# float parameters: common, then front, then side (the push-out and dirt entries with the curve law)
 EPS, CLEARANCE, ARRIVE_TOL, TRAVEL_SPEED, WORKSPACE, R0, R1, EPS_AS = range(8)
 PUSH_TOL, CONTACT, APPROACH, RETRACT, PUSH_SPEED = range(8, 13)
 MIN_GAP, D_MAX, BEHIND, AHEAD, PASS_SPEED, FIXED_GAP, THETA_N, M0, M1 = range(13, 22)
-N_FP = 22
+PUSH_OUT_WEIGHT, PUSH_OUT_MIN, DIRT_MOBILITY, DIRT_PASSES, PRIOR_AT_MIN_GAP = range(22, 27)
+N_FP = 27
 
 MODEL_EXP, MODEL_LIN, MODEL_TABLE = 0, 1, 2
+LAW_INTEGRATOR, LAW_CURVE, LAW_RELEASE = 0, 1, 2
+"""``ip[LAW]``: eq 13/18 (:class:`~magctl.control.learning.LearningLaw`), the curve-learning law, the
+release-model law."""
 
 AROUND_STEP = math.pi / 4
 TWO_PI = 2 * math.pi
@@ -128,6 +162,14 @@ def copy_task_state(b, st, nx):
     _cp(b, st[14], nx[14])
 
 
+@jit
+def copy3(b, st, nx):
+    """The next state = the state (the curve law's ``law.cov``, ``push_out``, ``push_out_n``)."""
+    _cp(b, st[0], nx[0])
+    _cp(b, st[1], nx[1])
+    _cp(b, st[2], nx[2])
+
+
 # --- the frame shared by every push task (PushTask._frame, _fail, _enter, _finish_attempt) -----------------
 @jit
 def spheres_found(b, fp, ip, goal, sp):
@@ -194,15 +236,16 @@ def frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost,
 
 
 @jit
-def frame_end(b, phase, status, attempt, target, speed, lawx, r0, r1):
-    """``_frame`` after ``_step``: FINISHED phase, the outputs (target, NaN → robot; speed cap 0 when done)."""
+def frame_end(b, phase, status, attempt, target, speed, correction, r0, r1):
+    """``_frame`` after ``_step``: FINISHED phase, the outputs (target, NaN → robot; speed cap 0 when done; the
+    law's output ``correction``)."""
     done = status[b, 0] != RUNNING
     if done:
         phase[b, 0] = FINISHED
     t0 = target[b, 0]
     t1 = target[b, 1]
     return (r0 if math.isnan(t0) else t0, r1 if math.isnan(t1) else t1, 0.0 if done else speed[b, 0],
-            status[b, 0], attempt[b, 0], phase[b, 0], lawx[b, 0])
+            status[b, 0], attempt[b, 0], phase[b, 0], correction)
 
 
 @jit
@@ -240,9 +283,11 @@ def front_geometry(b, fp, ip, goal, sp):
 
 
 @heavy
-def front_frame(b, fp, ip, gain, st, r0, r1, sp, lost):
+def front_frame(b, fp, ip, gain, rel, st, nb, r0, r1, sp, lost):
     """One frame of :class:`~magctl.control.push.front.FrontPushTask` (and the front assembly) on the next state
-    ``st``: approach → push (eq 10, 11) → retract → settle → eq 12 / eq 13. Returns the outputs."""
+    ``st``: approach → push (eq 10, 11) → retract → settle → eq 12 / eq 13, or with the release-model law
+    (``ip[LAW]``, tables ``rel``, neighbours ``nb``) ``δ ← δ*(|e|, e + δ)`` in eq 13's place. Returns the
+    outputs."""
     phase, status, attempt, frames, lost_frames, target, speed, lawx, goal, u, p_ri, p_o, g_line, stand, back = st
     found = spheres_found(b, fp, ip, goal, sp)
     if frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost, found):
@@ -270,7 +315,10 @@ def front_frame(b, fp, ip, gain, st, r0, r1, sp, lost):
             if frames[b, 0] >= ip[SETTLE_FRAMES]:
                 e = (g_line[b, 0] - s0) * u[b, 0] + (g_line[b, 1] - s1) * u[b, 1]
                 if finish_attempt(b, ip, status, attempt, done):
-                    lawx[b, 0] = lawx[b, 0] + law_gain(gain, b) * e   # eq 13
+                    if ip[LAW] == LAW_RELEASE:
+                        release_update(b, rel[0], rel[1], rel[2], rel[3], rel[4], rel[5], lawx, nb, e)
+                    else:
+                        lawx[b, 0] = lawx[b, 0] + law_gain(gain, b) * e   # eq 13
                     begin = True
         if begin:  # _begin: the attempt's line, P_o = P_g + δu (eq 10), P_ri and where the robot stands
             delta = lawx[b, 0]
@@ -299,16 +347,31 @@ def front_frame(b, fp, ip, gain, st, r0, r1, sp, lost):
             target[b, 0] = back[b, 0]
             target[b, 1] = back[b, 1]
         speed[b, 0] = fp[PUSH_SPEED] if ph == F_PUSH else fp[TRAVEL_SPEED]
-    return frame_end(b, phase, status, attempt, target, speed, lawx, r0, r1)
+    return frame_end(b, phase, status, attempt, target, speed, lawx[b, 0], r0, r1)
 
 
 @jit
 def front_step(b, params, state, next_state, inputs, outputs, base, noise):
-    """:class:`~magctl.control.push.front.FrontPushTask` / ``FrontAssemblyTask`` step."""
-    fp, ip, gain = params
+    """:class:`~magctl.control.push.front.FrontPushTask` / ``FrontAssemblyTask`` step with the eq 13 law."""
+    fp, ip, gain, rs, rd, rx0, rx1, rrow, rhit, nb = params
     robot, sp, lost = inputs
     copy_task_state(b, state, next_state)
-    out = front_frame(b, fp, ip, gain, next_state, robot[b, 0], robot[b, 1], sp, lost[b, 0])
+    out = front_frame(b, fp, ip, gain, (rs, rd, rx0, rx1, rrow, rhit), next_state, nb, robot[b, 0], robot[b, 1],
+                      sp, lost[b, 0])
+    write_outputs(b, outputs, out)
+
+
+@jit
+def release_front_step(b, params, state, next_state, inputs, outputs, base, noise):
+    """:class:`~magctl.control.push.front.FrontPushTask` step with the release-model law (``learning="release"``):
+    its state has ``law.neighbours`` after ``law.x``."""
+    fp, ip, gain, rs, rd, rx0, rx1, rrow, rhit = params
+    robot, sp, lost = inputs
+    st = next_state[0:8] + next_state[9:16]
+    copy_task_state(b, state[0:8] + state[9:16], st)
+    _cp(b, state[8], next_state[8])
+    out = front_frame(b, fp, ip, gain, (rs, rd, rx0, rx1, rrow, rhit), st, next_state[8], robot[b, 0], robot[b, 1],
+                      sp, lost[b, 0])
     write_outputs(b, outputs, out)
 
 
@@ -363,11 +426,36 @@ def model_gap(fp, ip, tg, tld, trate, ds):
     return tg[k] + (x - tld[k]) / trate[k]
 
 
+@jit
+def learn_push_out(b, fp, u, p0, start, push_out, push_out_n, s0, s1):
+    """``SidePushTask._learn_push_out``: the sphere's displacement across the pass, away from the robot's side,
+    over its displacement along it (a pass at least ``push_out_min`` long), taken whole the first time and with
+    ``push_out_weight`` after."""
+    u0 = u[b, 0]
+    u1 = u[b, 1]
+    d0 = s0 - p0[b, 0]
+    d1 = s1 - p0[b, 1]
+    w0 = start[b, 0] - p0[b, 0] + fp[BEHIND] * u0
+    w1 = start[b, 1] - p0[b, 1] + fp[BEHIND] * u1
+    robot_side = sign(w0 * -u1 + w1 * u0)
+    along = d0 * u0 + d1 * u1
+    across = -robot_side * (d0 * -u1 + d1 * u0)
+    if along >= fp[PUSH_OUT_MIN]:
+        ratio = across / along
+        weight = 1.0 if push_out_n[b, 0] == 0 else fp[PUSH_OUT_WEIGHT]
+        push_out[b, 0] = push_out[b, 0] + weight * (ratio - push_out[b, 0])
+        push_out_n[b, 0] += 1
+
+
 @heavy
-def side_frame(b, fp, ip, gain, tg, tld, trate, st, r0, r1, sp, lost):
+def side_frame(b, fp, ip, gain, tg, tld, trate, cp, st, cov, push_out, push_out_n, r0, r1, sp, lost):
     """One frame of :class:`~magctl.control.push.side.SidePushTask` (and the side-push assembly) on the next
-    state ``st``: reposition → pass → settle → eq 12 (eq 21) / eq 18. Returns the outputs and the gap output."""
+    state ``st``: reposition → pass → settle → eq 12 (eq 21) / eq 18, or with the curve-learning law
+    (``ip[LAW]``; ``st``'s 8th entry is ``law.theta``, then ``law.cov``, ``push_out``, ``push_out_n``) the EKF
+    step, the push-out ratio, the estimate's bound and inverse for ``D_s,des`` and ``D_g`` and the pass turned
+    by ``atan`` of the push-out. Returns the outputs and the gap output."""
     phase, status, attempt, frames, lost_frames, target, speed, lawx, goal, u, p0, start, end, d_des, gap = st
+    curve = ip[LAW] == LAW_CURVE
     found = spheres_found(b, fp, ip, goal, sp)
     if frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost, found):
         ph = phase[b, 0]
@@ -388,12 +476,25 @@ def side_frame(b, fp, ip, gain, tg, tld, trate, st, r0, r1, sp, lost):
             if frames[b, 0] >= ip[SETTLE_FRAMES]:
                 d_act = (s0 - p0[b, 0]) * u[b, 0] + (s1 - p0[b, 1]) * u[b, 1]
                 if finish_attempt(b, ip, status, attempt, done):
-                    lawx[b, 0] = lawx[b, 0] + law_gain(gain, b) * (d_act - d_des[b, 0])   # eq 18
+                    if curve:  # the pass (D_g, D_s,act) into the estimate, then its push-out
+                        curve_update(b, cp, ip[ITERATIONS], lawx, cov, lawx, cov, gap[b, 0], d_act)
+                        learn_push_out(b, fp, u, p0, start, push_out, push_out_n, s0, s1)
+                    else:
+                        lawx[b, 0] = lawx[b, 0] + law_gain(gain, b) * (d_act - d_des[b, 0])   # eq 18
                     begin = True
         if begin:  # _begin: eq 16 (bounded), eq 17, the motion line; no pass for an infinite gap
-            dd = nan_min(dist, fp[D_MAX])
+            if curve:  # the estimate's own bound; the pass turned against the push-out
+                turn = math.atan(push_out[b, 0])
+                c = math.cos(turn)
+                sn = side * math.sin(turn)
+                u0, u1 = c * u0 + sn * -u1, c * u1 + sn * u0
+                dd = nan_min(dist, curve_displacement(lawx, b, cp, fp[MIN_GAP]))
+            else:
+                dd = nan_min(dist, fp[D_MAX])
             if ip[FIXED]:
                 g = fp[FIXED_GAP]
+            elif curve:
+                g = curve_gap(lawx, b, cp, dd, fp[MIN_GAP])
             else:
                 g = nan_max(model_gap(fp, ip, tg, tld, trate, dd + lawx[b, 0]), fp[MIN_GAP])
             finite = math.isfinite(g)
@@ -425,51 +526,205 @@ def side_frame(b, fp, ip, gain, tg, tld, trate, st, r0, r1, sp, lost):
             target[b, 1] = end[b, 1]
         speed[b, 0] = fp[PASS_SPEED] if ph == S_PASS else fp[TRAVEL_SPEED]
     g = gap[b, 0]
-    return frame_end(b, phase, status, attempt, target, speed, lawx, r0, r1), 0.0 if math.isinf(g) else g
+    correction = curve_correction(lawx, b, cp) if curve else lawx[b, 0]
+    return frame_end(b, phase, status, attempt, target, speed, correction, r0, r1), 0.0 if math.isinf(g) else g
 
 
 @jit
 def side_step(b, params, state, next_state, inputs, outputs, base, noise):
-    """:class:`~magctl.control.push.side.SidePushTask` / ``AssemblyTask`` step."""
-    fp, ip, gain, tg, tld, trate = params
+    """:class:`~magctl.control.push.side.SidePushTask` / ``AssemblyTask`` step with the eq 18 law."""
+    fp, ip, gain, tg, tld, trate, cp, cov, push_out, push_out_n = params
     robot, sp, lost = inputs
     copy_task_state(b, state, next_state)
-    out, g = side_frame(b, fp, ip, gain, tg, tld, trate, next_state, robot[b, 0], robot[b, 1], sp, lost[b, 0])
+    out, g = side_frame(b, fp, ip, gain, tg, tld, trate, cp, next_state, cov, push_out, push_out_n, robot[b, 0],
+                        robot[b, 1], sp, lost[b, 0])
     write_outputs(b, outputs, out)
     outputs[6][b, 0] = g
 
 
+@jit
+def curve_side_step(b, params, state, next_state, inputs, outputs, base, noise):
+    """:class:`~magctl.control.push.side.SidePushTask` / ``AssemblyTask`` step with the curve-learning law: the
+    state has ``law.theta``, ``law.cov``, ``push_out``, ``push_out_n`` before the task's own 7 entries."""
+    fp, ip, gain, tg, tld, trate, cp = params
+    robot, sp, lost = inputs
+    st = next_state[0:8] + next_state[11:18]
+    extra = next_state[8:11]
+    copy_task_state(b, state[0:8] + state[11:18], st)
+    copy3(b, state[8:11], extra)
+    out, g = side_frame(b, fp, ip, gain, tg, tld, trate, cp, st, extra[0], extra[1], extra[2], robot[b, 0],
+                        robot[b, 1], sp, lost[b, 0])
+    write_outputs(b, outputs, out)
+    outputs[6][b, 0] = g
+
+
+# --- side push answering dirt with a front push (side.py, dirt_response="front") ---------------------------
+@jit
+def reset_front(b, st, x0):
+    """A front push's initial state (``FrontPushTask.initial_state``; its goal, never changed, is kept)."""
+    phase, status, attempt, frames, lost_frames, target, speed, lawx, goal, u, p_ri, p_o, g_line, stand, back = st
+    phase[b, 0] = START
+    status[b, 0] = RUNNING
+    attempt[b, 0] = 0
+    frames[b, 0] = 0
+    lost_frames[b, 0] = 0
+    target[b, 0] = math.nan
+    target[b, 1] = math.nan
+    speed[b, 0] = 0.0
+    lawx[b, 0] = x0
+    for i in range(2):
+        u[b, i] = 0.0
+        p_ri[b, i] = 0.0
+        p_o[b, i] = 0.0
+        g_line[b, i] = 0.0
+        stand[b, i] = 0.0
+        back[b, i] = 0.0
+
+
+@jit
+def restart_side(b, st):
+    """The side passes start afresh (``phase`` START, ``frames`` 0, no target)."""
+    phase, status, attempt, frames, lost_frames, target = st[0:6]
+    phase[b, 0] = START
+    frames[b, 0] = 0
+    target[b, 0] = math.nan
+    target[b, 1] = math.nan
+
+
+@heavy
+def side_dirt_frame(b, fp, ip, gain, tg, tld, trate, cp, ffp, fip, fgain, rel, fnb, fx0, state, next_state, robot,
+                    sp, lost, outputs):
+    """``SidePushTask._frame_with_front`` for trial ``b``: the side frame, and on the frame it measures a sphere
+    the curve law reads as stuck (mobility at ``min_gap`` under ``[dirt] mobility``, more than ``[dirt] passes``
+    passes to go, fewer than ``[dirt] fronts`` front pushes so far) the hand-over to a fresh front push (eq 10–13,
+    no learning); while it runs the side stage is frozen (its frame is stepped on a scratch copy: its phase is the
+    output on the frame the front push ends), and its end counts as an attempt (eq 12), or ends the task with its
+    failure."""
+    side_in = state[0:8] + state[28:35]
+    side = next_state[0:8] + next_state[28:35]
+    extra_in = state[8:11]
+    extra = next_state[8:11]
+    front_in = state[13:28]
+    front = next_state[13:28]
+    stage, fronts = state[11], state[12]
+    nstage, nfronts = next_state[11], next_state[12]
+    copy_task_state(b, side_in, side)
+    copy3(b, extra_in, extra)
+    copy_task_state(b, front_in, front)
+    nstage[b, 0] = stage[b, 0]
+    nfronts[b, 0] = fronts[b, 0]
+    r0 = robot[b, 0]
+    r1 = robot[b, 1]
+    in_front = stage[b, 0] == DIRT_FRONT
+    s_out, g = side_frame(b, fp, ip, gain, tg, tld, trate, cp, side, extra[0], extra[1], extra[2], r0, r1, sp, lost)
+    i = 2 * ip[I0]
+    goal = side[8]
+    dist = norm2(goal[b, 0] - sp[b, i], goal[b, 1] - sp[b, i + 1])
+    status, attempt = side[1], side[2]
+    t0, t1, spd, phase_out = s_out[0], s_out[1], s_out[2], s_out[5]
+    trigger = False
+    ended = False
+    if in_front:
+        f = front_frame(b, ffp, fip, fgain, rel, front, fnb, r0, r1, sp, lost)
+        copy_task_state(b, side_in, side)   # the side stage is frozen while the front push runs
+        copy3(b, extra_in, extra)
+        ended = f[3] != RUNNING
+        if ended:
+            if f[3] == CONVERGED or f[3] == ATTEMPT_LIMIT:  # back to side passes: the front push was an attempt
+                restart_side(b, side)
+                finish_attempt(b, ip, status, attempt, dist < fp[EPS])
+            else:
+                status[b, 0] = f[3]
+            nstage[b, 0] = DIRT_SIDE
+        else:
+            t0, t1, spd, phase_out = f[0], f[1], f[2], f[5] + FRONT_PHASE_OFFSET
+        g = 0.0
+    elif attempt[b, 0] > side_in[2][b, 0] and status[b, 0] == RUNNING:  # an attempt was just measured
+        d_min = curve_displacement(side[7], b, cp, fp[MIN_GAP])
+        stuck = d_min / fp[PRIOR_AT_MIN_GAP] < fp[DIRT_MOBILITY]
+        many = dist > fp[DIRT_PASSES] * d_min
+        trigger = stuck and many and fronts[b, 0] < ip[MAX_FRONTS]
+        if trigger:
+            restart_side(b, side)
+            reset_front(b, front, fx0)
+            nstage[b, 0] = DIRT_FRONT
+            nfronts[b, 0] = fronts[b, 0] + 1
+    if status[b, 0] != RUNNING:
+        side[0][b, 0] = FINISHED
+        phase_out = FINISHED
+    if ended or trigger:
+        t0, t1, spd = r0, r1, 0.0
+    write_outputs(b, outputs, (t0, t1, spd, status[b, 0], attempt[b, 0], phase_out, s_out[6]))
+    outputs[6][b, 0] = g
+
+
+@jit
+def side_dirt_step(b, params, state, next_state, inputs, outputs, base, noise):
+    """:class:`~magctl.control.push.side.SidePushTask` with the curve-learning law and ``dirt_response="front"``
+    (``in_place=False``: the frozen side stage is re-read from the state)."""
+    fp, ip, gain, tg, tld, trate, cp, ffp, fip, fgain, rs, rd, rx0, rx1, rrow, rhit, fnb, fx0 = params
+    robot, sp, lost = inputs
+    side_dirt_frame(b, fp, ip, gain, tg, tld, trate, cp, ffp, fip, fgain, (rs, rd, rx0, rx1, rrow, rhit), fnb, fx0,
+                    state, next_state, robot, sp, lost[b, 0], outputs)
+
+
 # --- front push, then side-push assembly (assembly.py, Fig 15) ------------------------------------------
 @jit
+def front_then_side(b, fparams, sparams, stage, nstage, fst, sst, extra, robot, sp, lost, outputs):
+    """:class:`~magctl.control.push.assembly.FrontThenSideAssemblyTask` on the next state: the front stage every
+    frame, the side stage (advanced) only in stage 2, which starts the frame after the front stage hits its
+    attempt limit."""
+    ffp, fip, fgain, rel, fnb = fparams
+    sfp, sip, sgain, tg, tld, trate, cp = sparams
+    r0 = robot[b, 0]
+    r1 = robot[b, 1]
+    in_side = stage[b, 0] == ASSEMBLY_SIDE
+    f = front_frame(b, ffp, fip, fgain, rel, fst, fnb, r0, r1, sp, lost)
+    if in_side:
+        s, g = side_frame(b, sfp, sip, sgain, tg, tld, trate, cp, sst, extra[0], extra[1], extra[2], r0, r1, sp,
+                          lost)
+        ph = s[5] + SIDE_PHASE_OFFSET if s[5] != FINISHED else s[5]
+        write_outputs(b, outputs, (s[0], s[1], s[2], s[3], f[4] + s[4], ph, s[6]))
+        outputs[6][b, 0] = g
+        outputs[7][b, 0] = ASSEMBLY_SIDE
+        nstage[b, 0] = ASSEMBLY_SIDE
+        return
+    write_outputs(b, outputs, f)
+    outputs[6][b, 0] = 0.0
+    outputs[7][b, 0] = ASSEMBLY_FRONT
+    if f[3] == ATTEMPT_LIMIT:  # handover: stage 2 from the next frame
+        outputs[2][b, 0] = RUNNING
+        outputs[4][b, 0] = SIDE_PHASE_OFFSET
+        nstage[b, 0] = ASSEMBLY_SIDE
+    else:
+        nstage[b, 0] = ASSEMBLY_FRONT
+
+
+@jit
 def front_then_side_step(b, params, state, next_state, inputs, outputs, base, noise):
-    """:class:`~magctl.control.push.assembly.FrontThenSideAssemblyTask`: the front stage every frame, the side
-    stage (advanced) only in stage 2, which starts the frame after the front stage hits its attempt limit."""
-    ffp, fip, fgain, sfp, sip, sgain, tg, tld, trate = params
+    """:class:`~magctl.control.push.assembly.FrontThenSideAssemblyTask` with the eq 18 law in the side stage."""
+    (ffp, fip, fgain, rs, rd, rx0, rx1, rrow, rhit, fnb,
+     sfp, sip, sgain, tg, tld, trate, cp, cov, push_out, push_out_n) = params
     robot, sp, lost = inputs
-    stage, = state[:1]
-    nstage, = next_state[:1]
     fst = next_state[1:16]
     sst = next_state[16:31]
     copy_task_state(b, state[1:16], fst)
     copy_task_state(b, state[16:31], sst)
-    r0 = robot[b, 0]
-    r1 = robot[b, 1]
-    in_side = stage[b, 0] == 2
-    f = front_frame(b, ffp, fip, fgain, fst, r0, r1, sp, lost[b, 0])
-    if in_side:
-        s, g = side_frame(b, sfp, sip, sgain, tg, tld, trate, sst, r0, r1, sp, lost[b, 0])
-        ph = s[5] + SIDE_PHASE_OFFSET if s[5] != FINISHED else s[5]
-        write_outputs(b, outputs, (s[0], s[1], s[2], s[3], f[4] + s[4], ph, s[6]))
-        outputs[6][b, 0] = g
-        outputs[7][b, 0] = 2
-        nstage[b, 0] = 2
-        return
-    write_outputs(b, outputs, f)
-    outputs[6][b, 0] = 0.0
-    outputs[7][b, 0] = 1
-    if f[3] == ATTEMPT_LIMIT:  # handover: stage 2 from the next frame
-        outputs[2][b, 0] = RUNNING
-        outputs[4][b, 0] = SIDE_PHASE_OFFSET
-        nstage[b, 0] = 2
-    else:
-        nstage[b, 0] = 1
+    front_then_side(b, (ffp, fip, fgain, (rs, rd, rx0, rx1, rrow, rhit), fnb), (sfp, sip, sgain, tg, tld, trate, cp),
+                    state[0], next_state[0], fst, sst, (cov, push_out, push_out_n), robot, sp, lost[b, 0], outputs)
+
+
+@jit
+def front_then_curve_side_step(b, params, state, next_state, inputs, outputs, base, noise):
+    """:class:`~magctl.control.push.assembly.FrontThenSideAssemblyTask` with the curve-learning law in the side
+    stage (its state has ``law.theta``, ``law.cov``, ``push_out``, ``push_out_n``)."""
+    ffp, fip, fgain, rs, rd, rx0, rx1, rrow, rhit, fnb, sfp, sip, sgain, tg, tld, trate, cp = params
+    robot, sp, lost = inputs
+    fst = next_state[1:16]
+    sst = next_state[16:24] + next_state[27:34]
+    extra = next_state[24:27]
+    copy_task_state(b, state[1:16], fst)
+    copy_task_state(b, state[16:24] + state[27:34], sst)
+    copy3(b, state[24:27], extra)
+    front_then_side(b, (ffp, fip, fgain, (rs, rd, rx0, rx1, rrow, rhit), fnb), (sfp, sip, sgain, tg, tld, trate, cp),
+                    state[0], next_state[0], fst, sst, extra, robot, sp, lost[b, 0], outputs)

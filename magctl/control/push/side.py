@@ -36,12 +36,12 @@ from magctl import FRAME_PERIOD_S
 from magctl.config import load_model
 from magctl.control.curve_learning import CurveLearningLaw, curve_learning_law
 from magctl.control.learning import LearningLaw, side_push_law
+from magctl.control.phases import FINISHED, FRONT_PHASE_OFFSET, START, DirtStage, SidePhase
 from magctl.control.push.common import (
-    FINISHED,
-    START,
     PushTask,
     around,
     arrived,
+    curve_dummies,
     select_state,
     side_model,
     with_defaults,
@@ -54,14 +54,12 @@ from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
 
-REPOSITION, PASS, SETTLE = 1, 2, 3
+REPOSITION, PASS, SETTLE = int(SidePhase.REPOSITION), int(SidePhase.PASS), int(SidePhase.SETTLE)
 LEARNING = {"eq18": "the paper's eq 18 law correcting the fixed model F (gain K_s)",
             "curve": "the curve D_s(D_g) re-estimated after every pass and inverted (magctl.control.curve_learning)"}
 DIRT_RESPONSES = {"none": "side passes only, whatever the sphere's mobility",
                   "front": "one front push for the coarse part when the curve law reads the sphere as stuck"}
-SIDE_STAGE, FRONT_STAGE = 1, 2
-FRONT_PHASE_OFFSET = 10
-"""``phase`` output of the front push that answers dirt: the front task's phase plus this offset."""
+SIDE_STAGE, FRONT_STAGE = int(DirtStage.SIDE), int(DirtStage.FRONT)
 
 
 class SidePushTask(PushTask, Block):
@@ -177,20 +175,30 @@ class SidePushTask(PushTask, Block):
                              push_tol=float(dirt.push_tol), n_spheres=n_spheres, sphere=sphere, **shared)
 
     def kernel(self):
-        """The compiled frame (:func:`magctl.control.push.kernels.side_step`); None for a model of another kind,
-        a law without a kernel (the curve-learning law) or a front push answering dirt."""
+        """The compiled frame: :func:`magctl.control.push.kernels.side_step` with eq 18, ``curve_side_step`` with the
+        curve-learning law (its EKF step, push-out turn, bound and inverse), ``side_dirt_step`` with the front push
+        answering dirt; None for a model or law the kernels do not know."""
         from magctl.control.push import kernels as k
         from magctl.core.kernel import Kernel
 
-        if self.front is not None or not self._kernel_law_ok():
-            return None
+        law = self._law_kind()
         params = self._side_kernel_params()
-        if params is None:
+        if params is None or law not in (k.LAW_INTEGRATOR, k.LAW_CURVE):
             return None
-        return Kernel(step=k.side_step, params=params)
+        if law == k.LAW_INTEGRATOR:
+            return Kernel(step=k.side_step, params=(*params, *curve_dummies()))
+        if self.front is None:
+            return Kernel(step=k.curve_side_step, params=params)
+        front_x0 = np.asarray(self.front.law.initial, dtype=float)
+        if self.front._law_kind() != k.LAW_INTEGRATOR or front_x0.ndim:
+            return None
+        return Kernel(step=k.side_dirt_step, in_place=False,
+                      params=(*params, *self.front._front_kernel_with_dummies(), float(front_x0)))
 
     def _side_kernel_params(self) -> tuple | None:
-        """``(fp, ip, gain, gaps, log displacements, rates)``: the model as a kind code and its parameters."""
+        """``(fp, ip, gain, gaps, log displacements, rates, cp)``: the model as a kind code and its parameters, and
+        the curve law's (zeros with eq 18); None for a model of another kind."""
+        from magctl.control import kernels as law_kernels
         from magctl.control.push import kernels as k
         from magctl.control.push.common import ExpSideModel, LinSideModel, TabulatedSideModel
 
@@ -206,13 +214,22 @@ class SidePushTask(PushTask, Block):
         else:
             return None
         radii = getattr(self, "radii", (0.0, 0.0))
+        curve = {}
+        cp, iterations = np.zeros(law_kernels.N_CP), 0
+        if self.learns_curve:
+            cp, iterations = self.law.kernel_params()
+            curve = dict(PUSH_OUT_WEIGHT=self.push_out_weight, PUSH_OUT_MIN=self.push_out_min,
+                         PRIOR_AT_MIN_GAP=float(self.law.prior_displacement(self.min_gap)))
+            if self.front is not None:
+                curve |= dict(DIRT_MOBILITY=self.dirt_mobility, DIRT_PASSES=self.dirt_passes)
         fp, ip, gain = self._kernel_params(
             MIN_GAP=self.min_gap, D_MAX=self.d_max, BEHIND=self.behind, AHEAD=self.ahead,
             PASS_SPEED=self.pass_speed, FIXED_GAP=0.0 if self.fixed_gap is None else self.fixed_gap,
             THETA_N=getattr(self, "theta_n", 0.0), M0=m0, M1=m1, R0=radii[0], R1=radii[1],
-            EPS_AS=getattr(self, "eps_as", 0.0))
-        ip[[k.MODEL, k.FIXED]] = kind, self.fixed_gap is not None
-        return (fp, ip, gain, *table)
+            EPS_AS=getattr(self, "eps_as", 0.0), **curve)
+        ip[[k.MODEL, k.FIXED, k.ITERATIONS, k.MAX_FRONTS]] = (kind, self.fixed_gap is not None, iterations,
+                                                              getattr(self, "max_fronts", 0))
+        return (fp, ip, gain, *table, cp)
 
     # --- geometry ---------------------------------------------------------------------------------
     def _geometry(self, new, r, spheres):
