@@ -35,14 +35,37 @@ def cache_dir() -> Path:
     return (Path(root) if root else Path.home() / ".cache" / "magctl") / "compiled"
 
 
+def kernel_modules(modules) -> set[str]:
+    """The named modules and every ``magctl`` module they take functions or modules from, transitively: the
+    sources a compiled kernel may inline."""
+    import inspect
+
+    seen: set[str] = set()
+    todo = list(modules)
+    while todo:
+        name = todo.pop()
+        if name in seen or not name.startswith("magctl"):
+            continue
+        seen.add(name)
+        module = sys.modules.get(name) or importlib.import_module(name)
+        for obj in vars(module).values():
+            source = obj.__name__ if inspect.ismodule(obj) else getattr(
+                getattr(obj, "py_func", obj), "__module__", None)
+            if isinstance(source, str) and source.startswith("magctl") and source not in seen:
+                todo.append(source)
+    return seen
+
+
 def fingerprint(modules) -> str:
-    """A hash of the named modules' source files and numba's version: numba's cache of a generated module
-    checks only that module's file, so an edited kernel must change the generated text."""
+    """A hash of the source files of the named modules and of every magctl module they draw on
+    (:func:`kernel_modules`), with numba's version: numba's cache of a generated module checks only that
+    module's file, and a kernel inlines functions of other modules, so an edit to any of them must change the
+    generated text."""
     import numba
 
     h = hashlib.sha256(numba.__version__.encode())
-    for mod in sorted(set(modules)):
-        path = getattr(sys.modules.get(mod) or importlib.import_module(mod), "__file__", None)
+    for mod in sorted(kernel_modules(modules)):
+        path = getattr(sys.modules.get(mod), "__file__", None)
         if path:
             h.update(Path(path).read_bytes())
     return h.hexdigest()[:16]

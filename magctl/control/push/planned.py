@@ -22,6 +22,7 @@ from magctl import FRAME_PERIOD_S
 from magctl.config import load_model
 from magctl.control.arrangement import arrangement as make_arrangement
 from magctl.control.assembly_planner import PassPlanner, PlanLimits
+from magctl.control.phases import SidePhase
 from magctl.control.planner import KEEP_OUT_M, PlanningError, plan_path
 from magctl.control.push.common import FINISHED, STALLED, START, PushTask, arrived, with_defaults
 from magctl.core.batched import norm
@@ -29,7 +30,7 @@ from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
 
-REPOSITION, PASS, SETTLE = 1, 2, 3
+REPOSITION, PASS, SETTLE = int(SidePhase.REPOSITION), int(SidePhase.PASS), int(SidePhase.SETTLE)
 MAX_WAYPOINTS = 24
 """Waypoints kept for one repositioning path (the wavefront path after shortening has a handful)."""
 WAYPOINT_TOL = 50e-6
