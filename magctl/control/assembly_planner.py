@@ -12,9 +12,16 @@ scaled by the mobility learned so far), and minimises the arrangement's squared 
 
 (σ = 10 µm). The problem is smooth but not convex: the side a line passes each sphere on is a discrete
 choice. The planner samples passes first — every sphere, :data:`directions` directions, both sides, the
-gaps of ``[plan] sample_gaps`` — keeps the feasible ones, and refines the ``starts`` best with IPOPT
-(casadi ``nlpsol``); it returns the best refined pass, or the best sample when IPOPT improves on none.
-After the pass it measures the spheres again and plans the next one (receding horizon).
+gaps of ``[plan] sample_gaps`` — and evaluates them in one call, the objective and the constraints mapped over
+the samples (casadi ``Function.map``; the objective only where the bounds are kept). It refines the
+``starts`` best with IPOPT (casadi ``nlpsol``), but not a start beside one already refined
+(:data:`SAME_BASIN`), and returns the best refined pass, or the best sample when IPOPT improves on none;
+samples of equal cost (a pair's mirror images) rank in sample order (:data:`TIE`). After the pass it
+measures the spheres again and plans the next one (receding horizon).
+
+The problem is stated once, in casadi. The sample map and the derivatives IPOPT evaluates each iteration
+run as casadi's generated C, built once per problem into a cache (:func:`cache_dir`) when a C compiler is
+found; without one casadi's virtual machine runs them, with the same plans.
 
 The mobility ``m`` (one number per trial) is the least-squares ratio of the displacements measured to the
 ones predicted over the passes so far (``[online]`` style: prior 1, each pass weighted by its predicted
@@ -28,8 +35,14 @@ eq 22's form fitted to our plant (``exp-fit``).
 
 from __future__ import annotations
 
+import hashlib
+import os
+import shutil
+import subprocess
 import time
+import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -45,6 +58,20 @@ from magctl.core.ports import Port
 _MM = 1e-3
 SIGMA = 10e-6
 """Scale of the bond errors in the objective (m): the objective is in units of (10 µm)²."""
+FEASIBLE_TOL = 1e-9
+"""A sampled pass keeps the bounds when it breaks none by more than this (m)."""
+TIE = 1e-9
+"""Sample costs within this (relative, at least absolute) of each other are equal: they differ by rounding
+(the mirrored passes of a pair), and the earlier sample comes first."""
+SAME_COST = 1e-6
+"""A refined pass replaces the best so far only when it is lower by more than this (relative, at least
+absolute): IPOPT's ``tol`` of 1e-6 leaves the same optimum reached from two starts this far apart."""
+SAME_BASIN = 0.3e-3
+"""A start whose sampled pass lies within this of one already refined, both ends, every coordinate (m), is not
+refined: it is the same pass at the neighbouring direction or gap (a 15° step moves the ends of a 2 mm sample
+0.26 mm). Of the 608 second and third starts on the study layouts' passes and on them perturbed (30 µm,
+mobility 0.7–1.2), 279 were this near one refined before: IPOPT took 278 to the pass it took that one to and
+one to a worse pass."""
 
 
 @dataclass(frozen=True)
@@ -101,6 +128,67 @@ class Pass:
     seconds: float
 
 
+CACHE_ENV = "MAGCTL_CACHE"
+C_FLAGS = ("-O2", "-shared", "-fPIC")
+"""How casadi's generated C is built (``-O3 -march=native`` measured no faster on the B-spline evaluations)."""
+_DERIVATIVES = {"nlp_grad_f": "grad_f", "nlp_jac_g": "jac_g", "nlp_hess_l": "hess_lag"}
+"""The derivative functions of the problem IPOPT evaluates each iteration (the costly ones), by the names casadi
+generates them under and the ``nlpsol`` options that take them."""
+
+
+def cache_dir() -> Path:
+    """Where the planner's compiled problems live: ``casadi`` under ``$MAGCTL_CACHE`` or ``~/.cache/magctl``."""
+    root = os.environ.get(CACHE_ENV)
+    return (Path(root) if root else Path.home() / ".cache" / "magctl") / "casadi"
+
+
+def c_compiler() -> str | None:
+    """The C compiler for casadi's generated code: ``$CC``, else ``cc``, ``gcc`` or ``clang``; None without one."""
+    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        path = shutil.which(name) if name else None
+        if path:
+            return path
+    return None
+
+
+def compile_functions(name: str, functions: list[ca.Function]) -> dict[str, ca.Function] | None:
+    """``functions`` through casadi's generated C: built once into :func:`cache_dir` under a hash of the source
+    (and casadi's version, and the flags), loaded as casadi externals of the same names. None when there is no C
+    compiler or the build fails (the caller keeps casadi's virtual machine)."""
+    cc = c_compiler()
+    if cc is None:
+        return None
+    gen = ca.CodeGenerator(f"{name}.c")
+    for f in functions:
+        gen.add(f)
+    source = gen.dump()
+    digest = hashlib.sha256("\n".join([ca.__version__, *C_FLAGS, source]).encode()).hexdigest()[:20]
+    folder = cache_dir()
+    lib = folder / f"{name}_{digest}.so"
+    if not lib.exists():
+        stem = folder / f"{name}_{digest}.{os.getpid()}"
+        src, tmp = stem.with_name(stem.name + ".c"), stem.with_name(stem.name + ".so")
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            src.write_text(source)
+            subprocess.run([cc, *C_FLAGS, str(src), "-o", str(tmp), "-lm"], check=True, capture_output=True)
+            os.replace(tmp, lib)           # atomic: another process building the same problem keeps a whole file
+        except (OSError, subprocess.CalledProcessError) as exc:
+            err = exc.stderr.decode(errors="replace").strip()[-300:] if getattr(exc, "stderr", None) else str(exc)
+            warnings.warn(f"assembly planner: casadi's generated code did not build ({err}); "
+                          "casadi's virtual machine evaluates the problem instead", RuntimeWarning, stacklevel=4)
+            return None
+        finally:
+            src.unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
+    try:
+        return {f.name(): ca.external(f.name(), str(lib)) for f in functions}
+    except RuntimeError as exc:
+        warnings.warn(f"assembly planner: {lib} did not load ({str(exc).strip()[-200:]}); "
+                      "casadi's virtual machine evaluates the problem instead", RuntimeWarning, stacklevel=4)
+        return None
+
+
 class AssemblyPlanner:
     """The next pass for an arrangement of N spheres, optimised on the pass map (see the module docstring).
 
@@ -114,10 +202,23 @@ class AssemblyPlanner:
         The bounds every pass keeps.
     starts, directions, max_iter : int, optional
         IPOPT starts, sampled directions, IPOPT iterations per start (``[plan]``).
+    compiled : bool, optional
+        Evaluate the problem through casadi's generated C (built once per problem into :func:`cache_dir`) or
+        through casadi's virtual machine (False): the same plans. By default the generated C when a C compiler is
+        found; True insists on it.
+
+    Attributes
+    ----------
+    compiled : bool
+        Whether the generated C is in use.
+    profile : dict
+        The last :meth:`plan`: samples and feasible samples, IPOPT solves and iterations, and the seconds spent
+        sampling, refining and predicting.
     """
 
     def __init__(self, target: Arrangement, pass_map: PassMap | None = None, limits: PlanLimits | None = None, *,
-                 starts: int | None = None, directions: int | None = None, max_iter: int | None = None):
+                 starts: int | None = None, directions: int | None = None, max_iter: int | None = None,
+                 compiled: bool | None = None):
         p = load_model("push").plan
         self.target = target
         self.map = pass_map if pass_map is not None else PassMap.load()
@@ -129,10 +230,11 @@ class AssemblyPlanner:
         if self.starts < 0 or self.directions < 1 or self.max_iter < 1:
             raise MagctlError("assembly planner: starts >= 0, directions >= 1 and max_iter >= 1 needed")
         self.behind = float(load_model("push").side.behind)
-        self._build()
+        self.profile: dict = {}
+        self._build(compiled)
 
     # --- the problem in casadi -------------------------------------------------------------------
-    def _build(self) -> None:
+    def _build(self, compiled: bool | None) -> None:
         n, lim = self.target.n, self.limits
         x = ca.MX.sym("x", 4)                       # a, b in mm
         prm = ca.MX.sym("p", 2 * n + 1)             # sphere centres (mm, row-major) and the mobility
@@ -151,6 +253,7 @@ class AssemblyPlanner:
             t = ca.fmin(ca.fmax(ca.dot(pi - a, d) / ca.sumsqr(d), 0), 1)
             g += [ca.sumsqr(pi - a - t * d), ca.sumsqr(pi - a), ca.sumsqr(pi - b)]
         g.append(ca.sumsqr(d))
+        g = ca.vertcat(*g)
         self._g_lb = np.array([(lim.min_gap / _MM) ** 2, (lim.end_clearance / _MM) ** 2,
                                (lim.end_clearance / _MM) ** 2] * n + [(lim.min_length / _MM) ** 2])
         self._g_ub = np.array([np.inf] * (3 * n) + [(lim.max_length / _MM) ** 2])
@@ -158,30 +261,86 @@ class AssemblyPlanner:
         self._x_lb, self._x_ub = np.array([x0, y0, x0, y0]), np.array([x1, y1, x1, y1])
         self.objective = ca.Function("objective", [x, prm], [f]).expand()
         self.gradient = ca.Function("gradient", [x, prm], [ca.gradient(f, x)])
-        nlp = {"x": x, "p": prm, "f": f, "g": ca.vertcat(*g)}
+        nlp = {"x": x, "p": prm, "f": f, "g": g}
         opts = {"expand": True, "ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
                 "ipopt.max_iter": self.max_iter, "ipopt.tol": 1e-6, "ipopt.acceptable_tol": 1e-4}
-        self.solver = ca.nlpsol("assembly_pass", "ipopt", nlp, opts)
+        solver = ca.nlpsol("assembly_pass", "ipopt", nlp, opts)
+        batch = self._batch(ca.Function("constraints", [x, prm], [g]).expand())
+        lib = None
+        if compiled is not False:
+            derivatives = [solver.get_function(k) for k in _DERIVATIVES]
+            lib = compile_functions(f"assembly_{self.target.name}_{n}", [batch, *derivatives])
+            if lib is None and compiled:
+                raise MagctlError("assembly planner: compiled=True, but casadi's generated code could not be built "
+                                  "(no C compiler found, or it failed)")
+        self.compiled = lib is not None
+        if lib is not None:
+            solver = ca.nlpsol("assembly_pass", "ipopt", nlp, {**opts, **{o: lib[k] for k, o in _DERIVATIVES.items()}})
+            batch = lib[batch.name()]
+        self.solver, self._sample_batch = solver, batch
+
+    def _batch(self, constraints: ca.Function) -> ca.Function:
+        """The first stage in one call: the sampled passes built from the sphere centres (``(4, S)``, mm; by
+        sphere, side (+, −), gap and direction), and the objective and constraints of the problem above mapped
+        over them: each sample's cost where it keeps the bounds, infinite where it does not (a short-circuit
+        ``if_else``: the objective is evaluated only for the samples that keep them). The samples are built
+        here rather than handed in, and only the cost row is read back, because moving a ``(4, S)`` array
+        between numpy and casadi costs more than evaluating the bounds on it."""
+        n, dirs, gaps = self.target.n, self.directions, self.sample_gaps
+        ang = 2 * np.pi * np.arange(dirs) / dirs
+        u = np.stack([np.cos(ang), np.sin(ang)])                                     # (2, D)
+        nrm = np.stack([-u[1], u[0]])
+        offset = (np.array([1.0, -1.0])[:, None] * gaps / _MM).ravel()                # (2·G,): side, gap
+        along = np.tile(self.behind / _MM * u, (1, n * offset.size))                  # (2, S), S = N·2·G·D
+        across = np.tile((offset[:, None, None] * nrm.T[None]).reshape(-1, 2).T, (1, n))
+        which = np.repeat(np.arange(n), offset.size * dirs)
+        pick = ca.DM(ca.Sparsity.triplet(n, which.size, which.tolist(), list(range(which.size))), 1.0)
+
+        prm = ca.MX.sym("p", 2 * n + 1)
+        line = ca.mtimes(ca.reshape(prm[: 2 * n], 2, n), pick) + across              # the sphere, then the gap
+        samples = ca.vertcat(line - along, line + along)
+
+        x, p = ca.MX.sym("x", 4), ca.MX.sym("p", 2 * n + 1)
+        g = constraints(x, p)
+        tol = FEASIBLE_TOL / _MM
+        upper = np.flatnonzero(np.isfinite(self._g_ub))
+        slack = ca.vertcat(g - (np.sqrt(self._g_lb) - tol) ** 2,            # squared distances, the bound less tol
+                           (np.sqrt(self._g_ub[upper]) + tol) ** 2 - g[upper.tolist()],
+                           x - (self._x_lb - tol), (self._x_ub + tol) - x)
+        ok = ca.mmin(slack) >= 0
+        one = ca.Function("pass_sample", [x, p], [ca.if_else(ok, self.objective(x, p), np.inf, True)])
+        cost = one.map("pass_sample_map", "serial", which.size, [1], [])(samples, prm)
+        return ca.Function("pass_samples", [prm], [samples, cost])
 
     def _parameters(self, spheres, mobility: float) -> np.ndarray:
         return np.r_[np.asarray(spheres, float).ravel() / _MM, mobility]
 
     # --- sampling, refinement ----------------------------------------------------------------------
+    def _sampled(self, prm) -> tuple[ca.DM, np.ndarray]:
+        """The samples ``(4, S)`` (a, b in mm; casadi) and their costs (infinite where a bound is broken)."""
+        samples, cost = self._sample_batch(prm)
+        return samples, np.asarray(cost).ravel()
+
+    def sample_costs(self, spheres, mobility: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sampled passes ``(S, 2, 2)`` (start, end; m) round every sphere, their costs (infinite where a bound
+        is broken) and which keep the bounds — one mapped evaluation of the problem."""
+        spheres = np.asarray(spheres, float).reshape(self.target.n, 2)
+        samples, cost = self._sampled(self._parameters(spheres, mobility))
+        return np.asarray(samples).T.reshape(-1, 2, 2) * _MM, cost, np.isfinite(cost)
+
     def samples(self, spheres) -> tuple[np.ndarray, np.ndarray]:
         """Sampled passes ``(S, 2, 2)`` (start, end; m) round every sphere and which keep the bounds."""
-        spheres = np.asarray(spheres, float)
-        ang = 2 * np.pi * np.arange(self.directions) / self.directions
-        u = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
-        nrm = np.stack([-u[:, 1], u[:, 0]], axis=-1)
-        out = []
-        for p in spheres:
-            for side in (1.0, -1.0):
-                for gap in self.sample_gaps:
-                    line = p + side * gap * nrm
-                    out.append(np.stack([line - self.behind * u, line + self.behind * u], axis=1))
-        cand = np.concatenate(out)
-        ok = self.limits.violations(spheres, cand[:, 0], cand[:, 1]) <= 1e-9
+        cand, _, ok = self.sample_costs(spheres)
         return cand, ok
+
+    @staticmethod
+    def ranked(costs) -> np.ndarray:
+        """Indices of ``costs`` from the lowest; costs equal but for rounding (:data:`TIE`) in their own order."""
+        costs = np.asarray(costs, float)
+        order = np.argsort(costs, kind="stable")
+        c = costs[order]
+        group = np.cumsum(np.r_[True, np.diff(c) > TIE * np.maximum(1.0, np.abs(c[1:]))])
+        return order[np.lexsort((order, group))]
 
     def cost(self, spheres, a, b, mobility: float = 1.0) -> float:
         """The objective of the pass ``a → b`` (m) for spheres ``(N, 2)`` (m)."""
@@ -189,27 +348,44 @@ class AssemblyPlanner:
                                     self._parameters(spheres, mobility)))
 
     def plan(self, spheres, mobility: float = 1.0) -> Pass | None:
-        """The next pass for spheres ``(N, 2)`` (m), or None when no sampled pass keeps the bounds."""
+        """The next pass for spheres ``(N, 2)`` (m), or None when no sampled pass keeps the bounds.
+
+        The ``starts`` best samples are refined with IPOPT, except a start whose sample lies within
+        :data:`SAME_BASIN` of one already refined; the best refined pass that keeps the bounds is returned if it
+        beats the best sample (by more than :data:`SAME_COST`), else that sample.
+        """
         t0 = time.perf_counter()
         spheres = np.asarray(spheres, float).reshape(self.target.n, 2)
         prm = self._parameters(spheres, mobility)
-        cand, ok = self.samples(spheres)
-        if not ok.any():
+        samples, costs = self._sampled(prm)
+        feasible = np.flatnonzero(np.isfinite(costs))
+        self.profile = {"samples": len(costs), "feasible": len(feasible), "ipopt_solves": 0, "ipopt_iterations": 0}
+        if not len(feasible):
+            self.profile.update(sample_s=time.perf_counter() - t0, ipopt_s=0.0, predict_s=0.0)
             return None
-        cand = cand[ok]
-        xs = cand.reshape(-1, 4) / _MM
-        costs = np.asarray(self.objective.map(len(xs))(xs.T, np.repeat(prm[:, None], len(xs), axis=1))).ravel()
-        order = np.argsort(costs)
-        best_x, best_f, how = xs[order[0]], costs[order[0]], "sample"
-        for k in order[: self.starts]:
-            sol = self.solver(x0=xs[k], p=prm, lbx=self._x_lb, ubx=self._x_ub, lbg=self._g_lb, ubg=self._g_ub)
+        order = feasible[self.ranked(costs[feasible])]
+        t1 = time.perf_counter()
+        top = [samples[:, int(k)].full().ravel() for k in order[: max(self.starts, 1)]]
+        best_x, best_f, how = top[0], float(costs[order[0]]), "sample"
+        refined, iterations, basin = [], 0, SAME_BASIN / _MM
+        for x0 in top[: self.starts]:
+            if any(np.abs(x0 - r).max() <= basin for r in refined):
+                continue
+            refined.append(x0)
+            sol = self.solver(x0=x0, p=prm, lbx=self._x_lb, ubx=self._x_ub, lbg=self._g_lb, ubg=self._g_ub)
+            iterations += int(self.solver.stats()["iter_count"])
             x = np.asarray(sol["x"], float).ravel()
             f = float(sol["f"])
-            if f < best_f and self.limits.violation(spheres, x[:2] * _MM, x[2:] * _MM) <= 1e-7:
+            if (f < best_f - SAME_COST * max(1.0, abs(best_f))
+                    and self.limits.violation(spheres, x[:2] * _MM, x[2:] * _MM) <= 1e-7):
                 best_x, best_f, how = x, f, "ipopt"
+        t2 = time.perf_counter()
         a, b = best_x[:2] * _MM, best_x[2:] * _MM
         predicted = spheres + mobility * self.map.displacement(spheres, a, b)
-        return Pass(a, b, predicted, best_f, float(self.target.error(predicted)), how, time.perf_counter() - t0)
+        t3 = time.perf_counter()
+        self.profile.update(ipopt_solves=len(refined), ipopt_iterations=iterations, sample_s=t1 - t0,
+                            ipopt_s=t2 - t1, predict_s=t3 - t2)
+        return Pass(a, b, predicted, best_f, float(self.target.error(predicted)), how, t3 - t0)
 
 
 class GreedyPlanner:

@@ -8,8 +8,9 @@ goes from ``−ξ_i`` to ``L − ξ_i`` relative to it (``L = |b − a|``), so t
 
 with ``S_a``, ``S_w`` the cumulative displacement along the motion and away from the line that
 :mod:`magctl.studies.pass_map` identified from the sphere block (Fig 6 is ``S_a(1 mm, h) − S_a(−1 mm, h)``).
-The map is one cubic B-spline per component (a casadi interpolant), so the same expression evaluates
-numerically and, with casadi symbols, gives the assembly planner exact gradients.
+The map is one cubic B-spline with the two components as its outputs (a casadi interpolant, so each point's
+basis is found once for both), and the same expression evaluates numerically and, with casadi symbols, gives
+the assembly planner exact gradients.
 """
 
 from __future__ import annotations
@@ -72,11 +73,12 @@ class PassMap:
                 raise MagctlError("pass map: along and away must be finite, positions x gaps")
 
     @cached_property
-    def _splines(self) -> tuple[ca.Function, ca.Function]:
-        """``S_a``, ``S_w`` as casadi B-splines of ``(x, |h|)`` in mm, values in mm."""
+    def _spline(self) -> ca.Function:
+        """``(S_a, S_w)`` as one casadi B-spline of ``(x, |h|)`` in mm, values in mm (the same values as a spline
+        per component: the outputs share the basis, which is most of the work of an evaluation)."""
         grid = [self.positions / _MM, self.gaps / _MM]
-        return tuple(ca.interpolant(name, "bspline", grid, (table / _MM).ravel(order="F"))
-                     for name, table in (("S_along", self.along), ("S_away", self.away)))
+        values = np.stack([(table / _MM).ravel(order="F") for table in (self.along, self.away)], axis=-1)
+        return ca.interpolant("S_pass", "bspline", grid, values.ravel())
 
     def _clamped(self, x, h):
         """Positions beyond the map read its ends (the sphere has not yet moved / has stopped moving); gaps
@@ -86,7 +88,7 @@ class PassMap:
 
     def symbolic(self, spheres, a, b):
         """ΔP (N × 2, mm) of spheres ``(N, 2)`` for the pass ``a → b`` (mm); casadi or numeric entries."""
-        s_a, s_w = self._splines
+        spline = self._spline
         d = b - a
         length = ca.sqrt(ca.sumsqr(d))
         u = d / length
@@ -98,9 +100,8 @@ class PassMap:
             hh = ca.sqrt(h ** 2 + (SMOOTH_GAP / _MM) ** 2)
             x1, hc = self._clamped(length - xi, hh)
             x0, _ = self._clamped(-xi, hh)
-            along = s_a(ca.vertcat(x1, hc)) - s_a(ca.vertcat(x0, hc))
-            away = (s_w(ca.vertcat(x1, hc)) - s_w(ca.vertcat(x0, hc))) * h / hh
-            rows.append((along * u + away * n).T)
+            moved = spline(ca.vertcat(x1, hc)) - spline(ca.vertcat(x0, hc))
+            rows.append((moved[0] * u + moved[1] * h / hh * n).T)
         return ca.vertcat(*rows)
 
     @cached_property

@@ -12,6 +12,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from magctl.control import assembly_planner
 from magctl.control.arrangement import arrangement
 from magctl.control.assembly_planner import AssemblyPlanner, GreedyPlanner, PassPlanner, PlanLimits
 from magctl.control.pass_model import pass_map
@@ -161,6 +162,145 @@ def test_greedy_pair_pass_is_the_papers_adjusted_line():
     n_v = np.array([0.0, -1.0])              # normal of the line sphere 1 → sphere 0 (direction −x)
     assert np.sign((plan.start + g.behind * u - p[1]) @ n_v) == np.sign((robot - p[1]) @ n_v)  # robot's side
     assert (plan.start - p[1]) @ u == pytest.approx(-g.behind)
+
+
+# --- how a pass is planned fast: the batched first stage, generated code, fewer starts, ties ---------------------
+STUDY = (("pair", "assembly"), ("line", "assembly-3"), ("triangle", "assembly-3"), ("line", "assembly-4"))
+
+
+def _assembly(pl: AssemblyPlanner, kind: str) -> list[tuple]:
+    """The study layout assembled on the pass map itself, pass after pass (the benchmark's receding horizon):
+    each pass with the IPOPT solves it took."""
+    p, out = geometry(kind)["spheres"].copy(), []
+    for _ in range(30):
+        plan = pl.plan(p)
+        out.append((plan, pl.profile["ipopt_solves"]))
+        p = plan.predicted
+        if pl.target.assembled(p):
+            break
+    return out
+
+
+def _same_plans(got, want) -> None:
+    assert len(got) == len(want)
+    for (g, _), (w, _) in zip(got, want, strict=True):
+        assert g.start == pytest.approx(w.start, abs=1e-9) and g.end == pytest.approx(w.end, abs=1e-9)
+        assert g.cost == pytest.approx(w.cost, rel=1e-9) and g.solver == w.solver
+
+
+@pytest.fixture(scope="module")
+def study_assemblies():
+    """Each study layout assembled by the default planner (generated code when a C compiler is found)."""
+    out = {}
+    for name, kind in STUDY:
+        pl = AssemblyPlanner(arrangement(name, len(geometry(kind)["spheres"])))
+        out[name, kind] = (pl, _assembly(pl, kind))
+    return out
+
+
+@pytest.mark.parametrize("compiled", [None, False])
+def test_batched_sample_costs_are_the_per_sample_objective_and_the_bounds(compiled):
+    """One mapped evaluation gives every sample's cost — the objective evaluated pass by pass — where the
+    bounds are kept, and infinity exactly where :meth:`PlanLimits.violations` finds one broken (both paths)."""
+    rng = np.random.default_rng(5)
+    for name, kind in STUDY:
+        base = geometry(kind)["spheres"].copy()
+        pl = AssemblyPlanner(arrangement(name, len(base)), compiled=compiled)
+        for k in range(3):
+            p = base + (0.0 if k == 0 else 150 * UM) * rng.standard_normal(base.shape)
+            mobility = 1.0 if k == 0 else rng.uniform(0.5, 1.5)
+            cand, costs, ok = pl.sample_costs(p, mobility)
+            assert cand.shape == (len(base) * 24 * 2 * 5, 2, 2)
+            kept = pl.limits.violations(p, cand[:, 0], cand[:, 1]) <= assembly_planner.FEASIBLE_TOL
+            assert ok.tolist() == kept.tolist() and kept.any()
+            assert np.isinf(costs[~ok]).all()
+            each = np.array([pl.cost(p, c[0], c[1], mobility) for c in cand[ok]])
+            assert costs[ok] == pytest.approx(each, rel=1e-12, abs=1e-12)
+            # the samples: round every sphere at the sampled gaps, 2 mm long
+            for c in cand[:: 37]:
+                mid = (c[0] + c[1]) / 2
+                assert np.linalg.norm(c[1] - c[0]) == pytest.approx(2 * pl.behind)
+                assert np.min(np.abs(np.linalg.norm(mid - p, axis=1)[:, None] - pl.sample_gaps)) < 1e-12
+
+
+@pytest.mark.skipif(assembly_planner.c_compiler() is None, reason="no C compiler: only casadi's virtual machine")
+@pytest.mark.parametrize("name, kind", STUDY)
+def test_the_generated_code_plans_what_casadi_itself_plans(name, kind, study_assemblies):
+    pl, compiled = study_assemblies[name, kind]
+    assert pl.compiled
+    plain = AssemblyPlanner(pl.target, compiled=False)
+    assert not plain.compiled
+    _same_plans(compiled, _assembly(plain, kind))
+
+
+@pytest.mark.parametrize("name, kind", STUDY)
+def test_skipping_starts_beside_a_refined_one_keeps_every_plan_of_the_study_layouts(name, kind, study_assemblies,
+                                                                                   monkeypatch):
+    """A start within ``SAME_BASIN`` of one already refined is not refined: the assemblies are pass for pass
+    those of refining all three starts, with fewer solves except for the pair (whose starts are mirror images,
+    far apart)."""
+    pl, reduced = study_assemblies[name, kind]
+    monkeypatch.setattr(assembly_planner, "SAME_BASIN", -1.0)
+    every = _assembly(pl, kind)
+    _same_plans(reduced, every)
+    solves = sum(s for _, s in reduced), sum(s for _, s in every)
+    assert solves[1] == pl.starts * len(every)
+    assert solves[0] < solves[1] if name != "pair" else solves[0] == solves[1]
+
+
+def test_the_study_layouts_assemble_in_no_more_passes_than_before(study_assemblies):
+    """The passes the benchmark counts, at most those before the planner was made fast: pair 10, three in a line
+    17, triangle 19 (four in a line took all 30 without assembling)."""
+    for (pl, passes), before in zip(study_assemblies.values(), (10, 17, 19, 30), strict=True):
+        assert len(passes) <= before
+        assert pl.target.assembled(passes[-1][0].predicted) or len(passes) == 30
+
+
+def test_costs_equal_but_for_rounding_rank_in_sample_order():
+    costs = np.array([3.0, 1.0 + 2e-16, 1.0, 2.0, 1.0 + 4e-16, 0.5])
+    assert AssemblyPlanner.ranked(costs).tolist() == [5, 1, 2, 4, 3, 0]
+    assert np.argsort(costs).tolist()[1:4] != [1, 2, 4]           # what rounding alone would have put first
+    big = np.array([1e3 * (1 + 1e-15), 1e3, 1e3 * (1 + 1e-6)])
+    assert AssemblyPlanner.ranked(big).tolist() == [0, 1, 2]
+
+
+def test_the_pairs_mirrored_samples_tie_and_the_first_sampled_leads(study_assemblies):
+    """The pair's layout is symmetric about the line through its centres: its best samples come in mirrored
+    pairs of equal cost (to rounding), and the planner refines the first sampled of each pair first."""
+    pl, _ = study_assemblies["pair", "assembly"]
+    p = geometry("assembly")["spheres"].copy()
+    cand, costs, ok = pl.sample_costs(p)
+    idx = np.flatnonzero(ok)
+    order = idx[pl.ranked(costs[idx])]
+    lead, second = order[:2]
+    assert costs[second] == pytest.approx(costs[lead], rel=1e-12) and lead < second
+    mirror = cand[second].copy()
+    mirror[:, 1] = 2 * p[0, 1] - mirror[:, 1]
+    assert mirror == pytest.approx(cand[lead], abs=1e-12)
+
+
+def test_the_generated_code_is_built_once_into_the_cache(tmp_path, monkeypatch):
+    """Built under ``$MAGCTL_CACHE/casadi``, keyed by a hash of the source; a second planner loads it. With a
+    compiler that fails (a warning) or none, the planner keeps casadi's virtual machine; ``compiled=True`` then
+    says why it cannot."""
+    monkeypatch.setenv("MAGCTL_CACHE", str(tmp_path))
+    target = arrangement("pair")
+    if assembly_planner.c_compiler() is not None:
+        first = AssemblyPlanner(target)
+        libs = sorted((tmp_path / "casadi").iterdir())
+        assert first.compiled and len(libs) == 1 and libs[0].suffix == ".so"
+        stamp = libs[0].stat().st_mtime_ns
+        assert AssemblyPlanner(target).compiled
+        assert sorted((tmp_path / "casadi").iterdir()) == libs and libs[0].stat().st_mtime_ns == stamp
+    monkeypatch.setenv("MAGCTL_CACHE", str(tmp_path / "other"))
+    monkeypatch.setattr(assembly_planner, "c_compiler", lambda: "/bin/false")   # a compiler that fails
+    with pytest.warns(RuntimeWarning, match="did not build"):
+        assert not AssemblyPlanner(target).compiled
+    assert not (tmp_path / "other" / "casadi").exists() or not any((tmp_path / "other" / "casadi").iterdir())
+    monkeypatch.setattr(assembly_planner, "c_compiler", lambda: None)
+    assert not AssemblyPlanner(target).compiled
+    with pytest.raises(MagctlError, match="compiled=True"):
+        AssemblyPlanner(target, compiled=True)
 
 
 # --- the block --------------------------------------------------------------------------------------------------
