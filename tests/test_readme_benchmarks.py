@@ -1,0 +1,40 @@
+"""The README's benchmark table is exactly what the committed results files it names give."""
+
+import importlib.util
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _readme_module():
+    spec = importlib.util.spec_from_file_location("bench_readme", ROOT / "benchmarks" / "readme.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_benchmark_table_is_generated_from_committed_results():
+    mod = _readme_module()
+    text = (ROOT / "README.md").read_text()
+    files = mod.named_files(text)
+    assert files, "README.md's benchmark section names no results file"
+    for f in files:
+        assert (ROOT / f).is_file(), f"{f} is named by README.md but not in the repository"
+    section = mod.BEGIN + text.split(mod.BEGIN, 1)[1].split(mod.END, 1)[0] + mod.END
+    assert section == mod.render(files), "README.md's benchmark table differs from its results files: " \
+                                         "run python benchmarks/readme.py " + " ".join(map(str, files))
+
+
+def test_a_changed_number_is_caught(tmp_path):
+    import json
+
+    mod = _readme_module()
+    files = mod.named_files((ROOT / "README.md").read_text())
+    doc = json.loads((ROOT / files[0]).read_text())
+    bench = next(k for k, v in doc.items() if isinstance(v, dict) and v.get("rows"))
+    doc[bench]["rows"][0]["value"] *= 1.5
+    original = mod.render(files)
+    mod.ROOT = tmp_path
+    (tmp_path / files[0]).parent.mkdir(parents=True, exist_ok=True)
+    (tmp_path / files[0]).write_text(json.dumps(doc))
+    assert mod.render(files) != original
