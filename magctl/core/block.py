@@ -25,6 +25,7 @@ read by position (:mod:`magctl.core.random`).
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -144,6 +145,10 @@ def rng_var(description: str = "per-trial random streams, read by position") -> 
     return StateVar("rng", (), STREAM, "", description, batched=False)
 
 
+_DRIVERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+"""Each kernelled block's :class:`~magctl.core.kernel_driver.KernelDriver` (None for a Python block)."""
+
+
 class Block:
     """Base class of every magctl block.
 
@@ -237,17 +242,20 @@ class Block:
         raise NotImplementedError(f"{type(self).__name__}'s kernel raises an event but the block handles none")
 
     def kernel_driver(self):
-        """The driver running :meth:`kernel` over a batch (built on first use), or None for a Python block."""
-        driver = self.__dict__.get("_kernel_driver", False)
-        if driver is False:
-            kernel = self.kernel()
-            if kernel is None:
-                driver = None
-            else:
-                from magctl.core.kernel_driver import KernelDriver
+        """The driver running :meth:`kernel` over a batch (built on first use, kept beside the block rather than
+        in it, so that a block's attributes stay its parameters), or None for a Python block."""
+        try:
+            return _DRIVERS[self]
+        except KeyError:
+            pass
+        kernel = self.kernel()
+        if kernel is None:
+            driver = None
+        else:
+            from magctl.core.kernel_driver import KernelDriver
 
-                driver = KernelDriver(self, kernel)
-            self.__dict__["_kernel_driver"] = driver
+            driver = KernelDriver(self, kernel)
+        _DRIVERS[self] = driver
         return driver
 
     # --- analysis hooks ------------------------------------------------------------------

@@ -130,8 +130,7 @@ class CoilActuator(Block):
         steady = self.__dict__.get("_settled_copy")
         if steady is None:
             steady = copy.copy(self)
-            for key in ("_kernel_driver", "_settled_copy"):
-                steady.__dict__.pop(key, None)
+            steady.__dict__.pop("_settled_copy", None)
             steady.decay = np.zeros_like(self.decay)
             steady.avg_weight = np.zeros_like(self.avg_weight)
             self.__dict__["_settled_copy"] = steady

@@ -371,7 +371,7 @@ def test_a_kernelled_block_has_one_implementation():
             block, overrides = _build(lib.__name__)
             assert block.kernel() is not None
             getattr(block, method)(_initial(block), _random_inputs(block, overrides=overrides)(0))
-            driver = block.__dict__.get("_kernel_driver")
+            driver = block.kernel_driver()
             assert driver is not None and driver._loops, f"{lib.__name__}.{method} did not run the kernel"
 
 

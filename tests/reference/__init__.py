@@ -26,6 +26,5 @@ def reference_of(block):
     if cls is None:
         return None
     ref = copy.copy(block)
-    ref.__dict__.pop("_kernel_driver", None)
     ref.__class__ = cls
     return ref

@@ -35,7 +35,6 @@ from reference.core_blocks import NumpyForm
 def _numpy_form(block, cls):
     """``block`` (same parameters) as the reference class ``cls``: for a fused block's parts."""
     ref = copy.copy(block)
-    ref.__dict__.pop("_kernel_driver", None)
     ref.__class__ = cls
     return ref
 
