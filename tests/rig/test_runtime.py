@@ -192,11 +192,11 @@ def test_bad_task_options_are_named(task, n_spheres, options, words):
 def test_front_push_needs_the_learning_law_on_the_sim_rig():
     """Paper §VI-A: with K_c = 0 and δ(0) = 0 the release D_p,r leaves the sphere short; K_c = 1 converges.
 
-    Three plant seeds: the naive push may land within ε_p by chance (the release scatters; the
-    front-push study finds it in about a third of trials), so it must fail in most of them, and the
-    learning law must converge in every one."""
-    naive_failed = 0
-    for seed in (0, 1, 2):
+    Six plant seeds. The naive push may land within ε_p by chance (the release scatters; the front-push study
+    finds it in about a fifth of trials), so it must fail in most of them; the learning law converges within
+    10 attempts in about 97 % of the study's trials, so it must converge in at least five of the six."""
+    naive_failed = learning_done = 0
+    for seed in range(6):
         naive = Runtime(SimRig(n_spheres=1, seed=seed), "front-push", {"kc": 0.0}, realtime=False, max_ticks=4000,
                         quiet=True).run()
         learning = Runtime(SimRig(n_spheres=1, seed=seed), "front-push", {"kc": 1.0}, realtime=False,
@@ -208,9 +208,11 @@ def test_front_push_needs_the_learning_law_on_the_sim_rig():
             # and outside ε_p: the release's shortfall with the cross-track scatter of the pushes
             error = FRONT_GOAL - np.array(naive.final["spheres_um"][0]) * 1e-6
             assert 0 < error[0] < 500e-6 and np.hypot(*error) > EPS_P
-        assert learning.exit_status == "done" and 1 <= learning.final["outputs"]["attempt"] < 10
-        assert np.hypot(*(np.array(learning.final["spheres_um"][0]) * 1e-6 - FRONT_GOAL)) < EPS_P
-    assert naive_failed >= 2
+        if learning.exit_status == "done":
+            learning_done += 1
+            assert 1 <= learning.final["outputs"]["attempt"] < 10
+            assert np.hypot(*(np.array(learning.final["spheres_um"][0]) * 1e-6 - FRONT_GOAL)) < EPS_P
+    assert naive_failed >= 4 and learning_done >= 5, (naive_failed, learning_done)
 
 
 def test_side_push_converges_on_the_sim_rig():
