@@ -7,10 +7,10 @@ import numpy as np
 from magctl.control.guards import ArrivalStatus, Patrol
 from magctl.control.servo import Servo
 from magctl.control.status import Status
-from reference.core_blocks import NumpyForm
+from reference.core_blocks import NumpyForm, SteppedForm
 
 
-class RefServo(NumpyForm, Servo):
+class RefServo(SteppedForm, Servo):
     """``v = Kp e + Ki I`` on the position error, its norm capped (or held constant) as the robot's speed and
     its direction the heading; the integral held while saturated (or clamped to the cap), frozen on hold or
     an unusable estimate."""
@@ -47,11 +47,6 @@ class RefServo(NumpyForm, Servo):
             I = I * np.where(mag > cap, cap / np.where(mag > 0, mag, 1.0), 1.0)[:, None]
         return out, {"I": I, "heading": heading}
 
-    def output(self, state, u):
-        return self.step(state, u)[0]
-
-    def update(self, state, u):
-        return self.step(state, u)[1]
 
 
 class RefArrivalStatus(NumpyForm, ArrivalStatus):

@@ -35,6 +35,16 @@ class NumpyForm:
         return None
 
 
+class SteppedForm(NumpyForm):
+    """A reference written as one ``step``: its outputs and next state come from it."""
+
+    def output(self, state, u):
+        return self.step(state, u)[0]
+
+    def update(self, state, u):
+        return self.step(state, u)[1]
+
+
 class RefConstant(NumpyForm, Constant):
     def output(self, state, u):
         return {"y": state["y"]}
@@ -74,7 +84,7 @@ class RefIntegrator(NumpyForm, Integrator):
         return {"x": state["x"] + (self.gain * self.dt) * u["u"]}
 
 
-class RefPI(NumpyForm, PI):
+class RefPI(SteppedForm, PI):
     """``u = Kp e + Ki I``, saturated by norm or element; ``I`` held while the unsaturated ``u`` is over."""
 
     def _excess(self, u):
@@ -99,11 +109,6 @@ class RefPI(NumpyForm, PI):
                 raw = np.clip(raw, -self.limit, self.limit)
         return {"u": raw, "saturated": sat}, nxt
 
-    def output(self, state, u):
-        return self.step(state, u)[0]
-
-    def update(self, state, u):
-        return self.step(state, u)[1]
 
 
 class RefStateSpace(NumpyForm, StateSpace):

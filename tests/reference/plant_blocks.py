@@ -29,7 +29,7 @@ from magctl.plant.standin import (
     StandinTracker,
     StraightToTarget,
 )
-from reference.core_blocks import NumpyForm
+from reference.core_blocks import NumpyForm, SteppedForm
 
 
 def _numpy_form(block, cls):
@@ -44,7 +44,7 @@ def _norm(v: np.ndarray) -> np.ndarray:
 
 
 # --- coils, drive, stick-slip robot ----------------------------------------------------------------------
-class RefCoilActuator(NumpyForm, CoilActuator):
+class RefCoilActuator(SteppedForm, CoilActuator):
     """Allocation, limits (static currents scaled as a vector, the oscillation given what is left), RL step."""
 
     def _solve(self, state, u):
@@ -81,11 +81,6 @@ class RefCoilActuator(NumpyForm, CoilActuator):
                "b_osc_delivered": u["b_osc"] * s_osc, "freq_delivered": freq, "saturated": sat}
         return out, {"i": i_s + (state["i"] - i_s) * self.decay}
 
-    def output(self, state, u):
-        return self.step(state, u)[0]
-
-    def update(self, state, u):
-        return self.step(state, u)[1]
 
 
 class RefDrive(NumpyForm, Drive):

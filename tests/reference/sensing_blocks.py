@@ -12,7 +12,7 @@ import numpy as np
 from magctl.sensing.blackout import Blackout
 from magctl.sensing.camera import Camera
 from magctl.sensing.tracker import START_VELOCITY_VAR, Tracker
-from reference.core_blocks import NumpyForm
+from reference.core_blocks import NumpyForm, SteppedForm
 
 
 def quantise(x: np.ndarray, pixel: float) -> np.ndarray:
@@ -117,7 +117,7 @@ class RefBlackout(NumpyForm, Blackout):
         return {"k": state["k"] + 1}
 
 
-class RefTracker(NumpyForm, Tracker):
+class RefTracker(SteppedForm, Tracker):
     """Raw and Kalman modes, the B trials, objects and axes in lockstep.
 
     Kalman mode, per object and axis, state ``x = [p, v]``, ``H = [1, 0]`` (filterpy's notation)::
@@ -185,11 +185,6 @@ class RefTracker(NumpyForm, Tracker):
             heading = np.where(lost, np.nan, heading)
         return {"robot_est": pos, "heading_est": heading, "velocity_est": vel, "spheres_est": sph, "lost": lost}, new
 
-    def output(self, state, u):
-        return self.step(state, u)[0]
-
-    def update(self, state, u):
-        return self.step(state, u)[1]
 
 
 REFERENCES = {Camera: RefCamera, Blackout: RefBlackout, Tracker: RefTracker}
