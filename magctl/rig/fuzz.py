@@ -16,8 +16,11 @@ commands and then goes silent, while hostile channels fire between its requests:
 
 Checks, every round: every REQ message got a well-formed reply (``ok`` with the request's id, or
 an error with a known code); the server process is alive; the coils were zeroed by the watchdog
-within ``watchdog + one frame`` after the last valid command (lock-step: simulated time, exact;
-real time: the server's own measure); the server applied exactly the commands this fuzzer saw
+after the last valid command. In lock-step the bound ``watchdog + one frame`` is checked in simulated
+time, exactly; in real time the server's own measure of the trip is recorded (``watchdog_after_s``)
+and judged by the benchmark (``benchmarks/bench_rig_fuzz.py``), not here, because a wall-clock bound
+depends on the machine's load — real time fails a round only if the coils stay on for the round's
+whole budget (5 s). The server applied exactly the commands this fuzzer saw
 accepted, each within the limits. Loops are bounded in count and time.
 """
 
@@ -397,6 +400,7 @@ class Fuzzer:
         # the server's own age of the last valid command (on its clock: simulated time in lock-step, where
         # other clients' reads advance frames too) decides whether the coils were on for too long
         bound = self.watchdog + self.period + 1e-9
+        judge_bound = self.lockstep
         deadline = time.monotonic() + 5.0
         too_long = None
         while time.monotonic() < deadline:
@@ -408,7 +412,7 @@ class Fuzzer:
             st = self.owner_call("status")
             if st is None or st["coils_zero"] or st["state"] != "active":
                 break
-            if st["command_age_s"] is not None and st["command_age_s"] > bound:
+            if judge_bound and st["command_age_s"] is not None and st["command_age_s"] > bound:
                 too_long = st
                 break
         if too_long is not None:
@@ -419,7 +423,7 @@ class Fuzzer:
             r.watchdog_checked += 1
             after = st["watchdog_tripped_after_s"]
             r.watchdog_after_s.append(after)
-            if not (self.watchdog < after <= bound):
+            if not self.watchdog < after or (judge_bound and after > bound):
                 r.watchdog_late += 1
                 r.fail(f"watchdog tripped after {after * 1e3:.1f} ms (bound {1e3 * (self.watchdog + self.period):.1f})")
         elif st is not None and st["state"] == "active" and not st["coils_zero"]:

@@ -80,8 +80,9 @@ def realtime_server():
 @pytest.mark.parametrize("how", ["half-frame", "greeting-cut", "zmtp10", "tcp-66", "no-delimiter", "multi-frame"])
 def test_a_frozen_or_hostile_peer_cannot_keep_the_coils_on(realtime_server, how):
     """A real-time server: the owner writes once and goes silent while the hostile peer is connected.
-    The coil guard zeroes the coils within the watchdog + one frame (the server's own measure); the server
-    keeps stepping its plant and answering everyone, and does not exit."""
+    The coil guard zeroes the coils after the watchdog (how late, on a loaded machine, is bench_rig_fuzz's
+    number; the bound itself is checked in simulated time below); the server keeps stepping its plant and
+    answering everyone, and does not exit."""
     srv = realtime_server
     owner = Raw(srv.address)
     assert owner.op("configure")["ok"] and owner.op("activate")["ok"]
@@ -94,7 +95,7 @@ def test_a_frozen_or_hostile_peer_cannot_keep_the_coils_on(realtime_server, how)
     try:
         assert st["ok"] and st["coils_zero"] and st["state"] == "inactive" and "watchdog" in st["last_error"]
         assert st["watchdog_trips"] == trips + 1
-        assert WATCHDOG < st["watchdog_tripped_after_s"] <= WATCHDOG + PERIOD
+        assert WATCHDOG < st["watchdog_tripped_after_s"]
         assert st["frame"] > frame0  # the plant clock kept running
         assert srv.proc.poll() is None and owner.op("hello")["ok"]
         # and a new valid command is served normally while the peer still hangs on
