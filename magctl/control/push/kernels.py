@@ -728,3 +728,103 @@ def front_then_curve_side_step(b, params, state, next_state, inputs, outputs, ba
     copy3(b, state[24:27], extra)
     front_then_side(b, (ffp, fip, fgain, (rs, rd, rx0, rx1, rrow, rhit), fnb), (sfp, sip, sgain, tg, tld, trate, cp),
                     state[0], next_state[0], fst, sst, extra, robot, sp, lost[b, 0], outputs)
+
+
+# --- planned assembly (planned.py): the frames compiled, the plan a Python event ----------------------------
+@jit
+def spheres_inside(b, area, sp):
+    """``PlannedAssemblyTask._spheres_found``: every sphere finite and inside ``area`` = (x0, y0, x1, y1), the
+    planner's field widened by the workspace margin."""
+    for k in range(sp.shape[1] // 2):
+        x = sp[b, 2 * k]
+        y = sp[b, 2 * k + 1]
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return False
+        if not (area[0] < x < area[2] and area[1] < y < area[3]):
+            return False
+    return True
+
+
+@jit
+def assembled(b, bonds, contact, shape, sp):
+    """:meth:`~magctl.control.arrangement.Arrangement.assembled`: eq 21 on every contact bond
+    (``|P_j − P_i| ≤ L_ij + ε_as``), the shape bonds at least ``L_ij·cos(bend/2)``; ``shape`` = (ε_as, cos(bend/2))."""
+    for k in range(bonds.shape[0]):
+        i = 2 * int(bonds[k, 0])
+        j = 2 * int(bonds[k, 1])
+        dist = norm2(sp[b, j] - sp[b, i], sp[b, j + 1] - sp[b, i + 1])
+        if contact[k]:
+            if not dist <= bonds[k, 2] + shape[0]:
+                return False
+        elif not dist >= bonds[k, 2] * shape[1]:
+            return False
+    return True
+
+
+@jit
+def planned_step(b, params, state, next_state, inputs, outputs, base, noise):
+    """:class:`~magctl.control.push.planned.PlannedAssemblyTask`'s frame: reposition along the waypoints → pass →
+    settle → eq 21 on every bond. A trial that needs a pass (its first, or the next after a measured one) raises
+    ``plan_due``; the task's ``handle_event`` plans it in Python at the end of the frame, so the pass and its path
+    apply from the next frame on (the plan takes one frame, as on a rig)."""
+    fp, ip, area, bonds, contact, shape, waypoint_tol = params
+    robot, sp, lost = inputs
+    copy_planned_state(b, state, next_state)
+    (phase, status, attempt, frames, lost_frames, target, speed, _start, _end, _before, _predicted, error,
+     _mobility, _weight, _passes, waypoints, n_waypoints, waypoint, start, end, gap, due) = next_state
+    r0 = robot[b, 0]
+    r1 = robot[b, 1]
+    found = spheres_inside(b, area, sp)
+    if frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost[b, 0], found):
+        ph = phase[b, 0]
+        done = assembled(b, bonds, contact, shape, sp)
+        if ph == START:
+            if done:
+                status[b, 0] = CONVERGED
+            else:
+                due[b, 0] = True
+        elif ph == S_REPOSITION:
+            k = min(waypoint[b, 0], waypoints.shape[1] // 2 - 1)
+            w0 = waypoints[b, 2 * k]
+            w1 = waypoints[b, 2 * k + 1]
+            last = waypoint[b, 0] >= n_waypoints[b, 0] - 1
+            tol = fp[ARRIVE_TOL] if last else waypoint_tol
+            if norm2(r0 - (0.0 if math.isnan(w0) else w0), r1 - (0.0 if math.isnan(w1) else w1)) < tol:
+                if last:
+                    enter(b, phase, frames, S_PASS)
+                else:
+                    waypoint[b, 0] += 1
+        elif ph == S_PASS:
+            if arrived(r0, r1, end[b, 0], end[b, 1], fp[ARRIVE_TOL]):
+                enter(b, phase, frames, S_SETTLE)
+        elif ph == S_SETTLE:
+            if frames[b, 0] >= ip[SETTLE_FRAMES]:
+                if finish_attempt(b, ip, status, attempt, done):
+                    due[b, 0] = True
+        ph = phase[b, 0]
+        if ph == S_REPOSITION:
+            k = min(waypoint[b, 0], waypoints.shape[1] // 2 - 1)
+            target[b, 0] = waypoints[b, 2 * k]
+            target[b, 1] = waypoints[b, 2 * k + 1]
+        elif ph == S_PASS or ph == S_SETTLE:
+            target[b, 0] = end[b, 0]
+            target[b, 1] = end[b, 1]
+        speed[b, 0] = fp[PASS_SPEED] if ph == S_PASS else fp[TRAVEL_SPEED]
+    e = error[b, 0]
+    out = frame_end(b, phase, status, attempt, target, speed, 0.0 if math.isnan(e) else e, r0, r1)
+    write_outputs(b, outputs, out)
+    g = gap[b, 0]
+    outputs[6][b, 0] = 0.0 if math.isnan(g) else g
+
+
+@jit
+def copy_planned_state(b, st, nx):
+    """The next state = the state (the planned assembly's 22 entries)."""
+    copy_task_state(b, st[0:15], nx[0:15])
+    _cp(b, st[15], nx[15])
+    _cp(b, st[16], nx[16])
+    _cp(b, st[17], nx[17])
+    _cp(b, st[18], nx[18])
+    _cp(b, st[19], nx[19])
+    _cp(b, st[20], nx[20])
+    _cp(b, st[21], nx[21])

@@ -11,6 +11,11 @@ One attempt, per trial:
    (:meth:`~magctl.control.arrangement.Arrangement.assembled`, eq 21 on every contact) ends the task,
    otherwise the planner learns from the pass and plans the next.
 
+The frames are compiled (:func:`magctl.control.push.kernels.planned_step`); the plan is the block's Python event
+(:meth:`PlannedAssemblyTask.handle_event`, docs/core.md "Python events"): the frame that needs a pass raises
+``plan_due``, the planner runs at the end of that frame for those trials only, and the pass and its path apply
+from the next frame on, as on a rig, where the plan takes part of a 33 ms frame (`benchmarks/bench_assembly_planner.py`).
+
 A trial for which the planner finds no pass that keeps its bounds ends ``STALLED``.
 """
 
@@ -24,8 +29,7 @@ from magctl.control.arrangement import arrangement as make_arrangement
 from magctl.control.assembly_planner import PassPlanner, PlanLimits
 from magctl.control.phases import SidePhase
 from magctl.control.planner import KEEP_OUT_M, PlanningError, plan_path
-from magctl.control.push.common import FINISHED, STALLED, START, PushTask, arrived, with_defaults
-from magctl.core.batched import norm
+from magctl.control.push.common import FINISHED, STALLED, START, PushTask, with_defaults
 from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
@@ -37,7 +41,7 @@ WAYPOINT_TOL = 50e-6
 """The robot counts as past an intermediate waypoint within 50 µm (the pass start needs ``arrive_tol``)."""
 
 
-class PlannedAssemblyTask(PushTask, Block):
+class PlannedAssemblyTask(Block, PushTask):
     """Assembly of ``n_spheres`` spheres into ``arrangement`` by passes the planner chooses.
 
     Parameters
@@ -59,7 +63,7 @@ class PlannedAssemblyTask(PushTask, Block):
 
     Ports: inputs as every push task; outputs as every push task plus ``gap`` (m), the smallest distance of
     the pass from a sphere, measured when it is planned; ``correction`` is the planner's predicted RMS bond
-    error after the pass.
+    error after the pass (both 0 until the first pass is planned).
     """
 
     PHASES = {START: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", FINISHED: "finished"}
@@ -101,36 +105,51 @@ class PlannedAssemblyTask(PushTask, Block):
                 StateVar("waypoint", (), "int64", description="index of the waypoint the robot heads for"),
                 StateVar("start", (2,), symbol="a", description="start of the pass, m"),
                 StateVar("end", (2,), symbol="b", description="end of the pass, m"),
-                StateVar("gap", (), description="closest approach of the pass to a sphere, m"))
+                StateVar("gap", (), description="closest approach of the pass to a sphere, m"),
+                StateVar("plan_due", (), "bool", description="the next pass is to be planned (the Python event)"))
 
     def initial_state(self, batch, rng=None):
         st = self._common_state(batch)
         st |= {"waypoints": np.full((batch, MAX_WAYPOINTS, 2), np.nan),
                "n_waypoints": np.zeros(batch, dtype=np.int64), "waypoint": np.zeros(batch, dtype=np.int64),
                "start": np.full((batch, 2), np.nan), "end": np.full((batch, 2), np.nan),
-               "gap": np.full(batch, np.nan)}
+               "gap": np.full(batch, np.nan), "plan_due": np.zeros(batch, dtype=bool)}
         return st
 
-    def _frame(self, state, u):
-        out, new = super()._frame(state, u)
-        out["gap"] = np.nan_to_num(new["gap"])
-        return out, new
+    def kernel(self):
+        """The compiled frame (:func:`magctl.control.push.kernels.planned_step`); the plan is its Python event."""
+        from magctl.control.push import kernels as k
+        from magctl.core.kernel import Kernel
 
-    def _spheres_found(self, new, spheres) -> np.ndarray:
         x0, y0, x1, y1 = self.bounds
         pad = self.workspace
-        inside = ((spheres[..., 0] > x0 - pad) & (spheres[..., 0] < x1 + pad)
-                  & (spheres[..., 1] > y0 - pad) & (spheres[..., 1] < y1 + pad))
-        return np.isfinite(spheres).all(axis=(1, 2)) & inside.all(axis=1)
+        fp = np.zeros(k.N_FP)
+        ip = np.zeros(k.N_IP, dtype=np.int64)
+        fp[[k.ARRIVE_TOL, k.TRAVEL_SPEED, k.PASS_SPEED]] = self.arrive_tol, self.travel_speed, self.pass_speed
+        ip[[k.MAX_ATTEMPTS, k.SETTLE_FRAMES, k.MAX_LOST, k.TIMEOUT]] = (
+            self.max_attempts, self.settle_frames, self.max_lost_frames, self.phase_timeout_frames)
+        area = np.array([x0 - pad, y0 - pad, x1 + pad, y1 + pad])
+        shape = np.array([self.target.eps_as, np.cos(self.target.bend / 2)])
+        return Kernel(step=k.planned_step, event="plan_due",
+                      params=(fp, ip, area, self.target.bonds, self.target.contact.copy(), shape, WAYPOINT_TOL))
 
-    def _begin(self, new, mask, r, spheres):
-        """Plan the next pass and the path to its start, for the trials in ``mask``."""
-        new["law"] = self.law.update_where(new["law"], {"spheres": spheres, "robot": r}, mask)
+    def handle_event(self, state, u):
+        """Plan the next pass (the :class:`~magctl.control.assembly_planner.PassPlanner` block: IPOPT on the pass
+        map, or the greedy baseline) and the wavefront path to its start, for the trials whose frame raised
+        ``plan_due``; a trial with no feasible pass ends ``STALLED``. Runs after the frame that ended the last
+        pass (or the first frame), on that frame's measurements."""
+        r = np.asarray(u["robot_est"], dtype=float)
+        spheres = np.asarray(u["spheres_est"], dtype=float)
+        new = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in state.items()}
+        due = np.asarray(state["plan_due"], dtype=bool)
+        new["law"] = self.law.update_where(state["law"], {"spheres": spheres, "robot": r}, due)
         a, b = new["law"]["start"], new["law"]["end"]
-        none = mask & ~np.isfinite(a).all(axis=1)
-        if none.any():
-            self._fail(new, none, STALLED, r)
-        for k in np.flatnonzero(mask & ~none):
+        none = due & ~np.isfinite(a).all(axis=1)
+        new["status"] = np.where(none, STALLED, new["status"])
+        new["phase"] = np.where(none, FINISHED, new["phase"])
+        new["target"] = np.where(none[:, None], r, new["target"])
+        go = due & ~none
+        for k in np.flatnonzero(go):
             path = self._reposition_path(r[k], a[k], spheres[k])
             if len(path) > MAX_WAYPOINTS:   # not expected after shortening; keep the way out and the pass start
                 path = np.concatenate([path[: MAX_WAYPOINTS - 1], path[-1:]])
@@ -141,9 +160,12 @@ class PlannedAssemblyTask(PushTask, Block):
             d = b[k] - a[k]
             t = np.clip((spheres[k] - a[k]) @ d / (d @ d), 0.0, 1.0)
             new["gap"][k] = float(np.min(np.linalg.norm(spheres[k] - (a[k] + t[:, None] * d), axis=1)))
-        new["start"] = np.where(mask[:, None], a, new["start"])
-        new["end"] = np.where(mask[:, None], b, new["end"])
-        self._enter(new, mask & ~none, REPOSITION)
+        new["start"] = np.where(go[:, None], a, new["start"])
+        new["end"] = np.where(go[:, None], b, new["end"])
+        new["phase"] = np.where(go, REPOSITION, new["phase"])
+        new["frames"] = np.where(go, 0, new["frames"])
+        new["plan_due"] = np.zeros_like(due)
+        return new
 
     def _reposition_path(self, robot, start, spheres) -> np.ndarray:
         """Waypoints to the pass start round every sphere (the robot's own position dropped).
@@ -163,32 +185,6 @@ class PlannedAssemblyTask(PushTask, Block):
             except PlanningError:
                 continue
         return np.asarray([start])
-
-    def _step(self, state, new, r, spheres, ok):
-        ph = new["phase"]
-        done = self.target.assembled(spheres)
-        self._start(new, ok, done, r, spheres)
-        rows = np.arange(len(r))
-        idx = np.minimum(new["waypoint"], MAX_WAYPOINTS - 1)
-        wp = new["waypoints"][rows, idx]
-        last = new["waypoint"] >= new["n_waypoints"] - 1
-        tol = np.where(last, self.arrive_tol, WAYPOINT_TOL)
-        at_wp = ok & (ph == REPOSITION) & (norm(r - np.nan_to_num(wp)) < tol)
-        new["waypoint"] = np.where(at_wp & ~last, new["waypoint"] + 1, new["waypoint"])
-        self._enter(new, at_wp & last, PASS)
-        passed = ok & (ph == PASS) & arrived(r, new["end"], self.arrive_tol)
-        self._enter(new, passed, SETTLE)
-        meas = ok & (ph == SETTLE) & (new["frames"] >= self.settle_frames)
-        if meas.any():
-            go_on = self._finish_attempt(new, meas, done)
-            self._begin(new, go_on, r, spheres)
-        ph = np.where(ok, new["phase"], START)
-        idx = np.minimum(new["waypoint"], MAX_WAYPOINTS - 1)
-        wp = new["waypoints"][rows, idx]
-        tgt = np.where((ph == REPOSITION)[:, None], wp, new["target"])
-        tgt = np.where(((ph == PASS) | (ph == SETTLE))[:, None], new["end"], tgt)
-        new["target"] = tgt
-        new["speed"] = np.where(ok, np.where(ph == PASS, self.pass_speed, self.travel_speed), new["speed"])
 
 
 __all__ = ["PlannedAssemblyTask"]
