@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from magctl.config import load_model
-from magctl.control.learning import ATTEMPT
+from magctl.control.learning import ATTEMPT, AttemptLaw
 from magctl.core.block import Block, StateVar
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
@@ -38,36 +38,14 @@ COST_RISE_TOL = 1e-9
 """A Gauss–Newton step of the update counts as not raising ``J`` when it raises it by less than this fraction of
 ``1 + J``: far above the rounding of ``J`` (~1e-16; near the mode successive steps change ``J`` by that much
 either way, and numpy's and libm's ``exp`` differ in the last bit), far below any rise the halving guards against.
-Without it a step is halved or not by rounding noise, and the two engines' estimates part by ~1e-6."""
+Without it a step is halved or not by rounding noise, and the kernel's estimates and a numpy form's part by ~1e-6."""
 
 
 HALVINGS = 30
 """Most halvings of one Gauss–Newton step (after them the step is taken as it is)."""
 
 
-def cholesky3(p00, p10, p11, p20, p21, p22):
-    """The lower Cholesky factor ``L`` of a symmetric positive-definite 3×3 matrix from its lower triangle
-    (element-wise: scalars or arrays of them), as ``(l00, l10, l11, l20, l21, l22)``."""
-    l00 = np.sqrt(p00)
-    l10 = p10 / l00
-    l20 = p20 / l00
-    l11 = np.sqrt(p11 - l10 * l10)
-    l21 = (p21 - l20 * l10) / l11
-    l22 = np.sqrt(p22 - l20 * l20 - l21 * l21)
-    return l00, l10, l11, l20, l21, l22
-
-
-def quadratic3(chol, d0, d1, d2):
-    """``dᵀ P⁻¹ d = |L⁻¹ d|²`` with ``chol`` = :func:`cholesky3` of ``P`` (forward substitution, a sum of squares:
-    no cancellation, whatever the conditioning of ``P``)."""
-    l00, l10, l11, l20, l21, l22 = chol
-    y0 = d0 / l00
-    y1 = (d1 - l10 * y0) / l11
-    y2 = (d2 - l20 * y0 - l21 * y1) / l22
-    return y0 * y0 + y1 * y1 + y2 * y2
-
-
-class CurveLearningLaw(Block):
+class CurveLearningLaw(AttemptLaw, Block):
     """Extended Kalman estimate of the per-attempt curve ``D_s,act = exp(a − b·x) − c`` over push attempts.
 
     ``x = (D_g − g_ref)/g_ref``; ``c`` is what the rest of the attempt takes back: repositioning round the
@@ -138,76 +116,19 @@ class CurveLearningLaw(Block):
     def initial_state(self, batch, rng=None):
         return {"theta": np.tile(self.prior_mean, (batch, 1)), "cov": np.tile(self.prior_cov, (batch, 1, 1))}
 
-    def output(self, state, u):
-        return {"y": np.exp(state["theta"][:, 0]) - np.exp(self.prior_mean[0])}
-
-    def update(self, state, u):
-        return self.update_where(state, u, np.ones(np.shape(state["theta"])[0], dtype=bool))
-
-    def update_where(self, state, u, mask) -> dict:
-        """One iterated extended Kalman step from ``(gap, displacement)`` for the trials in ``mask``; the others
-        keep theirs.
+    def kernel(self):
+        """The law (:func:`magctl.control.kernels.curve_output`, ``curve_update``): output ``y = exp(a) − exp(a₀)``;
+        update one iterated extended Kalman step from ``(gap, displacement)``.
 
         Predict ``P⁻ = P + Q`` (random walk of ``a``); measure ``z = D_s,act`` against
         ``h(θ) = exp(a − b·x) − c`` with Jacobian ``H = (e, −x·e, −1)``, ``e = exp(a − b·x)``, and variance
         ``R = (σ_pass·e⁻)² + σ_meas²`` at the predicted estimate. The update is Gauss–Newton on the negative
         log posterior ``J(θ) = (θ − θ⁻)ᵀP⁻⁻¹(θ − θ⁻) + (z − h(θ))²/R`` (the iterated EKF), each step halved
         until ``J`` does not rise by more than :data:`COST_RISE_TOL` (a pass many times the prior's prediction
-        would otherwise throw the exponential's linearisation far past the mode). One iteration is the plain
-        EKF step whenever that step lowers ``J``. Covariance in Joseph form at the last linearisation;
-        ``b ≥ b_min`` kept.
-
-        Every product is written out per element (:func:`cholesky3`, :func:`quadratic3` for the prior term,
-        no LAPACK, no einsum), in the order the compiled kernel
-        (:func:`magctl.control.kernels.curve_update`) repeats for one trial.
+        would otherwise throw the exponential's linearisation far past the mode); the prior term is a sum of
+        squares through the Cholesky factor of ``P⁻``. One iteration is the plain EKF step whenever that step
+        lowers ``J``. Covariance in Joseph form at the last linearisation; ``b ≥ b_min`` kept.
         """
-        theta, cov = state["theta"], state["cov"]
-        x = (np.asarray(u["gap"], dtype=float) - self.reference_gap) / self.reference_gap
-        z = np.asarray(u["displacement"], dtype=float)
-        p = cov + self.drift
-        chol = cholesky3(p[:, 0, 0], p[:, 1, 0], p[:, 1, 1], p[:, 2, 0], p[:, 2, 1], p[:, 2, 2])
-        th = theta[:, 0], theta[:, 1], theta[:, 2]
-        e0 = np.exp(th[0] - th[1] * x)
-        r = self.pass_rel_var * e0 * e0 + self.measure_var
-
-        def cost(t):
-            miss = z - (np.exp(t[0] - t[1] * x) - t[2])
-            return quadratic3(chol, t[0] - th[0], t[1] - th[1], t[2] - th[2]) + miss * miss / r
-
-        it, j_it = th, cost(th)
-        for _ in range(self.iterations):
-            e = np.exp(it[0] - it[1] * x)
-            h = e, -x * e, -np.ones_like(e)
-            ph = tuple(p[:, i, 0] * h[0] + p[:, i, 1] * h[1] + p[:, i, 2] * h[2] for i in range(3))
-            s = h[0] * ph[0] + h[1] * ph[1] + h[2] * ph[2] + r
-            gain = tuple(ph[i] / s for i in range(3))
-            innovation = z - (e - it[2]) - (h[0] * (th[0] - it[0]) + h[1] * (th[1] - it[1])
-                                           + h[2] * (th[2] - it[2]))
-            step = tuple(th[i] + gain[i] * innovation - it[i] for i in range(3))
-            trial = tuple(it[i] + step[i] for i in range(3))
-            j_trial = cost(trial)
-            for _halving in range(HALVINGS):
-                worse = ~(j_trial <= j_it + COST_RISE_TOL * (1.0 + j_it))
-                if not worse.any():
-                    break
-                step = tuple(np.where(worse, 0.5 * step[i], step[i]) for i in range(3))
-                trial = tuple(np.where(worse, it[i] + step[i], trial[i]) for i in range(3))
-                j_trial = np.where(worse, cost(trial), j_trial)
-            it, j_it = trial, np.minimum(j_trial, j_it)
-        new_theta = np.stack([it[0], np.maximum(it[1], self.b_min), it[2]], axis=-1)
-        # Joseph form: A = (I − K·H)·P⁻, then A·(I − K·H)ᵀ + R·K·Kᵀ
-        ikh = [[(1.0 if i == j else 0.0) - gain[i] * h[j] for j in range(3)] for i in range(3)]
-        a = [[ikh[i][0] * p[:, 0, j] + ikh[i][1] * p[:, 1, j] + ikh[i][2] * p[:, 2, j] for j in range(3)]
-             for i in range(3)]
-        rows = [np.stack([a[i][0] * ikh[j][0] + a[i][1] * ikh[j][1] + a[i][2] * ikh[j][2] + r * gain[i] * gain[j]
-                          for j in range(3)], axis=-1) for i in range(3)]
-        new_cov = np.stack(rows, axis=-2)
-        keep = ~np.asarray(mask, dtype=bool)
-        return {"theta": np.where(keep[:, None], theta, new_theta), "cov": np.where(keep[:, None, None], cov, new_cov)}
-
-    def kernel(self):
-        """The compiled law (:func:`magctl.control.kernels.curve_output`, ``curve_update``): the same iterated
-        EKF step per trial."""
         from magctl.control import kernels as k
         from magctl.core.kernel import Kernel
 
@@ -221,25 +142,29 @@ class CurveLearningLaw(Block):
         cp = np.zeros(k.N_CP)
         cp[[k.C_GREF, k.C_PASS_VAR, k.C_MEAS_VAR, k.C_B_MIN]] = (self.reference_gap, self.pass_rel_var,
                                                                  self.measure_var, self.b_min)
-        cp[k.C_EXP_A0] = np.exp(self.prior_mean[0])  # as output() computes it
+        cp[k.C_EXP_A0] = np.exp(self.prior_mean[0])  # the prior's exp(a₀), which y is taken from
         cp[k.C_DRIFT:k.C_DRIFT + 9] = self.drift.ravel()
         return cp, self.iterations
 
     # --- the inversion -----------------------------------------------------------------------------
     def displacement(self, state, gap) -> np.ndarray:
-        """The estimated attempt ``exp(a − b·x) − c`` at ``gap`` (m), per trial."""
-        a, b, c = state["theta"][:, 0], state["theta"][:, 1], state["theta"][:, 2]
-        return np.exp(a - b * (np.asarray(gap, dtype=float) - self.reference_gap) / self.reference_gap) - c
+        """The estimated attempt ``exp(a − b·x) − c`` at ``gap`` (m), per trial (``gap`` broadcast against the
+        trials as numpy does; :func:`magctl.control.kernels.curve_displacement`)."""
+        from magctl.control import kernels as k
+
+        theta, gap, out = self._broadcast(state, gap)
+        k.curve_displacements(theta, self.kernel_params()[0], gap, out.reshape(-1))
+        return out
 
     def gap(self, state, d_des, min_gap: float) -> np.ndarray:
         """The gap the estimate says gives ``d_des`` (m), not below ``min_gap`` (where ``d_des + c`` ≤ 0: no
         positive curve value gives it, and the widest pass is as good as any: ``min_gap`` is not chosen, the
-        gap of a 1 % curve value is)."""
-        a, b, c = state["theta"][:, 0], state["theta"][:, 1], state["theta"][:, 2]
-        want = np.asarray(d_des, dtype=float) + c
-        floor = 0.01 * np.exp(a)
-        g = self.reference_gap * (1.0 + (a - np.log(np.maximum(want, floor))) / b)
-        return np.maximum(g, min_gap)
+        gap of a 1 % curve value is), per trial (:func:`magctl.control.kernels.curve_gap`)."""
+        from magctl.control import kernels as k
+
+        theta, d_des, out = self._broadcast(state, d_des)
+        k.curve_gaps(theta, self.kernel_params()[0], d_des, float(min_gap), out.reshape(-1))
+        return out
 
     def mobility(self, state, gap) -> np.ndarray:
         """The estimated attempt at ``gap`` over the prior's there: 1 for a sphere as the prior, ≪ 1 on dirt.
@@ -248,6 +173,16 @@ class CurveLearningLaw(Block):
         passes measure the curve directly, whereas its value at ``g_ref`` is an extrapolation along ``b``.
         """
         return self.displacement(state, gap) / self.prior_displacement(gap)
+
+    @staticmethod
+    def _broadcast(state, value) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The estimates ``θ`` (n, 3) and ``value`` (n,) of the trials broadcast against ``value``, as the kernels
+        take them, and the array their results go to (shaped as the broadcast)."""
+        theta = np.asarray(state["theta"], dtype=float)
+        value = np.asarray(value, dtype=float)
+        shape = np.broadcast_shapes(theta.shape[:1], value.shape)
+        rows = np.ascontiguousarray(np.broadcast_to(theta, (*shape, 3)).reshape(-1, 3))
+        return rows, np.ascontiguousarray(np.broadcast_to(value, shape).reshape(-1)), np.empty(shape)
 
     def prior_displacement(self, gap):
         """The prior's attempt ``exp(a₀ − b₀·x) − c₀`` at ``gap`` (m)."""

@@ -1,9 +1,9 @@
 """Compiled kernels of the controller blocks: the PI servo, the learning laws, the go-to status and the patrol.
 
 Each function runs one trial ``b`` in the convention of :mod:`magctl.core.kernel`, with the same
-floating-point operations per element as the block's numpy form (``np.minimum``/``np.maximum``
-propagate NaN, as :func:`nan_min` / :func:`nan_max` do here). The learning laws are the eq 13/18 integrator
-(:class:`~magctl.control.learning.LearningLaw`), the side push's curve-learning law
+floating-point operations per element as the block's numpy reference in ``tests/reference``
+(``np.minimum``/``np.maximum`` propagate NaN, as :func:`nan_min` / :func:`nan_max` do here). The learning laws
+are the eq 13/18 integrator (:class:`~magctl.control.learning.LearningLaw`), the side push's curve-learning law
 (:class:`~magctl.control.curve_learning.CurveLearningLaw`, an iterated EKF over fixed-size state) and the front
 push's release-model law (:class:`~magctl.control.release_model.ReleasePolicyLaw`, a nearest-neighbour policy);
 the push tasks call the same functions from :mod:`magctl.control.push.kernels`. Imported only when a diagram is
@@ -196,7 +196,8 @@ def patrol_update(b, params, state, next_state, inputs, base, noise):
 # --- curve-learning law (magctl.control.curve_learning) -----------------------------------------------------
 @jit
 def cholesky3(p00, p10, p11, p20, p21, p22):
-    """:func:`magctl.control.curve_learning.cholesky3`: the lower Cholesky factor of a 3×3 covariance."""
+    """The lower Cholesky factor ``L`` of a symmetric positive-definite 3×3 matrix from its lower triangle, as
+    ``(l00, l10, l11, l20, l21, l22)``."""
     l00 = math.sqrt(p00)
     l10 = p10 / l00
     l20 = p20 / l00
@@ -208,7 +209,8 @@ def cholesky3(p00, p10, p11, p20, p21, p22):
 
 @jit
 def quadratic3(chol, d0, d1, d2):
-    """:func:`magctl.control.curve_learning.quadratic3`: ``dᵀ P⁻¹ d`` by forward substitution."""
+    """``dᵀ P⁻¹ d = |L⁻¹ d|²`` with ``chol`` = :func:`cholesky3` of ``P``, by forward substitution (a sum of
+    squares: no cancellation, whatever the conditioning of ``P``)."""
     l00, l10, l11, l20, l21, l22 = chol
     y0 = d0 / l00
     y1 = (d1 - l10 * y0) / l11
@@ -225,10 +227,10 @@ def curve_cost(t0, t1, t2, th0, th1, th2, chol, z, x, r):
 
 @jit
 def curve_update(b, cp, iterations, theta, cov, ntheta, ncov, gap, z):
-    """:meth:`CurveLearningLaw.update_where` for trial ``b``: the iterated EKF step from the pass ``(D_g, D_s,act)``
-    on ``D_s = exp(a − b·x) − c`` (docs/push-control.md §6, the side push's replacement for eq 17–18), written to
-    ``ntheta``, ``ncov`` (which may be ``theta``, ``cov``: everything is read first). ``cov`` is the 3×3
-    covariance row-major. The operations are the numpy form's, element by element."""
+    """:class:`~magctl.control.curve_learning.CurveLearningLaw`'s update for trial ``b``: the iterated EKF step
+    from the pass ``(D_g, D_s,act)`` on ``D_s = exp(a − b·x) − c`` (docs/push-control.md §6, the side push's
+    replacement for eq 17–18), written to ``ntheta``, ``ncov`` (which may be ``theta``, ``cov``: everything is read
+    first). ``cov`` is the 3×3 covariance row-major."""
     gref = cp[C_GREF]
     x = (gap - gref) / gref
     p = ((cov[b, 0] + cp[C_DRIFT], cov[b, 1] + cp[C_DRIFT + 1], cov[b, 2] + cp[C_DRIFT + 2]),
@@ -304,6 +306,25 @@ def curve_gap(theta, b, cp, d_des, min_gap):
     return nan_max(g, min_gap)
 
 
+batch_jit = numba.njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+"""A loop over the trials, called from Python (the law's queries of its estimate)."""
+
+
+@batch_jit
+def curve_displacements(theta, cp, gap, out):
+    """:meth:`CurveLearningLaw.displacement`: :func:`curve_displacement` of every trial at its ``gap[b]``, into
+    ``out``."""
+    for b in range(theta.shape[0]):
+        out[b] = curve_displacement(theta, b, cp, gap[b])
+
+
+@batch_jit
+def curve_gaps(theta, cp, d_des, min_gap, out):
+    """:meth:`CurveLearningLaw.gap`: :func:`curve_gap` of every trial for its ``d_des[b]``, into ``out``."""
+    for b in range(theta.shape[0]):
+        out[b] = curve_gap(theta, b, cp, d_des[b], min_gap)
+
+
 @jit
 def curve_correction(theta, b, cp):
     """The law's output ``y``: the estimate's displacement at ``g_ref`` minus the prior's."""
@@ -347,7 +368,8 @@ def _before(d2a, ra, d2b, rb):
 @jit
 def release_nearest(b, xs0, xs1, srow, nb, q0, q1):
     """The ``k = nb.shape[1]`` logged later attempts nearest ``(q0, q1)`` (scaled), nearest first, ties to the
-    earlier map row (:meth:`ReleasePolicy.nearest`), as positions in the ``xs0``-sorted table, in ``nb[b]``.
+    earlier map row (:class:`~magctl.control.release_model.ReleasePolicy`), as positions in the ``xs0``-sorted
+    table, in ``nb[b]``.
 
     Walks outwards from the query's place in the sorted first coordinate and stops a side once its first-coordinate
     distance alone exceeds the k-th nearest's distance (no later point on that side can be nearer)."""
@@ -401,7 +423,7 @@ def release_nearest(b, xs0, xs1, srow, nb, q0, q1):
 
 @jit
 def release_choose(b, scale, deltas, xs0, xs1, srow, succ, nb, d, previous):
-    """:meth:`ReleasePolicy.choose` for one trial: the index of the candidate ``δ`` whose ``k`` nearest logged
+    """The release-model controller's choice for one trial: the index of the candidate ``δ`` whose ``k`` nearest logged
     later attempts at ``(d + δ, R_prev)`` hold the most that would have ended within ε_p (the first such), with those
     attempts' map rows left in ``nb[b]``."""
     k = nb.shape[1]
@@ -425,7 +447,8 @@ def release_choose(b, scale, deltas, xs0, xs1, srow, succ, nb, d, previous):
 
 @jit
 def release_update(b, scale, deltas, xs0, xs1, srow, succ, x, nb, e):
-    """:meth:`ReleasePolicyLaw.update_where` for trial ``b``: ``δ ← δ*(|e|, e + δ)`` (a finite ``e`` only)."""
+    """:class:`~magctl.control.release_model.ReleasePolicyLaw`'s update for trial ``b``: ``δ ← δ*(|e|, e + δ)`` (a
+    finite ``e`` only)."""
     if math.isfinite(e):
         best = release_choose(b, scale, deltas, xs0, xs1, srow, succ, nb, abs(e), e + x[b, 0])
         x[b, 0] = deltas[best]

@@ -11,9 +11,10 @@ with the attempt index ``i`` as time (``dt = 1`` attempt):
   a smaller gap and push harder); the law therefore uses ``g = −K_s`` unless
   ``printed_sign=True``. ``docs/push-control.md`` gives the evidence.
 
-The same block object serves the 30 Hz push tasks (which call :meth:`update_where`
-on the trials that just finished an attempt) and the iteration-domain diagrams
-of :mod:`magctl.stability.iteration` (through :meth:`to_control`, ``g/(z − 1)``, eq 14 and 19).
+Each law is written once, as its kernel (:mod:`magctl.control.kernels`): the 30 Hz push tasks' kernels run it
+on the trials that just finished an attempt, the attempt maps of :mod:`magctl.stability.iteration` through
+:meth:`AttemptLaw.update_where`, and the iteration-domain diagrams take :meth:`LearningLaw.to_control`
+(``g/(z − 1)``, eq 14 and 19).
 """
 
 from __future__ import annotations
@@ -29,7 +30,18 @@ ATTEMPT = 1.0
 """Sample period of the iteration domain: one push attempt."""
 
 
-class LearningLaw(Block):
+class AttemptLaw:
+    """Mix-in of the law blocks stepped once per push attempt (their behaviour is their kernel)."""
+
+    def update_where(self, state, u, mask) -> dict:
+        """The next state of the trials in ``mask`` (those that just finished an attempt), the others' kept: the
+        law's update (its kernel, through :meth:`~magctl.core.block.Block.update`) taken per trial."""
+        mask = np.asarray(mask, dtype=bool)
+        nxt = self.update(state, u)
+        return {k: np.where(mask.reshape((-1,) + (1,) * (np.ndim(v) - 1)), v, state[k]) for k, v in nxt.items()}
+
+
+class LearningLaw(AttemptLaw, Block):
     """Forward-Euler integrator over push attempts, ``x(i+1) = x(i) + g·e(i)`` (eq 13, eq 18).
 
     Parameters
@@ -72,23 +84,14 @@ class LearningLaw(Block):
                 raise MagctlError(f"learning law {self.name!r}: {arr.shape[0]} per-trial {what} for a batch of {batch}")
         return {"x": as_batch(self.initial, self.outputs["y"], batch)}
 
-    def output(self, state, u):
-        return {"y": state["x"]}
-
-    def update(self, state, u):
-        return {"x": state["x"] + self.gain * u["e"]}
-
     def kernel(self):
-        """The compiled integrator (:func:`magctl.control.kernels.law_output`, ``law_update``)."""
+        """The integrator ``y(i) = x(i)``, ``x(i+1) = x(i) + g·e(i)`` (:func:`magctl.control.kernels.law_output`,
+        ``law_update``)."""
         from magctl.control import kernels as k
         from magctl.core.kernel import Kernel
 
         return Kernel(output=k.law_output, update=k.law_update,
                       params=(np.atleast_1d(np.asarray(self.gain, dtype=float)).copy(),))
-
-    def update_where(self, state, u, mask) -> dict:
-        """The next state with only the trials in ``mask`` advanced (those that just finished an attempt)."""
-        return {"x": np.where(mask, state["x"] + self.gain * u["e"], state["x"])}
 
     def to_control(self):
         """``g / (z − 1)`` as a python-control state space with ``dt`` = 1 attempt."""

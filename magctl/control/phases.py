@@ -3,9 +3,9 @@
 A push task's ``phase`` (int64, one per trial) is where its attempt-level state machine is: every task starts at
 ``START`` and ends at ``FINISHED`` (its status is then no longer ``RUNNING``, :mod:`magctl.control.status`); in
 between are the task's own phases (:class:`FrontPhase` for §V-A, :class:`SidePhase` for §V-B and the side-push
-assembly). A task that runs another inside it reports the inner task's phase plus an offset. The numpy forms
-(:mod:`magctl.control.push`) and the compiled kernels (:mod:`magctl.control.push.kernels`) both take their values
-from here.
+assembly). A task that runs another inside it reports the inner task's phase plus an offset. The tasks' kernels
+(:mod:`magctl.control.push.kernels`) and their numpy references (``tests/reference``) both take their values from
+here.
 """
 
 from __future__ import annotations

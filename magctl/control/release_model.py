@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from magctl.config import load_model
-from magctl.control.learning import ATTEMPT
+from magctl.control.learning import ATTEMPT, AttemptLaw
 from magctl.core.block import Block, StateVar
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
@@ -129,18 +129,15 @@ class ReleaseMap:
         return self.release[pick], self.lateral[pick], self.contact[pick]
 
 
-TIE_MARGIN = 8
-"""Neighbours asked of the tree beyond ``k``, so that the logged attempts tied with the k-th are seen (checked)."""
-
-
 @dataclass(frozen=True)
 class ReleasePolicy:
     """The greedy release-model controller: ``δ(0)`` for the first attempt, ``δ*(d, R_prev)`` after it.
 
     A candidate's success is read on the ``k`` logged later attempts nearest its query — nearest by the scaled
-    distance, and among logged attempts as near as the k-th, the earlier in the map first (:meth:`nearest`), so
-    the choice does not depend on how a search structure orders ties (the map holds repeated predictors). The
-    compiled law (:func:`magctl.control.kernels.release_choose`) searches the same table by the same rule.
+    distance, and among logged attempts as near as the k-th, the earlier in the map first, so the choice does not
+    depend on how a search structure orders ties (the map holds repeated predictors); the first best candidate is
+    taken where several are as good. The law's kernel (:func:`magctl.control.kernels.release_choose`) searches
+    :meth:`kernel_tables` by that rule.
     """
 
     delta0: float
@@ -165,57 +162,6 @@ class ReleasePolicy:
         pushed with each candidate ``δ``: ``|(R − δ, lateral)| < ε_p``."""
         m = self.release_map
         return np.hypot(m.release[self.rows][None, :] - self.deltas[:, None], m.lateral[self.rows][None, :]) < self.eps
-
-    def _d2(self, q: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        d0 = self.points[idx, 0] - q[:, None, 0]
-        d1 = self.points[idx, 1] - q[:, None, 1]
-        return d0 * d0 + d1 * d1
-
-    def nearest(self, q) -> np.ndarray:
-        """``(len(q), k)``: the logged later attempts (indices into :attr:`rows`) nearest each scaled query
-        ``q`` (…, 2), nearest first, ties to the earlier one."""
-        q = np.reshape(np.asarray(q, float), (-1, 2))
-        n = self.rows.size
-        kk = min(self.k + TIE_MARGIN, n)
-        _, nb = self.tree.query(q, k=kk)
-        nb = np.reshape(nb, (q.shape[0], kk))
-        d2 = self._d2(q, nb)
-        order = np.lexsort((nb, d2), axis=-1)
-        nb, d2 = np.take_along_axis(nb, order, -1), np.take_along_axis(d2, order, -1)
-        # every attempt as near as the k-th was among those asked for, unless the last one asked is as near too
-        unseen = ~(d2[:, -1] > d2[:, self.k - 1]) & (kk < n)
-        if unseen.any():
-            every = np.broadcast_to(np.arange(n), (int(unseen.sum()), n))
-            nb[unseen] = np.lexsort((every, self._d2(q[unseen], every)), axis=-1)[:, :kk]
-        return nb[:, :self.k]
-
-    def _queries(self, d, previous, delta) -> np.ndarray:
-        return np.c_[d + delta, previous] / self.release_map.scale
-
-    def success(self, d, previous) -> np.ndarray:
-        """Estimated success of every candidate δ, shape ``(len(d), len(deltas))``."""
-        d = np.atleast_1d(np.asarray(d, float))
-        prev = np.broadcast_to(np.asarray(previous, float), d.shape)
-        out = np.empty((d.size, self.deltas.size))
-        for j, delta in enumerate(self.deltas):
-            out[:, j] = self.hits[j, self.nearest(self._queries(d, prev, delta))].mean(axis=1)
-        return out
-
-    def choose(self, d, previous) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``δ*``, its estimated success and the map rows of the ``k`` logged attempts it was read on (nearest
-        first) for each ``(d, R_prev)``; the first best candidate where several are as good."""
-        d = np.atleast_1d(np.asarray(d, float))
-        prev = np.broadcast_to(np.asarray(previous, float), d.shape)
-        p = self.success(d, prev)
-        best = p.argmax(axis=1)
-        delta = self.deltas[best]
-        return delta, p[np.arange(best.size), best], self.rows[self.nearest(self._queries(d, prev, delta))]
-
-    def delta(self, d, previous) -> tuple[np.ndarray, np.ndarray]:
-        """``δ*`` and its estimated success for each ``(d, R_prev)``."""
-        p = self.success(d, previous)
-        best = p.argmax(axis=1)
-        return self.deltas[best], p[np.arange(best.size), best]
 
     def kernel_tables(self) -> tuple:
         """``(scale, deltas, xs0, xs1, srow, hits)`` of the compiled law
@@ -246,13 +192,13 @@ def release_policy(release_map: ReleaseMap, *, eps: float, goal: float, deltas=D
     return ReleasePolicy(best_length - goal, first, np.asarray(deltas, float), tree, later, m, float(eps), int(k))
 
 
-class ReleasePolicyLaw(Block):
+class ReleasePolicyLaw(AttemptLaw, Block):
     """The release-model controller as the front push's learning law (in eq 13's place).
 
     State ``δ`` (eq 10's offset of ``P_o``) and the map rows it was last read on. After an attempt that ended with
     along-line error ``e = (P_g − P_s)·u`` the release was ``R = e + δ`` and the next attempt starts ``|e|`` from
-    the goal, so ``δ ← δ*(|e|, e + δ)`` (:meth:`ReleasePolicy.choose`, success = eq 12 within ε_p). Initial ``δ``
-    is the policy's ``δ(0)``.
+    the goal, so ``δ ← δ*(|e|, e + δ)`` (:class:`ReleasePolicy`, success = eq 12 within ε_p; a non-finite ``e``
+    keeps ``δ``). Initial ``δ`` is the policy's ``δ(0)``.
 
     Ports: input ``e`` () m, output ``y`` () = ``δ`` m — those of :class:`~magctl.control.learning.LearningLaw`,
     so :class:`~magctl.control.push.front.FrontPushTask` steps either.
@@ -271,24 +217,9 @@ class ReleasePolicyLaw(Block):
     def initial_state(self, batch, rng=None):
         return {"x": np.full(batch, self.policy.delta0), "neighbours": np.full((batch, self.policy.k), -1)}
 
-    def output(self, state, u):
-        return {"y": state["x"].copy()}
-
-    def update(self, state, u):
-        return self.update_where(state, u, np.ones(np.shape(state["x"]), dtype=bool))
-
-    def update_where(self, state, u, mask) -> dict:
-        """``δ ← δ*(|e|, e + δ)`` for the trials in ``mask``; the others keep theirs."""
-        e = np.asarray(u["e"], dtype=float)
-        m = np.asarray(mask, dtype=bool) & np.isfinite(e)
-        x = state["x"].copy()
-        nb = state["neighbours"].copy()
-        if m.any():
-            x[m], _, nb[m] = self.policy.choose(np.abs(e[m]), e[m] + x[m])
-        return {"x": x, "neighbours": nb}
-
     def kernel(self):
-        """The compiled law (:func:`magctl.control.kernels.release_output`, ``release_update_step``)."""
+        """The law (:func:`magctl.control.kernels.release_output`, ``release_update_step``): ``y = δ``, then
+        ``δ ← δ*(|e|, e + δ)`` and the map rows it was read on."""
         from magctl.control import kernels as k
         from magctl.core.kernel import Kernel
 

@@ -37,13 +37,3 @@ def perp(v: np.ndarray) -> np.ndarray:
     """``v`` rotated by +90°."""
     return np.stack([-v[..., 1], v[..., 0]], axis=-1)
 
-
-def rotate(v: np.ndarray, angle) -> np.ndarray:
-    """Rotate 2-vectors ``v`` (…, 2) by ``angle`` (scalar or per row) counter-clockwise."""
-    c, s = np.cos(angle), np.sin(angle)
-    return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
-
-
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """z-component of the 2-D cross product."""
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]

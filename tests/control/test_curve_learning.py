@@ -4,12 +4,13 @@ plant scales where eq 18 fails, and the attempt map against the 30 Hz task."""
 import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
+from reference.push_blocks import numpy_form
 from test_push import ideal_loop
 
 from magctl.control.curve_learning import CurveLearningLaw, curve_learning_law
 from magctl.control.learning import side_push_law
 from magctl.control.push.common import ExpSideModel, LinSideModel, side_model
-from magctl.control.push.side import SidePushTask
+from magctl.control.push.side import REPOSITION, SETTLE, SidePushTask
 from magctl.control.status import Status
 from magctl.core.errors import MagctlError
 from magctl.core.simulation import simulate
@@ -277,22 +278,43 @@ def test_dirt_response_is_checked():
 def test_push_out_is_learned_and_the_pass_turned_against_it():
     """A pass that moved the sphere 50 µm along its line and 5 µm across it, away from the robot, gives a
     push-out ratio of 0.1 (the first measurement is taken whole, the next with push_out_weight); the next pass
-    is turned by atan(0.1) towards the robot's side, so the sum of both motions points at the goal."""
+    is turned by atan(0.1) towards the robot's side, so the sum of both motions points at the goal. Step by step
+    in the numpy reference, then through one frame of the task that measures such a pass: its kernel and the
+    reference give that ratio and that turn, and the same outputs and next state."""
     task = SidePushTask(goal=(300 * UM, 0.0), learning="curve", model="exp-fit", push_out_weight=0.5)
+    ref = numpy_form(task)
     new = task.initial_state(1)
     u = np.array([[1.0, 0.0]])
     new["u"], new["p0"] = u, np.zeros((1, 2))
     new["start"] = np.array([[-task.behind, 400 * UM]])  # the robot passed on the +y side
     mask = np.array([True])
-    task._learn_push_out(new, mask, np.array([[50 * UM, -5 * UM]]))
+    ref._learn_push_out(new, mask, np.array([[50 * UM, -5 * UM]]))
     assert new["push_out"][0] == pytest.approx(0.1) and new["push_out_n"][0] == 1
-    task._learn_push_out(new, mask, np.array([[50 * UM, -15 * UM]]))
+    ref._learn_push_out(new, mask, np.array([[50 * UM, -15 * UM]]))
     assert new["push_out"][0] == pytest.approx(0.2)  # halfway to 0.3
-    task._learn_push_out(new, mask, np.array([[5 * UM, -5 * UM]]))  # too short a pass: no measurement
+    ref._learn_push_out(new, mask, np.array([[5 * UM, -5 * UM]]))  # too short a pass: no measurement
     assert new["push_out"][0] == pytest.approx(0.2) and new["push_out_n"][0] == 2
     # the next attempt, robot on the +y side of a sphere at the origin, goal along +x
-    task._begin(new, mask, np.array([[-1e-3, 0.5e-3]]), np.array([[[0.0, 0.0]]]))
+    ref._begin(new, mask, np.array([[-1e-3, 0.5e-3]]), np.array([[[0.0, 0.0]]]))
     turn = np.arctan2(new["u"][0, 1], new["u"][0, 0])
     assert turn == pytest.approx(np.arctan(0.2))
+    # a frame that measures the pass (settled at the end of its line, robot on the +y side) and begins the next
+    state = task.initial_state(1)
+    state["phase"][:], state["frames"][:] = SETTLE, task.settle_frames
+    state["u"], state["p0"] = u, np.zeros((1, 2))
+    state["gap"], state["d_des"] = np.array([400 * UM]), np.array([50 * UM])
+    state["start"], state["end"] = np.array([[-task.behind, 400 * UM]]), np.array([[task.ahead, 400 * UM]])
+    inputs = {"robot_est": state["end"].copy(), "spheres_est": np.array([[[50 * UM, -5 * UM]]]),
+              "lost": np.zeros(1, dtype=bool)}
+    out, nxt = task.step(state, inputs)
+    ref_out, ref_nxt = ref.step(state, inputs)
+    for got, want in ((nxt, ref_nxt), (nxt["law"], ref_nxt["law"]), (out, ref_out)):
+        for key, value in want.items():
+            if not isinstance(value, dict):
+                np.testing.assert_allclose(got[key], value, rtol=1e-12, atol=1e-18, err_msg=key)
+    assert nxt["attempt"][0] == 1 and nxt["phase"][0] == REPOSITION
+    assert nxt["push_out"][0] == pytest.approx(0.1) and nxt["push_out_n"][0] == 1
+    # the sphere now heads for the goal along (250, 5) µm: the pass is turned atan(0.1) from that, to the +y side
+    assert np.arctan2(nxt["u"][0, 1], nxt["u"][0, 0]) == pytest.approx(np.arctan2(5, 250) + np.arctan(0.1), abs=1e-12)
     with pytest.raises(MagctlError, match="push_out_weight"):
         SidePushTask(learning="curve", model="exp-fit", push_out_weight=0.0)

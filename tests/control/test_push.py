@@ -254,6 +254,28 @@ def test_bad_task_parameters_are_named():
         AssemblyTask(moved=1, fixed=1)
 
 
+def test_a_configuration_without_a_kernel_is_refused():
+    """A push task's behaviour is its kernel: a law or side-push model of a kind the kernels do not run is named
+    at construction."""
+    from magctl.control.curve_learning import curve_learning_law
+    from magctl.control.learning import LearningLaw
+    from magctl.stability.switched import ScaledSideModel
+
+    class OwnLaw(LearningLaw):
+        pass
+
+    with pytest.raises(MagctlError, match="front push 'front_push': its kernels run no law of type "
+                                          "CurveLearningLaw; give a LearningLaw or a ReleasePolicyLaw"):
+        FrontPushTask(goal=(0, 0), law=curve_learning_law())
+    with pytest.raises(MagctlError, match="side push 'side_push': its kernels run no law of type OwnLaw"):
+        SidePushTask(goal=(0, 0), law=OwnLaw("own", -0.9))
+    with pytest.raises(MagctlError, match="assembly_side'.*no law of type OwnLaw"):
+        FrontThenSideAssemblyTask(law=OwnLaw("own", -0.9))
+    with pytest.raises(MagctlError, match="no model of type ScaledSideModel; give one of lin, exp"):
+        SidePushTask(goal=(0, 0), model=ScaledSideModel(scale=2.0))
+    assert FrontPushTask(goal=(0, 0), law=front_push_law([0.5, 1.0])).kernel() is not None   # per-trial K_c
+
+
 @pytest.mark.slow
 def test_front_push_runs_on_the_plant_blocks():
     """The task closes the loop through the real drive/coils/robot, fluid spheres, camera, tracker and servo."""

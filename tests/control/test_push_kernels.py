@@ -1,9 +1,10 @@
-"""The controller's compiled kernels against its numpy form on closed push loops.
+"""The controller's kernels against their numpy references (``tests/reference``) on closed push loops.
 
 * **controller only** — every push task with the PI servo behind it (the controller's blocks), fed the
-  tracker outputs an interpreted run of the closed stand-in loop recorded: both engines must give the
-  same outputs at every frame and the same final state (1e-12 relative, integers exactly), through
-  approaches, pushes, passes, settles, law updates and the front-then-side hand-over;
+  tracker outputs an interpreted run of the closed stand-in loop recorded: the task's numpy reference and the
+  compiled kernels must give the same outputs at every frame and the same final state (1e-12 relative,
+  integers exactly), through approaches, pushes, passes, settles, law updates and the front-then-side
+  hand-over;
 * **closed loops** — the rig's loop and the ideal loop of ``test_push`` run by both engines (``"auto"``
   compiles what has kernels); and ``magctl.loops.controller`` of every push task compiles when its
   blocks have kernels.
@@ -13,6 +14,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from reference import reference_of
 from test_push import EXACT, UM, ideal_loop, rig_loop
 
 from magctl.control.learning import front_push_law
@@ -140,7 +142,7 @@ def test_controller_kernels_match_on_recorded_tracker_outputs(case):
     _assert_paths_taken(case, task, run[rec[5]], final)
     inputs = {p: run[f"tracker.{p}"] for p in ("robot_est", "spheres_est", "lost")}
     d = controller_only(task)
-    ref = simulate(d, steps, batch=3, seed=5, inputs=inputs, check_finite=False)
+    ref = simulate(controller_only(reference_of(task)), steps, batch=3, seed=5, inputs=inputs, check_finite=False)
     got = simulate(d, steps, batch=3, seed=5, inputs=inputs, check_finite=False, engine="compiled")
     assert_same(ref[f"{task.name}.status"], run[f"{task.name}.status"], "replay")
     for name in d.outputs:
@@ -224,29 +226,24 @@ def study_experiments() -> dict:
     return exps
 
 
-def test_auto_compiles_every_study_loop_without_a_python_block():
+def test_auto_compiles_every_study_loop():
     """``engine="auto"`` (the studies' engine) runs every study's closed loop compiled — the curve-learning side
-    push, its answer to dirt and the release-model front push included — except the planned assemblies, whose
-    pass planner (casadi, IPOPT) is the one Python-only block."""
-    from magctl.control.assembly_planner import PassPlanner
-    from magctl.core.compiled import NotCompilable
+    push, its answer to dirt, the release-model front push and the planned assemblies, whose pass planner (casadi,
+    IPOPT) is a Python event of the compiled frame."""
     from magctl.loops import push_loop
 
     exps = study_experiments()
-    interpreted = []
+    planned = []
     for label, exp in exps.items():
         d = push_loop(exp)
-        python = [lf for lf in d.schedule.leaves if lf.block.kernel() is None]
-        if python:
-            assert [type(getattr(lf.block, "law", None)) for lf in python] == [PassPlanner], label
-            with pytest.raises(NotCompilable, match="controller/task"):
-                d.compile()
-            interpreted.append(label)
-            continue
-        assert d.compile().source, label
+        assert all(lf.block.kernel() is not None for lf in d.schedule.leaves), label
+        compiled = d.compile()
+        assert compiled.source, label
+        if compiled.events:
+            planned.append(label)
     assert {"curve learning (exp-fit prior)", "curve learning + front push on dirt, dirt",
-            "release-model controller"} <= set(exps) - set(interpreted)
-    assert interpreted and all("planned" in label or "greedy" in label for label in interpreted), interpreted
+            "release-model controller"} <= set(exps) - set(planned)
+    assert planned and all("planned" in label or "greedy" in label for label in planned), planned
 
 
 def _study_loop(label, sticky=None):

@@ -4,7 +4,8 @@ The library writes each numeric block's behaviour once, as its per-trial kernel;
 batched numpy forms here are written from the same equations, one subclass per block overriding
 ``output``/``update``/``step`` (ports, state declarations and parameters come from the library block; the
 :class:`~reference.core_blocks.NumpyForm` base switches the kernel off). Each ``*_blocks.py`` module of this
-folder holds one layer's references in a dict ``REFERENCES`` (library class → reference subclass);
+folder holds one layer's references in a dict ``REFERENCES`` (library class → reference subclass); a reference
+of a block that steps others (a push task's learning law, a task run inside another) steps their references.
 ``tests/core/test_kernels.py`` runs every kernelled block against its reference through both engines.
 """
 

@@ -11,9 +11,8 @@ import numpy as np
 
 from magctl.control.phases import START
 from magctl.control.push.planned import MAX_WAYPOINTS, PASS, REPOSITION, SETTLE, WAYPOINT_TOL, PlannedAssemblyTask
-from magctl.control.push.common import PushTask
 from magctl.control.status import Status
-from reference.core_blocks import SteppedForm
+from reference.push_blocks import PushFrame
 
 
 def rows_of(state: dict, rows: np.ndarray) -> dict:
@@ -35,12 +34,17 @@ def distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
 
 
-class RefPlannedAssembly(SteppedForm, PlannedAssemblyTask):
+class RefPlannedAssembly(PushFrame, PlannedAssemblyTask):
     """Reposition along the waypoints → pass → settle → eq 21 on every bond; a trial that needs a pass raises
     ``plan_due`` and is planned after the frame."""
 
+    @property
+    def law_form(self):
+        """The planner stays the Python block it is (no numpy twin: it has no kernel)."""
+        return self.law
+
     def step(self, state, u):
-        out, new = PushTask._frame(self, state, u)
+        out, new = self._frame(state, u)
         out["gap"] = np.nan_to_num(new["gap"])
         out["correction"] = np.nan_to_num(out["correction"])
         rows = np.flatnonzero(new["plan_due"])

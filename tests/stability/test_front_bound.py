@@ -3,6 +3,7 @@ the identified map's verdict."""
 
 import numpy as np
 import pytest
+from reference.push_blocks import best_delta, choose, numpy_form
 from scipy.stats import norm
 
 from magctl.core.errors import MagctlError
@@ -39,7 +40,7 @@ def test_a_release_without_scatter_is_hit_on_every_later_attempt():
     δ with |(d + δ)/2 − δ| < ε_p, finds success 1, and every trial converges at attempt 2."""
     m = synthetic_map(lambda L, rng: 0.5 * L)
     policy = B.release_policy(m, eps=EPS, goal=GOAL)
-    delta, p = policy.delta(np.array([375 * UM, 100 * UM]), np.array([375 * UM, 375 * UM]))
+    delta, p = best_delta(policy, np.array([375 * UM, 100 * UM]), np.array([375 * UM, 375 * UM]))
     assert np.all(p == 1.0)
     assert np.all(np.abs(0.5 * (np.array([375, 100]) * UM + delta) - delta) < EPS)
     run = B.policy_attempts(policy, m, 200)
@@ -53,7 +54,7 @@ def test_an_independent_normal_release_gives_the_closed_form_window():
     sigma = 90 * UM
     m = synthetic_map(lambda L, rng: 300 * UM + sigma * rng.standard_normal(L.shape), n_trials=600)
     policy = B.release_policy(m, eps=EPS, goal=GOAL, k=200, deltas=np.arange(200, 401, 10) * UM)
-    delta, _ = policy.delta(np.full(50, 400 * UM), np.full(50, 250 * UM))
+    delta, _ = best_delta(policy, np.full(50, 400 * UM), np.full(50, 250 * UM))
     assert np.abs(np.median(delta) - 300 * UM) <= 30 * UM
     run = B.policy_attempts(policy, m, 1500, seed=1)
     exact = 2 * norm.cdf(EPS / sigma) - 1
@@ -88,8 +89,9 @@ def test_the_identified_release_leaves_no_half_attempt_to_gain():
 
 
 def test_release_policy_law_steps_the_policy():
-    """The law block's update is δ ← δ*(|e|, e + δ) on the masked trials (the others, and a NaN error, keep
-    theirs); its first δ is the policy's δ(0); the front push takes it as learning='release'."""
+    """The law block's update (its kernel) is δ ← δ*(|e|, e + δ) of the numpy reference on the masked trials, read
+    on the same logged attempts (the others, and a NaN error, keep theirs); its first δ is the policy's δ(0); the
+    front push takes it as learning='release'."""
     from magctl.control.push.front import FrontAssemblyTask, FrontPushTask
     from magctl.control.release_model import ReleasePolicyLaw
 
@@ -99,10 +101,16 @@ def test_release_policy_law_steps_the_policy():
     state = law.initial_state(4)
     assert np.all(law.output(state, {})["y"] == policy.delta0)
     e = np.array([100, -50, 200, np.nan]) * UM
-    new = law.update_where(state, {"e": e}, np.array([True, True, False, True]))
-    want = policy.delta(np.abs(e[:2]), e[:2] + state["x"][:2])[0]
+    mask = np.array([True, True, False, True])
+    new = law.update_where(state, {"e": e}, mask)
+    want, _, rows = choose(policy, np.abs(e[:2]), e[:2] + state["x"][:2])
     np.testing.assert_array_equal(new["x"][:2], want)
+    np.testing.assert_array_equal(new["neighbours"][:2], rows)
     np.testing.assert_array_equal(new["x"][2:], state["x"][2:])
+    assert np.all(new["neighbours"][2:] == -1)
+    ref = numpy_form(law).update_where(state, {"e": e}, mask)
+    for key in ("x", "neighbours"):
+        np.testing.assert_array_equal(new[key], ref[key])
     task = FrontPushTask(goal=(0.0, 0.0), learning="release")
     assert isinstance(task.law, ReleasePolicyLaw) and task.kernel() is not None   # the release law is compiled too
     with pytest.raises(MagctlError, match="learning='curve' is not one of eq13, release"):

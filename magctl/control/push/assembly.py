@@ -17,18 +17,9 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.control.phases import FINISHED, SIDE_PHASE_OFFSET, AssemblyStage
-from magctl.control.push.common import (
-    ATTEMPT_LIMIT,
-    RUNNING,
-    curve_dummies,
-    select_state,
-    sphere_radii,
-    task_parameters,
-    with_defaults,
-)
+from magctl.control.push.common import curve_dummies, sphere_radii, task_parameters, with_defaults
 from magctl.control.push.front import FrontAssemblyTask
 from magctl.control.push.side import SidePushTask
-from magctl.core.batched import cross, norm, rotate, unit
 from magctl.core.block import Block, StateVar, substate
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
@@ -69,20 +60,6 @@ class AssemblyTask(SidePushTask):
         kw["ks"] = p["ks"]
         super().__init__(name, n_spheres=n_spheres, sphere=moved, **kw)
         self.sphere_indices = (int(moved), int(fixed))
-
-    def _geometry(self, new, r, spheres):
-        s1, s2 = spheres[:, self.sphere_indices[0]], spheres[:, self.sphere_indices[1]]
-        v = unit(s2 - s1)
-        side = np.where(cross(v, r - s1) >= 0, 1.0, -1.0)
-        u = rotate(v, side * self.theta_n)
-        sep = norm(s2 - s1)
-        to_close = np.maximum(sep - self.radii[0] - self.radii[1], 0.0)
-        done = sep <= self.radii[0] + self.radii[1] + self.eps_as  # eq 21
-        return s1, to_close, u, side, done
-
-    def _spheres_found(self, new, spheres):
-        s = spheres[:, list(self.sphere_indices)]
-        return np.isfinite(s).all(axis=(1, 2)) & (norm(s[:, 0] - s[:, 1]) < self.workspace)
 
 
 class FrontThenSideAssemblyTask(Block):
@@ -141,43 +118,17 @@ class FrontThenSideAssemblyTask(Block):
         return {"stage": np.full(batch, AssemblyStage.FRONT, dtype=np.int64), "front": self.front.initial_state(batch),
                 "side": self.side.initial_state(batch)}
 
-    def step(self, state, u):
-        """One frame: the running stage's outputs; stage 2 starts the frame after stage 1 ended short of eq 21."""
-        f_out, f_new = self.front.step(state["front"], u)
-        s_out, s_new = self.side.step(state["side"], u)
-        in_side = state["stage"] == AssemblyStage.SIDE
-        handover = ~in_side & (f_out["status"] == ATTEMPT_LIMIT)
-        out = {k: np.where(in_side.reshape((-1,) + (1,) * (np.ndim(s_out[k]) - 1)), s_out[k],
-                           f_out[k] if k in f_out else np.zeros_like(s_out[k]))
-               for k in s_out}
-        out["attempt"] = np.where(in_side, f_out["attempt"] + s_out["attempt"], f_out["attempt"])
-        out["phase"] = np.where(in_side & (s_out["phase"] != FINISHED), s_out["phase"] + self.SIDE_PHASE_OFFSET,
-                                out["phase"])
-        out["status"] = np.where(handover, RUNNING, out["status"])
-        out["phase"] = np.where(handover, self.SIDE_PHASE_OFFSET, out["phase"])
-        out["stage"] = np.where(in_side, AssemblyStage.SIDE, AssemblyStage.FRONT).astype(np.int64)
-        new = {"stage": np.where(in_side | handover, AssemblyStage.SIDE, AssemblyStage.FRONT).astype(np.int64),
-               "front": f_new, "side": select_state(in_side, s_new, state["side"])}
-        return out, new
-
-    def output(self, state, u):
-        return self.step(state, u)[0]
-
-    def update(self, state, u):
-        return self.step(state, u)[1]
-
     def kernel(self):
-        """The compiled frame (:func:`magctl.control.push.kernels.front_then_side_step`, or
-        ``front_then_curve_side_step`` with the curve-learning law in the side stage): both stages' kernels."""
+        """The frame (:func:`magctl.control.push.kernels.front_then_side_step`, or ``front_then_curve_side_step``
+        with the curve-learning law in the side stage): the front stage every frame; the side stage, advanced only
+        in stage 2, from the frame after the front stage ends at its attempt limit short of eq 21 (on that frame
+        the outputs read ``RUNNING``, phase :data:`SIDE_PHASE_OFFSET`)."""
         from magctl.control.push import kernels as k
         from magctl.core.kernel import Kernel
 
-        side = self.side._side_kernel_params()
-        law = self.side._law_kind()
-        if side is None or self.front._law_kind() != k.LAW_INTEGRATOR or law not in (k.LAW_INTEGRATOR, k.LAW_CURVE):
-            return None
         front = self.front._front_kernel_with_dummies()
-        if law == k.LAW_CURVE:
+        side = self.side._side_kernel_params()
+        if self.side.learns_curve:
             return Kernel(step=k.front_then_curve_side_step, params=(*front, *side))
         return Kernel(step=k.front_then_side_step, params=(*front, *side, *curve_dummies()))
 

@@ -12,9 +12,8 @@ from typing import Any
 import numpy as np
 
 from magctl.config import load_model
-from magctl.control.phases import FINISHED, START
+from magctl.control.phases import START
 from magctl.control.status import Status
-from magctl.core.batched import norm
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 from magctl.core.units import UM
@@ -180,30 +179,6 @@ def side_model(name: str):
     raise MagctlError(f"side-push model {name!r} is not known; use one of {', '.join(SIDE_MODELS)}")
 
 
-def around(robot: np.ndarray, obstacle: np.ndarray, target: np.ndarray, clearance, step=np.pi / 4) -> np.ndarray:
-    """Next waypoint from ``robot`` to ``target`` that keeps ``clearance`` from ``obstacle``.
-
-    Where the straight segment enters the disc of radius ``clearance`` around the
-    obstacle (and the target is outside it), the waypoint is on a slightly larger
-    circle, ``step`` radians further round from the robot's bearing, turning the short
-    way towards the target's bearing; otherwise the target itself. Stateless and
-    batched: called every frame it walks the robot round the disc (a minimal stand-in
-    for the paper's wavefront planner, §II).
-    """
-    d = target - robot
-    rel = obstacle - robot
-    dd = np.einsum("bi,bi->b", d, d)
-    t = np.minimum(np.maximum(np.einsum("bi,bi->b", rel, d) / np.where(dd > 0, dd, 1.0), 0.0), 1.0)   # clip
-    closest = norm(robot + t[:, None] * d - obstacle)
-    blocked = (closest < clearance) & (norm(target - obstacle) >= clearance)
-    a_r = np.arctan2(robot[:, 1] - obstacle[:, 1], robot[:, 0] - obstacle[:, 0])
-    a_t = np.arctan2(target[:, 1] - obstacle[:, 1], target[:, 0] - obstacle[:, 0])
-    diff = (a_t - a_r + np.pi) % (2 * np.pi) - np.pi
-    a = a_r + np.sign(diff) * np.minimum(np.abs(diff), step)
-    wp = obstacle + (1.08 * np.asarray(clearance))[..., None] * np.stack([np.cos(a), np.sin(a)], axis=-1)
-    return np.where(blocked[:, None], wp, target)
-
-
 # --- parameters: models/push.toml ---------------------------------------------------------------
 _KEYWORD = {"settle": "settle_frames", "max_lost": "max_lost_frames", "phase_timeout": "phase_timeout_frames"}
 _INTEGER = ("max_attempts", "settle_frames", "max_lost_frames", "phase_timeout_frames")
@@ -249,25 +224,19 @@ def goal_distance(table: str) -> float:
     return float(load_model("push")[table].goal_distance)
 
 
-# --- the batched attempt-level state machine shared by every push task ---------------------------
+# --- the attempt-level state machine shared by every push task -----------------------------------
 # START and FINISHED (magctl.control.phases) begin and end every push task's phases.
 
 
 class PushTask:
-    """Mix-in with the machinery every push task shares (ports, failures, hold, declared state).
+    """Mix-in with what every push task declares: its ports, its common state, its shared parameters, and the
+    kernels' parameter arrays (:mod:`magctl.control.push.kernels`, where a push task's frame is written).
 
-    Subclasses are :class:`~magctl.core.block.Block` s that define ``PHASES`` and
-    ``_step(st, new, r, spheres, ok)``, which reads the frame's measurements and
-    writes the next phase, targets and law state into ``new`` (a copy of the
-    state) for the trials in ``ok`` (running, tracked, sphere found). A frame's
-    outputs and next state come from one :meth:`_frame`, which the engine calls
-    through :meth:`step`.
-
-    Status handling: a trial whose tracker reports ``lost`` for more than
-    ``max_lost_frames`` consecutive frames ends with ``TRACKING_LOST``; one whose
-    sphere estimate is missing (non-finite) or beyond ``workspace`` from its goal ends
-    with ``SPHERE_LOST``; one stuck in a phase for ``phase_timeout_frames`` ends with
-    ``STALLED``. Finished trials hold the robot where it was.
+    Subclasses are :class:`~magctl.core.block.Block` s that define ``PHASES``. Every frame, per trial: a trial
+    whose tracker reports ``lost`` for more than ``max_lost_frames`` consecutive frames ends with
+    ``TRACKING_LOST``; one whose sphere estimate is missing (non-finite) or beyond ``workspace`` from its goal
+    ends with ``SPHERE_LOST``; one stuck in a phase for ``phase_timeout_frames`` ends with ``STALLED``; a running,
+    tracked trial with its sphere found takes the task's own step. Finished trials hold the robot where it was.
     """
 
     def _check_common(self, what: str, name: str, params: dict, *, goal, n_spheres, sphere):
@@ -330,50 +299,6 @@ class PushTask:
                 StateVar("speed", (), symbol="v_cap", description="speed cap of the current phase, m/s"),
                 substate("law", self.law.state_vars(), "the learning law's state"))
 
-    def step(self, state, u):
-        """Outputs and next state of one frame, computed together by :meth:`_frame`."""
-        return self._frame(state, u)
-
-    def output(self, state, u):
-        return self._frame(state, u)[0]
-
-    def update(self, state, u):
-        return self._frame(state, u)[1]
-
-    def _frame(self, state, u):
-        r = np.asarray(u["robot_est"], dtype=float)
-        spheres = np.asarray(u["spheres_est"], dtype=float)
-        lost = np.asarray(u["lost"], dtype=bool)
-        new = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in state.items()}
-        new["law"] = dict(state["law"])
-        running = new["status"] == RUNNING
-        new["lost_frames"] = np.where(running & lost, new["lost_frames"] + 1, 0)
-        new["frames"] = np.where(running, new["frames"] + 1, new["frames"])
-        self._fail(new, running & (new["lost_frames"] > self.max_lost_frames), TRACKING_LOST, r)
-        running = new["status"] == RUNNING
-        found = self._spheres_found(new, spheres)
-        self._fail(new, running & ~lost & ~found, SPHERE_LOST, r)
-        running = new["status"] == RUNNING
-        self._fail(new, running & (new["frames"] > self.phase_timeout_frames), STALLED, r)
-        ok = (new["status"] == RUNNING) & ~lost
-        if ok.any():
-            self._step(state, new, r, spheres, ok)
-        done = new["status"] != RUNNING
-        new["phase"] = np.where(done, FINISHED, new["phase"])
-        target = np.where(np.isnan(new["target"]), r, new["target"])
-        speed = np.where(done, 0.0, new["speed"])
-        out = {
-            "target": target, "speed_cap": speed, "status": new["status"].copy(),
-            "attempt": new["attempt"].copy(), "phase": new["phase"].copy(),
-            "correction": self.law.output(new["law"], {})["y"].copy(),
-        }
-        return out, new
-
-    def _fail(self, new, mask, code, r):
-        if mask.any():
-            new["status"] = np.where(mask, code, new["status"])
-            new["target"] = np.where(mask[:, None], r, new["target"])
-
     def _kernel_params(self, **task: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The float and int parameter arrays and the integrator law's gain (a dummy 0 for the other laws) of the
         compiled kernels (:mod:`magctl.control.push.kernels`); ``task`` sets the task's own float entries by
@@ -394,46 +319,21 @@ class PushTask:
         gain = self.law.gain if law == k.LAW_INTEGRATOR else 0.0
         return fp, ip, np.atleast_1d(np.asarray(gain, dtype=float)).copy()
 
-    def _law_kind(self) -> int | None:
-        """The kernels' code of the task's law (:data:`magctl.control.push.kernels.LAW_INTEGRATOR` …), None for a
-        law they do not know."""
+    def _law_kind(self) -> int:
+        """The kernels' code of the task's law (:data:`magctl.control.push.kernels.LAW_INTEGRATOR` …)."""
         from magctl.control.curve_learning import CurveLearningLaw
         from magctl.control.learning import LearningLaw
         from magctl.control.push import kernels as k
         from magctl.control.release_model import ReleasePolicyLaw
 
         return {LearningLaw: k.LAW_INTEGRATOR, CurveLearningLaw: k.LAW_CURVE,
-                ReleasePolicyLaw: k.LAW_RELEASE}.get(type(self.law))
+                ReleasePolicyLaw: k.LAW_RELEASE}[type(self.law)]
 
-    def _kernel_law_ok(self) -> bool:
-        return self._law_kind() is not None
-
-    def _spheres_found(self, new, spheres) -> np.ndarray:
-        idx = list(self.sphere_indices)
-        s = spheres[:, idx]
-        finite = np.isfinite(s).all(axis=(1, 2))
-        far = norm(spheres[:, idx[0]] - new["goal"]) > self.workspace if "goal" in new else False
-        return finite & ~far
-
-    def _start(self, new, ok, done, r, spheres):
-        """Trials still at ``START``: converged if eq 12 (eq 21) already holds, else the first attempt begins."""
-        start = ok & (new["phase"] == START)
-        if start.any():
-            new["status"] = np.where(start & done, Status.CONVERGED, new["status"])
-            self._begin(new, start & ~done, r, spheres)
-
-    def _enter(self, new, mask, phase):
-        new["phase"] = np.where(mask, phase, new["phase"])
-        new["frames"] = np.where(mask, 0, new["frames"])
-
-    def _finish_attempt(self, new, mask, converged):
-        """Count the attempt; converged or limit reached ends the trial. Returns trials that go on."""
-        new["attempt"] = np.where(mask, new["attempt"] + 1, new["attempt"])
-        conv = mask & converged
-        limit = mask & ~converged & (new["attempt"] >= self.max_attempts)
-        new["status"] = np.where(conv, CONVERGED, np.where(limit, ATTEMPT_LIMIT, new["status"]))
-        return mask & ~conv & ~limit
-
+    def _check_law(self, what: str, name: str, accepted: tuple[type, ...]) -> None:
+        """Refuse a law whose kind the task's kernels do not run (``accepted``: the law classes they do)."""
+        if type(self.law) not in accepted:
+            raise MagctlError(f"{what} {name!r}: its kernels run no law of type {type(self.law).__name__}; give a "
+                              + " or a ".join(cls.__name__ for cls in accepted))
 
 
 def release_dummies() -> tuple:
@@ -446,22 +346,3 @@ def curve_dummies() -> tuple:
     """The curve law's ``law.cov``, ``push_out`` and ``push_out_n`` for a side-push kernel whose law is the
     integrator (never read)."""
     return np.zeros((1, 9)), np.zeros((1, 1)), np.zeros((1, 1), dtype=np.int64)
-
-
-def select_state(mask: np.ndarray, a: dict, b: dict) -> dict:
-    """Per trial, ``a``'s entries where ``mask`` holds and ``b``'s elsewhere (nested dicts alike)."""
-    out = {}
-    for k, va in a.items():
-        vb = b[k]
-        if isinstance(va, dict):
-            out[k] = select_state(mask, va, vb)
-        elif isinstance(va, np.ndarray) and va.ndim >= 1 and va.shape[0] == mask.shape[0]:
-            out[k] = np.where(mask.reshape((-1,) + (1,) * (va.ndim - 1)), va, vb)
-        else:
-            out[k] = va
-    return out
-
-
-def arrived(r: np.ndarray, target: np.ndarray, tol: float) -> np.ndarray:
-    """Robot within ``tol`` of its target."""
-    return norm(r - target) < tol

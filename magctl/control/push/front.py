@@ -19,19 +19,16 @@ from __future__ import annotations
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.control.learning import front_push_law
-from magctl.control.phases import FINISHED, START, FrontPhase
+from magctl.control.learning import LearningLaw, front_push_law
+from magctl.control.phases import FINISHED, FrontPhase
 from magctl.control.push.common import (
     PushTask,
-    around,
-    arrived,
     goal_distance,
     release_dummies,
     sphere_radii,
     with_defaults,
 )
-from magctl.control.release_model import release_policy_law
-from magctl.core.batched import norm, unit
+from magctl.control.release_model import ReleasePolicyLaw, release_policy_law
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
@@ -56,7 +53,8 @@ class FrontPushTask(PushTask, Block):
         (:class:`~magctl.control.release_model.ReleasePolicyLaw` on ``models/front_release.toml``,
         docs/push-control.md §7).
     law : LearningLaw or ReleasePolicyLaw, optional
-        The learning block to use (shared with the iteration-domain analysis); overrides ``learning``.
+        The learning block to use (shared with the iteration-domain analysis); overrides ``learning``. A law of
+        another type is refused: the task's kernels run these two.
     n_spheres, sphere : int
         Width of the ``spheres_est`` port and which sphere to push.
     eps : float
@@ -105,6 +103,7 @@ class FrontPushTask(PushTask, Block):
                           workspace=workspace)
         self._check_common("front push", name, p, goal=goal, n_spheres=n_spheres, sphere=sphere)
         self.law = law if law is not None else self._law(name, p)
+        self._check_law("front push", name, (LearningLaw, ReleasePolicyLaw))
         self.push_tol = check_positive("push_tol", p["push_tol"])
         self.contact = check_positive("contact", p["contact"])
         self.approach = check_positive("approach", p["approach"])
@@ -121,18 +120,15 @@ class FrontPushTask(PushTask, Block):
         raise MagctlError(f"front push {name!r}: learning={p['learning']!r} is not one of {', '.join(LEARNING)}")
 
     def kernel(self):
-        """The compiled frame (:func:`magctl.control.push.kernels.front_step` with eq 13,
-        ``release_front_step`` with the release-model law); None with a law the kernels do not know."""
+        """The frame (:func:`magctl.control.push.kernels.front_step` with eq 13, ``release_front_step`` with the
+        release-model law): approach → push (eq 10, 11) → retract → settle → eq 12, eq 13."""
         from magctl.control.push import kernels as k
         from magctl.core.kernel import Kernel
 
-        law = self._law_kind()
-        if law == k.LAW_RELEASE:
+        if self._law_kind() == k.LAW_RELEASE:
             return Kernel(step=k.release_front_step,
                           params=(*self._front_kernel_params(), *self.law.policy.kernel_tables()))
-        if law == k.LAW_INTEGRATOR:
-            return Kernel(step=k.front_step, params=self._front_kernel_with_dummies())
-        return None
+        return Kernel(step=k.front_step, params=self._front_kernel_with_dummies())
 
     def _front_kernel_with_dummies(self) -> tuple:
         """:func:`magctl.control.push.kernels.front_step`'s parameters (eq 13: the release law's are dummies)."""
@@ -143,13 +139,6 @@ class FrontPushTask(PushTask, Block):
         return self._kernel_params(PUSH_TOL=self.push_tol, CONTACT=self.contact, APPROACH=self.approach,
                                    RETRACT=self.retract, PUSH_SPEED=self.push_speed, R0=radii[0], R1=radii[1],
                                    EPS_AS=getattr(self, "eps_as", 0.0))
-
-    # --- geometry: which point the sphere must reach and when the task is done ------------------
-    def _geometry(self, new, r, spheres):
-        """Moved sphere ``s``, goal point, pushing direction ``u`` and the eq 12 test."""
-        s = spheres[:, self.sphere_indices[0]]
-        goal = new["goal"]
-        return s, goal, unit(goal - s), norm(goal - s) < self.eps
 
     def state_vars(self):
         from magctl.core.block import StateVar
@@ -169,52 +158,6 @@ class FrontPushTask(PushTask, Block):
         for k in ("u", "p_ri", "p_o", "g_line", "stand", "back"):
             st[k] = np.zeros((batch, 2))
         return st
-
-    def _begin(self, new, mask, r, spheres):
-        s, goal, u, _ = self._geometry(new, r, spheres)
-        m = mask[:, None]
-        delta = self.law.output(new["law"], {})["y"]
-        p_o = goal + delta[:, None] * u  # eq 10
-        new["u"] = np.where(m, u, new["u"])
-        new["g_line"] = np.where(m, goal, new["g_line"])
-        new["p_ri"] = np.where(m, s - self.approach * u, new["p_ri"])
-        new["p_o"] = np.where(m, p_o, new["p_o"])
-        new["stand"] = np.where(m, p_o - self.contact * u, new["stand"])
-        self._enter(new, mask, APPROACH)
-
-    def _step(self, state, new, r, spheres, ok):
-        ph = new["phase"]
-        s, _, _, done = self._geometry(new, r, spheres)
-        self._start(new, ok, done, r, spheres)
-        # approach → push
-        app = ok & (ph == APPROACH) & arrived(r, new["p_ri"], self.arrive_tol)
-        self._enter(new, app, PUSH)
-        # push → retract (eq 11, or the robot stands where the sphere would be at P_o)
-        pushing = ok & (ph == PUSH)
-        reached = pushing & ((norm(s - new["p_o"]) < self.push_tol) | arrived(r, new["stand"], self.arrive_tol))
-        new["back"] = np.where(reached[:, None], r - self.retract * new["u"], new["back"])
-        self._enter(new, reached, RETRACT)
-        # retract → settle
-        ret = ok & (ph == RETRACT) & arrived(r, new["back"], self.arrive_tol)
-        self._enter(new, ret, SETTLE)
-        # settle → measure (eq 12, eq 13) → next attempt
-        meas = ok & (ph == SETTLE) & (new["frames"] >= self.settle_frames)
-        if meas.any():
-            e = np.einsum("bi,bi->b", new["g_line"] - s, new["u"])
-            go_on = self._finish_attempt(new, meas, done)
-            new["law"] = self.law.update_where(new["law"], {"e": e}, go_on)
-            self._begin(new, go_on, r, spheres)
-        self._targets(new, r, s, ok)
-
-    def _targets(self, new, r, s, ok):
-        """The servo target and speed cap of the phase, for the trials in ``ok`` (the others keep theirs)."""
-        ph = np.where(ok, new["phase"], START)
-        tgt = new["target"]
-        tgt = np.where((ph == APPROACH)[:, None], around(r, s, new["p_ri"], self.clearance), tgt)
-        tgt = np.where((ph == PUSH)[:, None], new["stand"], tgt)
-        tgt = np.where(((ph == RETRACT) | (ph == SETTLE))[:, None], new["back"], tgt)
-        new["target"] = tgt
-        new["speed"] = np.where(ok, np.where(ph == PUSH, self.push_speed, self.travel_speed), new["speed"])
 
 
 class FrontAssemblyTask(FrontPushTask):
@@ -239,14 +182,3 @@ class FrontAssemblyTask(FrontPushTask):
         kw.setdefault("goal", (0.0, 0.0))
         super().__init__(name, n_spheres=n_spheres, sphere=moved, **kw)
         self.sphere_indices = (int(moved), int(fixed))
-
-    def _geometry(self, new, r, spheres):
-        s1, s2 = spheres[:, self.sphere_indices[0]], spheres[:, self.sphere_indices[1]]
-        v = unit(s2 - s1)
-        goal = s2 - (self.radii[0] + self.radii[1]) * v
-        done = norm(s2 - s1) <= self.radii[0] + self.radii[1] + self.eps_as  # eq 21
-        return s1, goal, v, done
-
-    def _spheres_found(self, new, spheres):
-        s = spheres[:, list(self.sphere_indices)]
-        return np.isfinite(s).all(axis=(1, 2)) & (norm(s[:, 0] - s[:, 1]) < self.workspace)

@@ -14,7 +14,8 @@ One attempt, per trial:
 The frames are compiled (:func:`magctl.control.push.kernels.planned_step`); the plan is the block's Python event
 (:meth:`PlannedAssemblyTask.handle_event`, docs/core.md "Python events"): the frame that needs a pass raises
 ``plan_due``, the planner runs at the end of that frame for those trials only, and the pass and its path apply
-from the next frame on, as on a rig, where the plan takes part of a 33 ms frame (`benchmarks/bench_assembly_planner.py`).
+from the next frame on, as on a rig, where the plan takes part of a 33 ms frame
+(``benchmarks/bench_assembly_planner.py``).
 
 A trial for which the planner finds no pass that keeps its bounds ends ``STALLED``.
 """
@@ -27,9 +28,10 @@ from magctl import FRAME_PERIOD_S
 from magctl.config import load_model
 from magctl.control.arrangement import arrangement as make_arrangement
 from magctl.control.assembly_planner import PassPlanner, PlanLimits
-from magctl.control.phases import SidePhase
+from magctl.control.phases import FINISHED, START, SidePhase
 from magctl.control.planner import KEEP_OUT_M, PlanningError, plan_path
-from magctl.control.push.common import FINISHED, STALLED, START, PushTask, with_defaults
+from magctl.control.push.common import PushTask, with_defaults
+from magctl.control.status import Status
 from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
@@ -41,7 +43,7 @@ WAYPOINT_TOL = 50e-6
 """The robot counts as past an intermediate waypoint within 50 µm (the pass start needs ``arrive_tol``)."""
 
 
-class PlannedAssemblyTask(Block, PushTask):
+class PlannedAssemblyTask(PushTask, Block):
     """Assembly of ``n_spheres`` spheres into ``arrangement`` by passes the planner chooses.
 
     Parameters
@@ -145,7 +147,7 @@ class PlannedAssemblyTask(Block, PushTask):
         new["law"] = self.law.update_where(state["law"], {"spheres": spheres, "robot": r}, due)
         a, b = new["law"]["start"], new["law"]["end"]
         none = due & ~np.isfinite(a).all(axis=1)
-        new["status"] = np.where(none, STALLED, new["status"])
+        new["status"] = np.where(none, Status.STALLED, new["status"])
         new["phase"] = np.where(none, FINISHED, new["phase"])
         new["target"] = np.where(none[:, None], r, new["target"])
         go = due & ~none

@@ -19,8 +19,9 @@ the model) eq 22 gives an infinite gap: the attempt makes no pass, settles and m
 With ``dirt_response="front"`` (and the curve law) a sphere the estimate reads as stuck — under
 ``[dirt] mobility`` of the prior's displacement at the contact threshold with more than ``[dirt] passes``
 passes to go — gets one front push to the goal (:class:`~magctl.control.push.front.FrontPushTask`, eq 11's
-tolerance ``[dirt] push_tol``) instead of the next pass; the side passes then finish from where it lies,
-with the estimate they had learned.
+tolerance ``[dirt] push_tol``) instead of the next pass, at most ``[dirt] fronts`` times. The side stage is frozen
+while it runs; its end counts as an attempt (a failure — tracking or sphere lost, stalled — ends the task with
+that status), and the side passes then finish from where the sphere lies, with the estimate they had learned.
 
 The naive controllers of §VI-B (a fixed gap, no model) are ``fixed_gap=``. With ``learning="curve"`` the
 eq 17–18 pair is replaced by :class:`~magctl.control.curve_learning.CurveLearningLaw`: the curve itself is
@@ -36,19 +37,18 @@ from magctl import FRAME_PERIOD_S
 from magctl.config import load_model
 from magctl.control.curve_learning import CurveLearningLaw, curve_learning_law
 from magctl.control.learning import LearningLaw, side_push_law
-from magctl.control.phases import FINISHED, FRONT_PHASE_OFFSET, START, DirtStage, SidePhase
+from magctl.control.phases import FINISHED, DirtStage, SidePhase
 from magctl.control.push.common import (
+    SIDE_MODELS,
+    ExpSideModel,
+    LinSideModel,
     PushTask,
-    around,
-    arrived,
+    TabulatedSideModel,
     curve_dummies,
-    select_state,
     side_model,
     with_defaults,
 )
 from magctl.control.push.front import FrontPushTask
-from magctl.control.status import Status
-from magctl.core.batched import cross, norm, perp, unit
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
@@ -60,6 +60,8 @@ LEARNING = {"eq18": "the paper's eq 18 law correcting the fixed model F (gain K_
 DIRT_RESPONSES = {"none": "side passes only, whatever the sphere's mobility",
                   "front": "one front push for the coarse part when the curve law reads the sphere as stuck"}
 SIDE_STAGE, FRONT_STAGE = int(DirtStage.SIDE), int(DirtStage.FRONT)
+KERNEL_MODELS = (ExpSideModel, LinSideModel, TabulatedSideModel)
+"""The kinds of side-push model the task's kernels evaluate (:func:`magctl.control.push.kernels.model_gap`)."""
 
 
 class SidePushTask(PushTask, Block):
@@ -71,14 +73,15 @@ class SidePushTask(PushTask, Block):
         ``P_g`` (m).
     ks : float
         ``K_s`` of eq 18 (used when ``law`` is not given).
-    model : "lin", "exp" or a model object
+    model : "lin", "exp", "lin-fit", "exp-fit" or a model object
         ``F`` of eq 17: eq 23 (``lin``) or eq 22 (``exp``); with ``learning="curve"``, the prior curve
-        (eq 22's form: ``exp`` or ``exp-fit``).
+        (eq 22's form: ``exp`` or ``exp-fit``). A model object is one of :data:`KERNEL_MODELS`.
     learning : {"eq18", "curve"}
         The paper's eq 18 law on ``F`` (``ks``), or the curve learned online
         (:func:`~magctl.control.curve_learning.curve_learning_law`, prior ``model``).
     law : LearningLaw or CurveLearningLaw, optional
-        The learning block itself (shared with the iteration-domain analysis); overrides ``learning``.
+        The learning block itself (shared with the iteration-domain analysis); overrides ``learning``. A law of
+        another type is refused: the task's kernels run these two.
     push_out_weight, push_out_min : float
         With the curve law: the weight of each new measurement in the estimate of the push-out ratio (the
         sphere's displacement across the pass, away from the robot, per unit displacement along it), and the
@@ -128,7 +131,12 @@ class SidePushTask(PushTask, Block):
         self._check_common("side push", name, p, goal=goal, n_spheres=n_spheres, sphere=sphere)
         model, min_gap, behind, ahead, pass_speed = p["model"], p["min_gap"], p["behind"], p["ahead"], p["pass_speed"]
         self.model = side_model(model) if isinstance(model, str) else model
+        if type(self.model) not in KERNEL_MODELS:
+            raise MagctlError(f"side push {name!r}: its kernels evaluate no model of type {type(self.model).__name__}; "
+                              f"give one of {', '.join(SIDE_MODELS)} or an "
+                              + ", ".join(cls.__name__ for cls in KERNEL_MODELS))
         self.law = law if law is not None else self._law(name, p["learning"], p["ks"])
+        self._check_law("side push", name, (LearningLaw, CurveLearningLaw))
         self.learns_curve = isinstance(self.law, CurveLearningLaw)
         self.push_out_weight = float(p["push_out_weight"])
         if not 0.0 < self.push_out_weight <= 1.0:
@@ -175,32 +183,25 @@ class SidePushTask(PushTask, Block):
                              push_tol=float(dirt.push_tol), n_spheres=n_spheres, sphere=sphere, **shared)
 
     def kernel(self):
-        """The compiled frame: :func:`magctl.control.push.kernels.side_step` with eq 18, ``curve_side_step`` with the
-        curve-learning law (its EKF step, push-out turn, bound and inverse), ``side_dirt_step`` with the front push
-        answering dirt; None for a model or law the kernels do not know."""
+        """The frame: :func:`magctl.control.push.kernels.side_step` with eq 18 (reposition → pass → settle → eq 12,
+        eq 16–18), ``curve_side_step`` with the curve-learning law (its EKF step, push-out turn, bound and inverse),
+        ``side_dirt_step`` with the front push answering dirt."""
         from magctl.control.push import kernels as k
         from magctl.core.kernel import Kernel
 
-        law = self._law_kind()
         params = self._side_kernel_params()
-        if params is None or law not in (k.LAW_INTEGRATOR, k.LAW_CURVE):
-            return None
-        if law == k.LAW_INTEGRATOR:
+        if not self.learns_curve:
             return Kernel(step=k.side_step, params=(*params, *curve_dummies()))
         if self.front is None:
             return Kernel(step=k.curve_side_step, params=params)
-        front_x0 = np.asarray(self.front.law.initial, dtype=float)
-        if self.front._law_kind() != k.LAW_INTEGRATOR or front_x0.ndim:
-            return None
         return Kernel(step=k.side_dirt_step, in_place=False,
-                      params=(*params, *self.front._front_kernel_with_dummies(), float(front_x0)))
+                      params=(*params, *self.front._front_kernel_with_dummies(), float(self.front.law.initial)))
 
-    def _side_kernel_params(self) -> tuple | None:
+    def _side_kernel_params(self) -> tuple:
         """``(fp, ip, gain, gaps, log displacements, rates, cp)``: the model as a kind code and its parameters, and
-        the curve law's (zeros with eq 18); None for a model of another kind."""
+        the curve law's (zeros with eq 18)."""
         from magctl.control import kernels as law_kernels
         from magctl.control.push import kernels as k
-        from magctl.control.push.common import ExpSideModel, LinSideModel, TabulatedSideModel
 
         m = self.model
         table = (np.zeros(2), np.zeros(2), np.zeros(1))
@@ -208,11 +209,9 @@ class SidePushTask(PushTask, Block):
             kind, m0, m1 = k.MODEL_EXP, m.amplitude, m.rate
         elif type(m) is LinSideModel:
             kind, m0, m1 = k.MODEL_LIN, m.intercept, m.slope_
-        elif type(m) is TabulatedSideModel:
+        else:  # a TabulatedSideModel: the constructor takes no other kind
             kind, m0, m1 = k.MODEL_TABLE, 0.0, 0.0
             table = tuple(np.ascontiguousarray(a, dtype=float) for a in m._tab())
-        else:
-            return None
         radii = getattr(self, "radii", (0.0, 0.0))
         curve = {}
         cp, iterations = np.zeros(law_kernels.N_CP), 0
@@ -230,16 +229,6 @@ class SidePushTask(PushTask, Block):
         ip[[k.MODEL, k.FIXED, k.ITERATIONS, k.MAX_FRONTS]] = (kind, self.fixed_gap is not None, iterations,
                                                               getattr(self, "max_fronts", 0))
         return (fp, ip, gain, *table, cp)
-
-    # --- geometry ---------------------------------------------------------------------------------
-    def _geometry(self, new, r, spheres):
-        """Moved sphere, distance still to go, pushing direction, side of the motion line, eq 12."""
-        s = spheres[:, self.sphere_indices[0]]
-        to_goal = new["goal"] - s
-        u = unit(to_goal)
-        side = np.where(cross(u, r - s) >= 0, 1.0, -1.0)
-        dist = norm(to_goal)
-        return s, dist, u, side, dist < self.eps
 
     def state_vars(self):
         from magctl.core.block import StateVar, substate
@@ -273,139 +262,3 @@ class SidePushTask(PushTask, Block):
             st |= {"stage": np.full(batch, SIDE_STAGE, dtype=np.int64), "fronts": np.zeros(batch, dtype=np.int64),
                    "front": self.front.initial_state(batch)}
         return st
-
-    def step(self, state, u):
-        return self._frame(state, u) if self.front is None else self._frame_with_front(state, u)
-
-    def output(self, state, u):
-        return self.step(state, u)[0]
-
-    def update(self, state, u):
-        return self.step(state, u)[1]
-
-    def _frame_with_front(self, state, u):
-        """One frame of side passes that hand a stuck sphere to one front push and take it back afterwards.
-
-        The side stage is frozen while the front push runs. It hands over on the frame it measures an attempt
-        after which the curve law reads the sphere as stuck (estimated displacement at the contact threshold
-        under ``dirt_mobility`` of the prior's) with more than ``dirt_passes`` passes at that bound to go, at
-        most ``max_fronts`` times; the front push counts as an attempt when it ends, and the side passes
-        start afresh from where the sphere lies. A front push ending in a failure (tracking or sphere lost,
-        stalled) ends the task with that status.
-        """
-        side_state = {k: v for k, v in state.items() if k not in ("stage", "fronts", "front")}
-        s_out, s_new = self._frame(side_state, u)
-        f_out, f_new = self.front.step(state["front"], u)
-        in_front = state["stage"] == FRONT_STAGE
-        spheres = np.asarray(u["spheres_est"], dtype=float)
-        s = spheres[:, self.sphere_indices[0]]
-        dist = norm(s_new["goal"] - s)
-        measured = ~in_front & (s_new["attempt"] > side_state["attempt"]) & (s_new["status"] == Status.RUNNING)
-        stuck = self.law.mobility(s_new["law"], self.min_gap) < self.dirt_mobility
-        many = dist > self.dirt_passes * self.law.displacement(s_new["law"], self.min_gap)
-        trigger = measured & stuck & many & (state["fronts"] < self.max_fronts)
-        ended = in_front & (f_out["status"] != Status.RUNNING)
-        failed = ended & ~np.isin(f_out["status"], (Status.CONVERGED, Status.ATTEMPT_LIMIT))
-        back = ended & ~failed
-
-        side = select_state(in_front, side_state, s_new)
-        restart = trigger | back
-        side["phase"] = np.where(restart, START, side["phase"])
-        side["frames"] = np.where(restart, 0, side["frames"])
-        side["target"] = np.where(restart[:, None], np.nan, side["target"])
-        if back.any():
-            self._finish_attempt(side, back, dist < self.eps)  # the front push was an attempt
-        side["status"] = np.where(failed, f_out["status"], side["status"])
-        side["phase"] = np.where(side["status"] != Status.RUNNING, FINISHED, side["phase"])
-
-        running = select_state(in_front, f_new, state["front"])
-        front = select_state(trigger, self.front.initial_state(len(trigger)), running)
-        new = side | {"stage": np.where(trigger, FRONT_STAGE, np.where(ended, SIDE_STAGE, state["stage"])),
-                      "fronts": state["fronts"] + trigger, "front": front}
-
-        running_front = in_front & ~ended
-        out = dict(s_out)
-        for k in ("target", "speed_cap"):
-            out[k] = np.where(running_front.reshape((-1,) + (1,) * (np.ndim(f_out[k]) - 1)), f_out[k], s_out[k])
-        out["phase"] = np.where(running_front, f_out["phase"] + FRONT_PHASE_OFFSET, s_out["phase"])
-        out["gap"] = np.where(in_front, 0.0, s_out["gap"])
-        out["status"] = side["status"].copy()
-        out["attempt"] = side["attempt"].copy()
-        out["phase"] = np.where(side["status"] != Status.RUNNING, FINISHED, out["phase"])
-        out["target"] = np.where((ended | trigger)[:, None], np.asarray(u["robot_est"], dtype=float), out["target"])
-        out["speed_cap"] = np.where(ended | trigger, 0.0, out["speed_cap"])
-        return out, new
-
-    def _frame(self, state, u):
-        out, new = super()._frame(state, u)
-        out["gap"] = np.where(np.isinf(new["gap"]), 0.0, new["gap"])  # 0: the attempt makes no pass
-        return out, new
-
-    def _begin(self, new, mask, r, spheres):
-        s, dist, u, side, _ = self._geometry(new, r, spheres)
-        if self.learns_curve:  # the estimate's own bound and inverse (docs/push-control.md §6)
-            # the flow pushes the sphere across the pass, away from the robot: aim so the sum points at the goal
-            turn = np.arctan(new["push_out"])
-            u = np.cos(turn)[:, None] * u + (side * np.sin(turn))[:, None] * perp(u)
-            d_des = np.minimum(dist, self.law.displacement(new["law"], self.min_gap))
-        else:
-            d_des = np.minimum(dist, self.d_max)  # eq 16, bounded (§V-B step 1)
-        if self.fixed_gap is not None:
-            gap = np.full(dist.shape, self.fixed_gap)
-        elif self.learns_curve:
-            gap = self.law.gap(new["law"], d_des, self.min_gap)
-        else:
-            delta = self.law.output(new["law"], {})["y"]
-            gap = np.maximum(self.model.gap(d_des + delta), self.min_gap)  # eq 17
-        # D_s,des + Δ ≤ 0: eq 22 asks for an infinite gap, i.e. no pass; the attempt only settles and
-        # measures D_s,act = 0 (the no-push branch of magctl.stability.switched)
-        skip = mask & ~np.isfinite(gap)
-        n = side[:, None] * perp(u) * np.where(np.isfinite(gap), gap, 0.0)[:, None]
-        m = mask[:, None]
-        new["u"] = np.where(m, u, new["u"])
-        new["p0"] = np.where(m, s, new["p0"])
-        new["start"] = np.where(m, s - self.behind * u + n, new["start"])
-        new["end"] = np.where(m, np.where(skip[:, None], r, s + self.ahead * u + n), new["end"])
-        new["d_des"] = np.where(mask, d_des, new["d_des"])
-        new["gap"] = np.where(mask, gap, new["gap"])
-        self._enter(new, mask & ~skip, REPOSITION)
-        self._enter(new, skip, SETTLE)
-
-    def _learn_push_out(self, new, mask, s) -> None:
-        """Update the push-out ratio from the attempt just measured: the sphere's displacement across the pass
-        line, away from the side the robot passed on, over its displacement along it (passes at least
-        ``push_out_min`` long); the first measurement is taken whole, later ones with ``push_out_weight``."""
-        u, d = new["u"], s - new["p0"]
-        robot_side = np.sign(np.einsum("bi,bi->b", new["start"] - new["p0"] + self.behind * u, perp(u)))
-        along = np.einsum("bi,bi->b", d, u)
-        across = -robot_side * np.einsum("bi,bi->b", d, perp(u))
-        use = mask & (along >= self.push_out_min)
-        ratio = across / np.where(use, along, 1.0)
-        weight = np.where(new["push_out_n"] == 0, 1.0, self.push_out_weight)
-        new["push_out"] = np.where(use, new["push_out"] + weight * (ratio - new["push_out"]), new["push_out"])
-        new["push_out_n"] = np.where(use, new["push_out_n"] + 1, new["push_out_n"])
-
-    def _step(self, state, new, r, spheres, ok):
-        ph = new["phase"]
-        s, *_, done = self._geometry(new, r, spheres)
-        self._start(new, ok, done, r, spheres)
-        rep = ok & (ph == REPOSITION) & arrived(r, new["start"], self.arrive_tol)
-        self._enter(new, rep, PASS)
-        passed = ok & (ph == PASS) & arrived(r, new["end"], self.arrive_tol)
-        self._enter(new, passed, SETTLE)
-        meas = ok & (ph == SETTLE) & (new["frames"] >= self.settle_frames)
-        if meas.any():
-            d_act = np.einsum("bi,bi->b", s - new["p0"], new["u"])
-            go_on = self._finish_attempt(new, meas, done)
-            if self.learns_curve:
-                new["law"] = self.law.update_where(new["law"], {"gap": new["gap"], "displacement": d_act}, go_on)
-                self._learn_push_out(new, go_on, s)
-            else:  # eq 18 bracket as printed; the law's gain carries the sign
-                new["law"] = self.law.update_where(new["law"], {"e": d_act - new["d_des"]}, go_on)
-            self._begin(new, go_on, r, spheres)
-        # the servo target and speed cap of the phase, for the trials in ok (the others keep theirs)
-        ph = np.where(ok, new["phase"], START)
-        tgt = np.where((ph == REPOSITION)[:, None], around(r, s, new["start"], self.clearance), new["target"])
-        tgt = np.where(((ph == PASS) | (ph == SETTLE))[:, None], new["end"], tgt)
-        new["target"] = tgt
-        new["speed"] = np.where(ok, np.where(ph == PASS, self.pass_speed, self.travel_speed), new["speed"])
