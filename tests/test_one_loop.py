@@ -131,3 +131,19 @@ def test_replayed_options_rebuild_the_same_controller():
     again = build_task("side-push", obs, task.options)
     assert structure(again.diagram) == structure(task.diagram)
     assert task.options["clearance_m"] == pytest.approx(900 * UM)
+
+
+@pytest.mark.parametrize("kind, options", [("assembly-3", {"n_spheres": 3, "arrangement": "triangle"}),
+                                           ("assembly-3", {"clearance_um": 800.0, "planner": "greedy"})])
+def test_the_planned_assembly_logs_the_options_it_runs_and_replays_them(kind, options):
+    """The planned assembly's logged options are the values its task runs with (its own record's defaults:
+    ``[plan]``'s repositioning keep-out, not the side push's), and rebuilding from them gives the same
+    controller."""
+    obs = first_observation(kind)
+    task = build_task("assemble", obs, options)
+    planned = task.diagram.blocks["task"]
+    assert task.options["clearance_m"] == pytest.approx(planned.clearance)
+    assert planned.clearance == pytest.approx(options.get("clearance_um", 650.0) * UM)
+    assert task.options["planner"] == options.get("planner", "optimal")
+    again = build_task("assemble", obs, task.options)
+    assert structure(again.diagram) == structure(task.diagram)

@@ -135,16 +135,15 @@ class CurveLearningLaw(AttemptLaw, Block):
         return Kernel(output=k.curve_output, update=k.curve_update_step, params=self.kernel_params())
 
     def kernel_params(self) -> tuple:
-        """``(cp, iterations)``: the law's floats as :mod:`magctl.control.kernels` indexes them (``C_*``) and
-        the Gauss–Newton iterations."""
+        """``(cp, iterations)``: the law's :class:`~magctl.control.kernels.CurveParams` and the Gauss–Newton
+        iterations."""
         from magctl.control import kernels as k
 
-        cp = np.zeros(k.N_CP)
-        cp[[k.C_GREF, k.C_PASS_VAR, k.C_MEAS_VAR, k.C_B_MIN]] = (self.reference_gap, self.pass_rel_var,
-                                                                 self.measure_var, self.b_min)
-        cp[k.C_EXP_A0] = np.exp(self.prior_mean[0])  # the prior's exp(a₀), which y is taken from
-        cp[k.C_DRIFT:k.C_DRIFT + 9] = self.drift.ravel()
-        return cp, self.iterations
+        cp = k.CurveParams(reference_gap=float(self.reference_gap), pass_var=float(self.pass_rel_var),
+                           measure_var=float(self.measure_var), b_min=float(self.b_min),
+                           exp_a0=float(np.exp(self.prior_mean[0])),
+                           drift=np.ascontiguousarray(self.drift, dtype=float).ravel())
+        return cp, int(self.iterations)
 
     # --- the inversion -----------------------------------------------------------------------------
     def displacement(self, state, gap) -> np.ndarray:

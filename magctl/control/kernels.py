@@ -13,8 +13,10 @@ compiled, so that numba stays out of the import of ``magctl``.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
+import numpy as np
 
 from magctl.control.curve_learning import COST_RISE_TOL, HALVINGS
 from magctl.control.status import Status
@@ -24,11 +26,29 @@ jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 RUNNING, CONVERGED, TRACKING_LOST = int(Status.RUNNING), int(Status.CONVERGED), int(Status.TRACKING_LOST)
 """Status codes (:class:`magctl.control.status.Status`)."""
 
-# curve-learning law: its float parameters ``cp`` (CurveLearningLaw.kernel_params)
-C_GREF, C_PASS_VAR, C_MEAS_VAR, C_B_MIN, C_EXP_A0 = range(5)
-C_DRIFT = 5
-"""The drift covariance ``Q``, row-major, in ``cp[C_DRIFT:C_DRIFT + 9]``."""
-N_CP = 14
+
+
+class CurveParams(NamedTuple):
+    """The curve-learning law's parameters as its kernels read them, by name
+    (:meth:`~magctl.control.curve_learning.CurveLearningLaw.kernel_params`)."""
+
+    reference_gap: float
+    """``g_ref`` (m), the gap the estimate's ``x`` is measured from."""
+    pass_var: float
+    """``σ_pass²``, the pass-to-pass scatter of ``D_s`` (relative)."""
+    measure_var: float
+    """``σ_meas²`` (m²), the measurement noise of a displacement."""
+    b_min: float
+    """The floor of the estimated decay rate ``b``."""
+    exp_a0: float
+    """The prior's ``exp(a₀)`` (m), which the output ``y`` is taken from."""
+    drift: np.ndarray
+    """The drift covariance ``Q`` per attempt, 3×3 row-major (9,)."""
+
+
+def no_curve() -> CurveParams:
+    """The curve law's parameters for a task without it (never read)."""
+    return CurveParams(0.0, 0.0, 0.0, 0.0, 0.0, np.zeros(9))
 
 
 @jit
@@ -231,17 +251,17 @@ def curve_update(b, cp, iterations, theta, cov, ntheta, ncov, gap, z):
     from the pass ``(D_g, D_s,act)`` on ``D_s = exp(a − b·x) − c`` (docs/push-control.md §6, the side push's
     replacement for eq 17–18), written to ``ntheta``, ``ncov`` (which may be ``theta``, ``cov``: everything is read
     first). ``cov`` is the 3×3 covariance row-major."""
-    gref = cp[C_GREF]
+    gref = cp.reference_gap
     x = (gap - gref) / gref
-    p = ((cov[b, 0] + cp[C_DRIFT], cov[b, 1] + cp[C_DRIFT + 1], cov[b, 2] + cp[C_DRIFT + 2]),
-         (cov[b, 3] + cp[C_DRIFT + 3], cov[b, 4] + cp[C_DRIFT + 4], cov[b, 5] + cp[C_DRIFT + 5]),
-         (cov[b, 6] + cp[C_DRIFT + 6], cov[b, 7] + cp[C_DRIFT + 7], cov[b, 8] + cp[C_DRIFT + 8]))
+    p = ((cov[b, 0] + cp.drift[0], cov[b, 1] + cp.drift[1], cov[b, 2] + cp.drift[2]),
+         (cov[b, 3] + cp.drift[3], cov[b, 4] + cp.drift[4], cov[b, 5] + cp.drift[5]),
+         (cov[b, 6] + cp.drift[6], cov[b, 7] + cp.drift[7], cov[b, 8] + cp.drift[8]))
     chol = cholesky3(p[0][0], p[1][0], p[1][1], p[2][0], p[2][1], p[2][2])
     th0 = theta[b, 0]
     th1 = theta[b, 1]
     th2 = theta[b, 2]
     e0 = math.exp(th0 - th1 * x)
-    r = cp[C_PASS_VAR] * e0 * e0 + cp[C_MEAS_VAR]
+    r = cp.pass_var * e0 * e0 + cp.measure_var
     it0, it1, it2 = th0, th1, th2
     j_it = curve_cost(it0, it1, it2, th0, th1, th2, chol, z, x, r)
     h = (0.0, 0.0, -1.0)
@@ -285,14 +305,14 @@ def curve_update(b, cp, iterations, theta, cov, ntheta, ncov, gap, z):
         for m in range(3):
             ncov[b, 3 * i + m] = a0 * ikh[m][0] + a1 * ikh[m][1] + a2 * ikh[m][2] + r * g[i] * g[m]
     ntheta[b, 0] = it0
-    ntheta[b, 1] = nan_max(it1, cp[C_B_MIN])
+    ntheta[b, 1] = nan_max(it1, cp.b_min)
     ntheta[b, 2] = it2
 
 
 @jit
 def curve_displacement(theta, b, cp, gap):
     """:meth:`CurveLearningLaw.displacement`: the estimated attempt ``exp(a − b·x) − c`` at ``gap``."""
-    gref = cp[C_GREF]
+    gref = cp.reference_gap
     return math.exp(theta[b, 0] - theta[b, 1] * (gap - gref) / gref) - theta[b, 2]
 
 
@@ -302,7 +322,7 @@ def curve_gap(theta, b, cp, d_des, min_gap):
     a = theta[b, 0]
     want = d_des + theta[b, 2]
     floor = 0.01 * math.exp(a)
-    g = cp[C_GREF] * (1.0 + (a - math.log(nan_max(want, floor))) / theta[b, 1])
+    g = cp.reference_gap * (1.0 + (a - math.log(nan_max(want, floor))) / theta[b, 1])
     return nan_max(g, min_gap)
 
 
@@ -328,7 +348,7 @@ def curve_gaps(theta, cp, d_des, min_gap, out):
 @jit
 def curve_correction(theta, b, cp):
     """The law's output ``y``: the estimate's displacement at ``g_ref`` minus the prior's."""
-    return math.exp(theta[b, 0]) - cp[C_EXP_A0]
+    return math.exp(theta[b, 0]) - cp.exp_a0
 
 
 @jit

@@ -103,8 +103,16 @@ def kernel_name(fn) -> tuple[str, str]:
     return py.__module__, py.__qualname__
 
 
+def is_record(value) -> bool:
+    """A named tuple (a kernel's parameter record, read by field name in the kernel)."""
+    return isinstance(value, tuple) and hasattr(type(value), "_fields")
+
+
 def param_value(value):
-    """A kernel parameter as generated code takes it: a contiguous array, or a Python scalar."""
+    """A kernel parameter as generated code takes it: a contiguous array, a Python scalar, or a named tuple of
+    those."""
+    if is_record(value):
+        return type(value)(*(param_value(v) for v in value))
     if isinstance(value, np.ndarray) and value.ndim > 0:
         return np.ascontiguousarray(value)
     if isinstance(value, (bool, np.bool_)):

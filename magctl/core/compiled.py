@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magctl.core import codegen
-from magctl.core.codegen import JIT, fingerprint, kernel_name, param_value
+from magctl.core.codegen import JIT, fingerprint, is_record, kernel_name, param_value
 from magctl.core.diagram import EXTERNAL, Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.kernel import (
@@ -80,8 +80,14 @@ class _Layout:
         return {g: np.zeros(batch * n, dtype=dt[g]) for g, n in self.used.items()}
 
 
-def _param_expr(value, pbufs: dict[str, list], name: str) -> str:
-    """Source that rebuilds one kernel parameter from the flat parameter buffers (filled in ``pbufs``)."""
+def _param_expr(value, pbufs: dict[str, list], name: str, imports: dict) -> str:
+    """Source that rebuilds one kernel parameter from the flat parameter buffers (filled in ``pbufs``); a named
+    tuple is rebuilt field by field with its class (added to ``imports``)."""
+    if is_record(value):
+        cls = type(value)
+        alias = f"R_{cls.__name__}"
+        imports[alias] = (cls.__module__, cls.__qualname__)
+        return f"{alias}({', '.join(_param_expr(v, pbufs, name, imports) for v in value)})"
     arr = np.asarray(value)
     if isinstance(value, (bool, np.bool_)):
         g = "B"
@@ -141,7 +147,8 @@ class CompiledDiagram:
                           for lf in sched.leaves]
         self.ext_slots = {name: ext.add(port.dtype, port_width(port)) for name, port in sched.inputs.items()}
         self.state_layout, self.out_layout, self.ext_layout = state, outs, ext
-        param_exprs = [_tuple([_param_expr(v, pbufs, f"block {lf.path!r}") for v in k.params])
+        imports: dict[str, tuple[str, str]] = {}
+        param_exprs = [_tuple([_param_expr(v, pbufs, f"block {lf.path!r}", imports) for v in k.params])
                        for lf, k in zip(sched.leaves, kernels, strict=True)]
         dt = {"F": np.float64, "I": np.int64, "B": np.bool_}
         self.params = {g: np.asarray(v, dtype=dt[g]) if v else np.zeros(1, dtype=dt[g]) for g, v in pbufs.items()}
@@ -150,7 +157,7 @@ class CompiledDiagram:
         self.events = {i: event_index(lf.block, k, self.vars[i])
                        for i, (lf, k) in enumerate(zip(sched.leaves, kernels, strict=True)) if k.event}
 
-        imports, views = {}, []
+        views = []
         for i, k in enumerate(kernels):
             for role, fn in (("step", k.step), ("output", k.output), ("update", k.update)):
                 if fn is not None:

@@ -27,9 +27,16 @@ import numpy as np
 from magctl.config import UNITS, Params, load_model, split_unit
 from magctl.control.arrangement import ARRANGEMENTS
 from magctl.control.assembly_planner import PLANNERS
-from magctl.control.push.common import SIDE_MODELS, task_parameters
-from magctl.control.push.front import LEARNING as FRONT_LEARNING
-from magctl.control.push.side import DIRT_RESPONSES, LEARNING
+from magctl.control.push.common import SIDE_MODELS
+from magctl.control.push.params import (
+    DIRT_RESPONSES,
+    FRONT_LEARNING,
+    SIDE_LEARNING,
+    AssemblyParams,
+    FrontParams,
+    PlannedParams,
+    SideParams,
+)
 from magctl.control.servo import default_servo_setting, servo_params, servo_settings
 from magctl.control.status import STATUS_NAMES, Status
 from magctl.core.compiled import NotCompilable
@@ -169,12 +176,16 @@ class Controller:
 
 
 # --- options ---------------------------------------------------------------------------------------------
+_PLANNED = "assemble (planned)"
+"""The options of ``assemble`` when it plans its passes (:class:`~magctl.control.push.planned.PlannedAssemblyTask`)."""
 _SI_SUFFIX = {"m": "m", "m/s": "m_s", "rad": "rad", "1": "", "": ""}
-_PUSH_TABLES = {"front-push": ("front",), "side-push": ("side",), "assemble": ("side", "assembly"),
-                "front-side-assemble": ("side", "assembly")}
+_PUSH_RECORDS = {"front-push": FrontParams, "side-push": SideParams, "assemble": AssemblyParams,
+                 "front-side-assemble": AssemblyParams, _PLANNED: PlannedParams}
+"""Each push task's parameter record (:mod:`magctl.control.push.params`): its fields are the task's options."""
 _OPTIONAL = {"front-push": {}, "side-push": {"fixed_gap": "m"},
              "assemble": {"fixed_gap": "m", "n_spheres": "1", "arrangement": "", "planner": ""},
-             "front-side-assemble": {"fixed_gap": "m", "front_attempts": "1"}}
+             "front-side-assemble": {"fixed_gap": "m", "front_attempts": "1"},
+             _PLANNED: {"n_spheres": "1", "arrangement": "", "planner": ""}}
 
 
 def task_options(task: str) -> dict[str, tuple[Any, str]]:
@@ -184,9 +195,7 @@ def task_options(task: str) -> dict[str, tuple[Any, str]]:
         return {"target": (None, "m"), **common}
     if task == "patrol":
         return {"side": (1e-3, "m"), "origin": (None, "m"), **common}
-    spec: dict[str, tuple[Any, str]] = {}
-    for table in _PUSH_TABLES[task]:
-        spec |= task_parameters(table)
+    spec = _PUSH_RECORDS[task].spec()
     if task in ("front-push", "side-push"):
         spec["goal"] = (None, "m")
     spec |= {k: (None, unit) for k, unit in _OPTIONAL[task].items()}
@@ -228,7 +237,7 @@ def _option_value(task: str, key: str, raw, factor: float, unit: str, name: str)
         if raw not in SIDE_MODELS:
             raise TaskError(f"{task}: option model={raw!r} is not one of {', '.join(SIDE_MODELS)}")
         return str(raw)
-    learning = FRONT_LEARNING if task == "front-push" else LEARNING
+    learning = FRONT_LEARNING if task == "front-push" else SIDE_LEARNING
     for option, known in (("learning", learning), ("dirt_response", DIRT_RESPONSES), ("arrangement", ARRANGEMENTS),
                           ("planner", PLANNERS)):
         if name == option:
@@ -343,12 +352,6 @@ def _side_push(first_obs: Observation, options: dict, params: Params) -> Task:
     return _push("side-push", first_obs, options)
 
 
-_PLANNED_OPTIONS = ("n_spheres", "arrangement", "planner", "eps_as", "max_attempts", "clearance", "arrive_tol",
-                    "pass_speed", "travel_speed", "settle_frames", "max_lost_frames", "phase_timeout_frames",
-                    "workspace", "servo", "speed_max")
-"""Options of the planned assembly (:class:`~magctl.control.push.planned.PlannedAssemblyTask`) on the rig."""
-
-
 @register_task("assemble")
 def _assemble(first_obs: Observation, options: dict, params: Params) -> Task:
     """Assemble the tracked spheres. Two, with no ``planner`` or ``arrangement`` option: sphere 0 onto sphere 1 by
@@ -364,14 +367,18 @@ def _assemble(first_obs: Observation, options: dict, params: Params) -> Task:
         values, logged = _resolved("assemble", {k: v for k, v in options.items() if split_unit(k)[0] != "n_spheres"})
         values = {k: v for k, v in values.items() if k not in ("n_spheres", "arrangement", "planner")}
         return Task("assemble", _build("assemble", values, n), logged, dict(PUSH_OUTCOMES))
-    foreign = sorted(set(given) - set(_PLANNED_OPTIONS))
+    planned = task_options(_PLANNED)
+    foreign = sorted(set(given) - set(planned))
     if foreign:
         raise TaskError(f"assemble: option(s) {', '.join(foreign)} do not apply to the planned assembly of "
-                        f"{n} spheres; its options: {', '.join(_PLANNED_OPTIONS)}")
-    values, logged = _resolved("assemble", options)
-    values = {k: v for k, v in values.items() if k in ("servo", "speed_max") or (k in given and k != "n_spheres")}
-    values.setdefault("planner", "optimal")
-    logged = {k: v for k, v in logged.items() if split_unit(k)[0] in _PLANNED_OPTIONS} | {"n_spheres": n}
+                        f"{n} spheres; its options: {', '.join(planned)}")
+    values, logged = _resolved(_PLANNED, options)
+    values = {k: v for k, v in values.items() if k != "n_spheres"}
+    if values["planner"] is None:
+        values["planner"] = logged["planner"] = "optimal"
+    if values["arrangement"] is None:
+        values.pop("arrangement")
+    logged |= {"n_spheres": n}
     return Task("assemble", _build("assemble", values, n), logged, dict(PUSH_OUTCOMES))
 
 

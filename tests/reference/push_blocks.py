@@ -478,8 +478,8 @@ class RefSidePush(PushFrame, SidePushTask):
 
         The side stage is frozen while the front push runs. It hands over on the frame it measures an attempt
         after which the curve law reads the sphere as stuck (estimated displacement at the contact threshold
-        under ``dirt_mobility`` of the prior's) with more than ``dirt_passes`` passes at that bound to go, at
-        most ``max_fronts`` times; the front push counts as an attempt when it ends, and the side passes
+        under ``dirt.mobility`` of the prior's) with more than ``dirt.passes`` passes at that bound to go, at
+        most ``dirt.fronts`` times; the front push counts as an attempt when it ends, and the side passes
         start afresh from where the sphere lies. A front push ending in a failure (tracking or sphere lost,
         stalled) ends the task with that status.
         """
@@ -491,9 +491,9 @@ class RefSidePush(PushFrame, SidePushTask):
         s = spheres[:, self.sphere_indices[0]]
         dist = norm(s_new["goal"] - s)
         measured = ~in_front & (s_new["attempt"] > side_state["attempt"]) & (s_new["status"] == RUNNING)
-        stuck = self.law_form.mobility(s_new["law"], self.min_gap) < self.dirt_mobility
-        many = dist > self.dirt_passes * self.law_form.displacement(s_new["law"], self.min_gap)
-        trigger = measured & stuck & many & (state["fronts"] < self.max_fronts)
+        stuck = self.law_form.mobility(s_new["law"], self.min_gap) < self.dirt.mobility
+        many = dist > self.dirt.passes * self.law_form.displacement(s_new["law"], self.min_gap)
+        trigger = measured & stuck & many & (state["fronts"] < self.dirt.fronts)
         ended = in_front & (f_out["status"] != RUNNING)
         failed = ended & ~np.isin(f_out["status"], (CONVERGED, ATTEMPT_LIMIT))
         back = ended & ~failed

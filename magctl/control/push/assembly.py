@@ -13,12 +13,15 @@ sphere 2, the pair separates as the robot retracts, and side passes close the ga
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.control.phases import FINISHED, SIDE_PHASE_OFFSET, AssemblyStage
-from magctl.control.push.common import curve_dummies, sphere_radii, task_parameters, with_defaults
+from magctl.control.push.common import curve_dummies, sphere_radii
 from magctl.control.push.front import FrontAssemblyTask
+from magctl.control.push.params import AssemblyParams, CommonParams
 from magctl.control.push.side import SidePushTask
 from magctl.core.block import Block, StateVar, substate
 from magctl.core.checks import check_positive
@@ -31,34 +34,29 @@ class AssemblyTask(SidePushTask):
 
     Parameters
     ----------
-    theta_n : float
-        Angle of the adjusted line (rad); the paper's experiment used 30° (§VI-C).
     radii : (float, float)
         ``R_1``, ``R_2`` (m); 105 µm for the 210 µm spheres (§II).
-    eps_as : float
-        ``ε_as`` of eq 21 (m).
     **kw
-        Everything :class:`SidePushTask` takes (``ks``, ``model``, ``law``, ``fixed_gap``,
-        ``max_attempts`` …); ``goal`` is not used.
+        Everything :class:`SidePushTask` takes (``law``, ``fixed_gap``, ``params``) and every field of
+        :class:`~magctl.control.push.params.AssemblyParams` — ``[side]`` under ``[assembly]``: ``theta_n`` (the
+        adjusted line's angle, rad; the paper's experiment used 30°, §VI-C), ``eps_as`` (``ε_as`` of eq 21, m),
+        ``ks`` …; ``goal`` is not used.
     """
 
-    def __init__(self, name: str = "assembly", *, n_spheres: int = 2, moved: int = 0, fixed: int = 1,
-                 theta_n: float | None = None, radii=None, eps_as: float | None = None, **kw):
+    PARAMS = AssemblyParams
+
+    def __init__(self, name: str = "assembly", *, n_spheres: int = 2, moved: int = 0, fixed: int = 1, radii=None,
+                 **kw):
         if moved == fixed or not (0 <= moved < n_spheres and 0 <= fixed < n_spheres):
             raise MagctlError(f"assembly {name!r}: sphere indices {moved}, {fixed} must differ and be < {n_spheres}")
         if kw.get("dirt_response") not in (None, "none"):
             raise MagctlError(f"assembly {name!r}: dirt_response={kw['dirt_response']!r} answers a single sphere's "
                               "side push; assembly takes 'none'")
-        p = with_defaults("assembly", theta_n=theta_n, eps_as=eps_as, ks=kw.pop("ks", None))
-        theta = float(p["theta_n"])
-        if not 0 <= theta < np.pi / 2:
-            raise MagctlError(f"assembly {name!r}: theta_n={theta!r} rad must be in [0, pi/2)")
-        self.theta_n = theta
         radii = sphere_radii() if radii is None else radii
         self.radii = (check_positive("radius 1", radii[0]), check_positive("radius 2", radii[1]))
-        self.eps_as = check_positive("eps_as", p["eps_as"], allow_zero=True)
-        kw["ks"] = p["ks"]
         super().__init__(name, n_spheres=n_spheres, sphere=moved, **kw)
+        if not self.theta_n < np.pi / 2:
+            raise MagctlError(f"assembly {name!r}: theta_n={self.theta_n!r} rad must be in [0, pi/2)")
         self.sphere_indices = (int(moved), int(fixed))
 
 
@@ -92,7 +90,7 @@ class FrontThenSideAssemblyTask(Block):
         if int(front_attempts) < 1:
             raise MagctlError(f"assembly {name!r}: front_attempts={front_attempts} must be at least 1")
         shared = dict(n_spheres=n_spheres, moved=moved, fixed=fixed, radii=radii, eps_as=eps_as)
-        shared |= {k: side_options[k] for k in task_parameters("common") if side_options.get(k) is not None}
+        shared |= {f.name: side_options[f.name] for f in fields(CommonParams) if side_options.get(f.name) is not None}
         self.front = FrontAssemblyTask(f"{name}_front", max_attempts=int(front_attempts), **shared)
         self.side = AssemblyTask(f"{name}_side", **(side_options | shared))
         self.front_attempts = int(front_attempts)

@@ -13,8 +13,8 @@ import numpy as np
 
 from magctl.config import load_model
 from magctl.control.phases import START
+from magctl.control.push.params import RECORDS, PushParams
 from magctl.control.status import Status
-from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 from magctl.core.units import UM
 
@@ -179,32 +179,16 @@ def side_model(name: str):
     raise MagctlError(f"side-push model {name!r} is not known; use one of {', '.join(SIDE_MODELS)}")
 
 
-# --- parameters: models/push.toml ---------------------------------------------------------------
-_KEYWORD = {"settle": "settle_frames", "max_lost": "max_lost_frames", "phase_timeout": "phase_timeout_frames"}
-_INTEGER = ("max_attempts", "settle_frames", "max_lost_frames", "phase_timeout_frames")
-_NOT_TASK_KEYWORDS = ("goal_distance",)
-
-
+# --- parameters: models/push.toml, through the records of magctl.control.push.params -------------------
 def task_parameters(table: str) -> dict[str, tuple[Any, str]]:
-    """Push-task parameters as keyword → (SI default, SI unit): ``models/push.toml`` ``[common]`` overlaid
-    with ``[table]`` (``"front"``, ``"side"`` or ``"assembly"``); counts come back as ``int``, strings
-    with unit ``""``."""
-    params = load_model("push")
-    out: dict[str, tuple[Any, str]] = {}
-    for name in ("common", table):
-        t = params[name]
-        for key in t:
-            if key in _NOT_TASK_KEYWORDS:
-                continue
-            keyword = _KEYWORD.get(key, key)
-            value = int(t[key]) if keyword in _INTEGER else t[key]
-            out[keyword] = (value, t.units[key])
-    return out
+    """The parameters of the record named after ``models/push.toml`` table ``table`` (``"front"``, ``"side"``,
+    ``"assembly"``, ``"plan"``, ``"common"``) as keyword → (SI default, SI unit)."""
+    return RECORDS[table].spec()
 
 
 def task_defaults(table: str) -> dict:
     """Keyword defaults (SI) of a push task (see :func:`task_parameters`)."""
-    return {k: v for k, (v, _unit) in task_parameters(table).items()}
+    return RECORDS[table].defaults()
 
 
 def with_defaults(table: str, **given) -> dict:
@@ -239,30 +223,29 @@ class PushTask:
     tracked trial with its sphere found takes the task's own step. Finished trials hold the robot where it was.
     """
 
-    def _check_common(self, what: str, name: str, params: dict, *, goal, n_spheres, sphere):
-        """Validate and store the parameters every push task shares (from ``params``, the task's
-        :func:`with_defaults`); errors name the task and the parameter."""
-        eps, max_attempts, clearance = params["eps"], params["max_attempts"], params["clearance"]
-        arrive_tol, travel_speed, settle_frames = params["arrive_tol"], params["travel_speed"], params["settle_frames"]
-        max_lost_frames, phase_timeout_frames = params["max_lost_frames"], params["phase_timeout_frames"]
-        workspace = params["workspace"]
+    PARAMS: type[PushParams]
+    """The task's parameter record (:mod:`magctl.control.push.params`)."""
+
+    def __getattr__(self, name: str):
+        """A parameter of the task's record: ``task.eps`` is ``task.params.eps``."""
+        params = self.__dict__.get("params")
+        if params is not None and name in params.__dataclass_fields__:
+            return getattr(params, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def _check_common(self, what: str, params, overrides: dict, *, goal, n_spheres, sphere):
+        """Resolve the task's record (``params``, or ``models/push.toml``, with ``overrides``) and check the goal and
+        the sphere index; errors name the task (``what``) and the parameter."""
+        self.params = (self.PARAMS.resolve(what, **overrides) if params is None
+                       else params.replace(what, **overrides))
+        if not isinstance(self.params, self.PARAMS):
+            raise MagctlError(f"{what}: params must be a {self.PARAMS.__name__}, not {type(params).__name__}")
         if not 0 <= int(sphere) < int(n_spheres):
-            raise MagctlError(f"{what} {name!r}: sphere index {sphere} not in 0..{int(n_spheres) - 1}")
-        if int(max_attempts) < 1:
-            raise MagctlError(f"{what} {name!r}: max_attempts={max_attempts} must be at least 1")
+            raise MagctlError(f"{what}: sphere index {sphere} not in 0..{int(n_spheres) - 1}")
         self.goal = np.asarray(goal, dtype=float)
         if self.goal.shape[-1:] != (2,) or self.goal.ndim > 2 or not np.all(np.isfinite(self.goal)):
-            raise MagctlError(f"{what} {name!r}: goal must be finite, shaped (2,) or (B, 2); got {goal!r}")
+            raise MagctlError(f"{what}: goal must be finite, shaped (2,) or (B, 2); got {goal!r}")
         self.sphere_indices = (int(sphere),)
-        self.eps = check_positive("eps", eps)
-        self.max_attempts = int(max_attempts)
-        self.clearance = check_positive("clearance", clearance, allow_zero=True)
-        self.arrive_tol = check_positive("arrive_tol", arrive_tol)
-        self.travel_speed = check_positive("travel_speed", travel_speed)
-        self.settle_frames = int(settle_frames)
-        self.max_lost_frames = int(max_lost_frames)
-        self.phase_timeout_frames = int(phase_timeout_frames)
-        self.workspace = check_positive("workspace", workspace)
 
     def _ports(self, n_spheres: int):
         from magctl.core.ports import Port
@@ -299,25 +282,17 @@ class PushTask:
                 StateVar("speed", (), symbol="v_cap", description="speed cap of the current phase, m/s"),
                 substate("law", self.law.state_vars(), "the learning law's state"))
 
-    def _kernel_params(self, **task: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The float and int parameter arrays and the integrator law's gain (a dummy 0 for the other laws) of the
-        compiled kernels (:mod:`magctl.control.push.kernels`); ``task`` sets the task's own float entries by
-        name. ``ip[LAW]`` says which law the task has."""
+    def _kernel_params(self, **derived) -> tuple:
+        """``(p, gain)``: the kernels' :class:`~magctl.control.push.kernels.TaskParams` — the record's fields by
+        name, the spheres, the law's kind and ``derived`` (what the task computes) — and the integrator law's gain
+        (a dummy 0 for the other laws)."""
         from magctl.control.push import kernels as k
 
-        fp = np.zeros(k.N_FP)
-        ip = np.zeros(k.N_IP, dtype=np.int64)
-        fp[[k.EPS, k.CLEARANCE, k.ARRIVE_TOL, k.TRAVEL_SPEED, k.WORKSPACE]] = (
-            self.eps, self.clearance, self.arrive_tol, self.travel_speed, self.workspace)
-        for name, value in task.items():
-            fp[getattr(k, name)] = value
         idx = self.sphere_indices
         law = self._law_kind()
-        ip[[k.MAX_ATTEMPTS, k.SETTLE_FRAMES, k.MAX_LOST, k.TIMEOUT, k.I0, k.I1, k.PAIR, k.LAW]] = (
-            self.max_attempts, self.settle_frames, self.max_lost_frames, self.phase_timeout_frames,
-            idx[0], idx[-1], len(idx) > 1, law)
+        p = self.params.packed(i0=idx[0], i1=idx[-1], pair=len(idx) > 1, law=law, **derived)
         gain = self.law.gain if law == k.LAW_INTEGRATOR else 0.0
-        return fp, ip, np.atleast_1d(np.asarray(gain, dtype=float)).copy()
+        return p, np.atleast_1d(np.asarray(gain, dtype=float)).copy()
 
     def _law_kind(self) -> int:
         """The kernels' code of the task's law (:data:`magctl.control.push.kernels.LAW_INTEGRATOR` …)."""

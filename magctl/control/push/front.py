@@ -28,6 +28,7 @@ from magctl.control.push.common import (
     sphere_radii,
     with_defaults,
 )
+from magctl.control.push.params import FrontParams
 from magctl.control.release_model import ReleasePolicyLaw, release_policy_law
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
@@ -35,8 +36,6 @@ from magctl.core.errors import MagctlError
 
 APPROACH, PUSH, RETRACT, SETTLE = (int(FrontPhase.APPROACH), int(FrontPhase.PUSH), int(FrontPhase.RETRACT),
                                    int(FrontPhase.SETTLE))
-LEARNING = {"eq13": "the paper's eq 13 law (K_c, δ(0))",
-            "release": "the controller that models its own release (magctl.control.release_model)"}
 
 
 class FrontPushTask(PushTask, Block):
@@ -46,37 +45,21 @@ class FrontPushTask(PushTask, Block):
     ----------
     goal : (2,) or (B, 2) array_like
         ``P_g`` in metres (one for all trials, or one per trial).
-    kc, delta0 : float
-        ``K_c`` and ``δ(0)`` (m) of the law, used when ``law`` is not given.
-    learning : {"eq13", "release"}
-        The paper's eq 13 law (``kc``, ``delta0``), or the controller that models its own release
-        (:class:`~magctl.control.release_model.ReleasePolicyLaw` on ``models/front_release.toml``,
-        docs/push-control.md §7).
     law : LearningLaw or ReleasePolicyLaw, optional
         The learning block to use (shared with the iteration-domain analysis); overrides ``learning``. A law of
         another type is refused: the task's kernels run these two.
     n_spheres, sphere : int
         Width of the ``spheres_est`` port and which sphere to push.
-    eps : float
-        ``ε_p`` of eq 12 (75 µm, §VI-A).
-    push_tol : float, optional
-        Tolerance of eq 11 (75 µm, ``models/push.toml``: ε_p, as in the paper).
-    max_attempts : int
-        Attempt limit (10, §VI-A).
-    contact : float
-        Robot-centre to sphere-centre distance when touching (m).
-    approach, retract, clearance : float
-        Distance of ``P_ri`` behind the sphere, retraction length, and the distance kept
-        from the sphere while going round it (m).
-    arrive_tol : float
-        Robot counts as at its target within this distance (m).
-    push_speed, travel_speed : float
-        ``speed_cap`` while pushing / otherwise (m/s).
-    settle_frames, max_lost_frames, phase_timeout_frames : int
-        Frames to wait before measuring; frames of tracking loss tolerated; frames
-        allowed in one phase before the trial ends as stalled.
-    workspace : float
-        Sphere farther than this from the goal counts as lost (m).
+    params : FrontParams, optional
+        The task's parameters (:class:`~magctl.control.push.params.FrontParams`, ``models/push.toml``
+        ``[common]`` and ``[front]``); by default the file's.
+    **overrides
+        Any field of :class:`~magctl.control.push.params.FrontParams` (``None`` keeps the value): ``kc`` and
+        ``delta0`` (``K_c``, ``δ(0)`` of eq 13), ``learning`` (``"eq13"``, or ``"release"`` — the controller that
+        models its own release, :class:`~magctl.control.release_model.ReleasePolicyLaw`, docs/push-control.md
+        §7), ``eps`` (``ε_p`` of eq 12), ``push_tol`` (eq 11), ``max_attempts``, ``contact``, ``approach``,
+        ``retract``, ``clearance``, ``push_speed`` and the shared ``arrive_tol``, ``travel_speed``,
+        ``settle_frames``, ``max_lost_frames``, ``phase_timeout_frames``, ``workspace``.
 
     Ports
     -----
@@ -88,36 +71,21 @@ class FrontPushTask(PushTask, Block):
     PHASES = {0: "start", APPROACH: "approach", PUSH: "push", RETRACT: "retract", SETTLE: "settle",
               FINISHED: "finished"}
 
-    def __init__(self, name: str = "front_push", *, goal, kc: float | None = None, delta0: float | None = None,
-                 learning: str | None = None, law=None, n_spheres: int = 1, sphere: int = 0, eps: float | None = None,
-                 push_tol: float | None = None, max_attempts: int | None = None, contact: float | None = None,
-                 approach: float | None = None, retract: float | None = None, clearance: float | None = None,
-                 arrive_tol: float | None = None, push_speed: float | None = None, travel_speed: float | None = None,
-                 settle_frames: int | None = None, max_lost_frames: int | None = None,
-                 phase_timeout_frames: int | None = None, workspace: float | None = None):
-        p = with_defaults("front", kc=kc, delta0=delta0, learning=learning, eps=eps, push_tol=push_tol,
-                          max_attempts=max_attempts, contact=contact,
-                          approach=approach, retract=retract, clearance=clearance, arrive_tol=arrive_tol,
-                          push_speed=push_speed, travel_speed=travel_speed, settle_frames=settle_frames,
-                          max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
-                          workspace=workspace)
-        self._check_common("front push", name, p, goal=goal, n_spheres=n_spheres, sphere=sphere)
-        self.law = law if law is not None else self._law(name, p)
+    PARAMS = FrontParams
+
+    def __init__(self, name: str = "front_push", *, goal, law=None, n_spheres: int = 1, sphere: int = 0,
+                 params: FrontParams | None = None, **overrides):
+        what = f"front push {name!r}"
+        self._check_common(what, params, overrides, goal=goal, n_spheres=n_spheres, sphere=sphere)
+        self.law = law if law is not None else self._law(what)
         self._check_law("front push", name, (LearningLaw, ReleasePolicyLaw))
-        self.push_tol = check_positive("push_tol", p["push_tol"])
-        self.contact = check_positive("contact", p["contact"])
-        self.approach = check_positive("approach", p["approach"])
-        self.retract = check_positive("retract", p["retract"])
-        self.push_speed = check_positive("push_speed", p["push_speed"])
         ins, outs = self._ports(n_spheres)
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
 
-    def _law(self, name: str, p: dict):
-        if p["learning"] == "eq13":
-            return front_push_law(p["kc"], p["delta0"])
-        if p["learning"] == "release":
-            return release_policy_law(eps=self.eps, goal=goal_distance("front"))
-        raise MagctlError(f"front push {name!r}: learning={p['learning']!r} is not one of {', '.join(LEARNING)}")
+    def _law(self, what: str):
+        if self.learning == "eq13":
+            return front_push_law(self.kc, self.delta0)
+        return release_policy_law(eps=self.eps, goal=goal_distance("front"))
 
     def kernel(self):
         """The frame (:func:`magctl.control.push.kernels.front_step` with eq 13, ``release_front_step`` with the
@@ -136,9 +104,7 @@ class FrontPushTask(PushTask, Block):
 
     def _front_kernel_params(self) -> tuple:
         radii = getattr(self, "radii", (0.0, 0.0))
-        return self._kernel_params(PUSH_TOL=self.push_tol, CONTACT=self.contact, APPROACH=self.approach,
-                                   RETRACT=self.retract, PUSH_SPEED=self.push_speed, R0=radii[0], R1=radii[1],
-                                   EPS_AS=getattr(self, "eps_as", 0.0))
+        return self._kernel_params(r0=radii[0], r1=radii[1], eps_as=getattr(self, "eps_as", 0.0))
 
     def state_vars(self):
         from magctl.core.block import StateVar

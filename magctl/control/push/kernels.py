@@ -1,32 +1,32 @@
-"""Compiled kernels of the push tasks: the shared frame of :class:`~magctl.control.push.common.PushTask` and
-each task's attempt-level state machine, one trial at a time.
+"""Compiled kernels of the push tasks: each task's frame — the attempt-level state machine — one trial at a time.
+They are the tasks' only implementation; their numpy references are in ``tests/reference/push_blocks.py``.
 
 Every push task's state starts with the 7 common entries (``phase``, ``status``, ``attempt``, ``frames``,
 ``lost_frames``, ``target``, ``speed``) and its learning law's state, followed by 7 entries of its own; a kernel
 copies the state to the next state, then works on the next state only (so the engine may pass the same arrays,
-except for the side push answering dirt, whose kernel re-reads the state and says ``in_place=False``). The frame
-is :func:`frame_begin` (lost-frame count, failures: ``PushTask._frame`` up to ``_step``), the task's own ``_step``
-on a trial that is running, tracked and has its spheres, then :func:`frame_end` (the outputs).
+except for the side push answering dirt, whose kernel re-reads the state and says ``in_place=False``). A frame
+is :func:`frame_begin` (lost-frame count; then, per trial, ``TRACKING_LOST``, ``SPHERE_LOST``, ``STALLED``), the
+task's own step on a trial that is running, tracked and has its spheres, then :func:`frame_end` (the outputs).
 
 The frames take a task's 15 entries with the law's first entry in the 8th place: ``law.x`` of the eq 13/18
 integrator, ``law.x`` (``δ``) of the release-model law, whose ``law.neighbours`` comes as ``nb``, or ``law.theta``
 of the curve-learning law, whose ``law.cov``, ``push_out`` and ``push_out_n`` come as three more arrays. Which law
-the task has is ``ip[LAW]`` (:data:`LAW_INTEGRATOR`, :data:`LAW_CURVE`, :data:`LAW_RELEASE`); a task without the
+the task has is ``p.law`` (:data:`LAW_INTEGRATOR`, :data:`LAW_CURVE`, :data:`LAW_RELEASE`); a task without the
 others' arrays is given small dummies, never read.
 
-Parameters come as a float array ``fp`` and an int array ``ip`` indexed by the constants below, the integrator's
-gain (length 1, or one per trial), for the side push the tabulated model's arrays and the curve law's ``cp``
-(:mod:`magctl.control.kernels` ``C_*``), for the front push the release law's tables. Side-push models (``F`` of
-eq 17) are a kind code: :data:`MODEL_EXP` (eq 22, ``fp[M0]`` = A, ``fp[M1]`` = k), :data:`MODEL_LIN` (eq 23,
-slope, intercept) or :data:`MODEL_TABLE` (gaps, log displacements, rates). The arithmetic is the numpy form's,
-element by element (``norm``, ``unit``, ``cross``, ``rotate``, ``perp`` of :mod:`magctl.core.batched`,
-:func:`~magctl.control.push.common.around`). Status codes and phases are :mod:`magctl.control.status`'s and
-:mod:`magctl.control.phases`'s.
+Parameters come as a :class:`TaskParams` ``p`` read by field name (the task's record,
+:mod:`magctl.control.push.params`, plus what it derives), the integrator's gain (length 1, or one per trial), for
+the side push the tabulated model's arrays and the curve law's :class:`~magctl.control.kernels.CurveParams`
+``cp``, for the front push the release law's tables. Side-push models (``F`` of eq 17) are a kind code:
+:data:`MODEL_EXP` (eq 22, ``p.m0`` = A, ``p.m1`` = k), :data:`MODEL_LIN` (eq 23, intercept, slope) or
+:data:`MODEL_TABLE` (gaps, log displacements, rates). Status codes and phases are :mod:`magctl.control.status`'s
+and :mod:`magctl.control.phases`'s.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 
@@ -64,26 +64,71 @@ S_REPOSITION, S_PASS, S_SETTLE = int(SidePhase.REPOSITION), int(SidePhase.PASS),
 DIRT_SIDE, DIRT_FRONT = int(DirtStage.SIDE), int(DirtStage.FRONT)
 ASSEMBLY_FRONT, ASSEMBLY_SIDE = int(AssemblyStage.FRONT), int(AssemblyStage.SIDE)
 
-# int parameters
-MAX_ATTEMPTS, SETTLE_FRAMES, MAX_LOST, TIMEOUT, I0, I1, PAIR, MODEL, FIXED, LAW, ITERATIONS, MAX_FRONTS = range(12)
-N_IP = 12
-# float parameters: common, then front, then side (the push-out and dirt entries with the curve law)
-EPS, CLEARANCE, ARRIVE_TOL, TRAVEL_SPEED, WORKSPACE, R0, R1, EPS_AS = range(8)
-PUSH_TOL, CONTACT, APPROACH, RETRACT, PUSH_SPEED = range(8, 13)
-MIN_GAP, D_MAX, BEHIND, AHEAD, PASS_SPEED, FIXED_GAP, THETA_N, M0, M1 = range(13, 22)
-PUSH_OUT_WEIGHT, PUSH_OUT_MIN, DIRT_MOBILITY, DIRT_PASSES, PRIOR_AT_MIN_GAP = range(22, 27)
-N_FP = 27
-
 MODEL_EXP, MODEL_LIN, MODEL_TABLE = 0, 1, 2
+"""``TaskParams.model``: the side push's ``F`` of eq 17 — eq 22 (``m0`` = A, ``m1`` = k), eq 23 (``m0`` = intercept,
+``m1`` = slope) or the tabulated model."""
 LAW_INTEGRATOR, LAW_CURVE, LAW_RELEASE = 0, 1, 2
-"""``ip[LAW]``: eq 13/18 (:class:`~magctl.control.learning.LearningLaw`), the curve-learning law, the
+"""``TaskParams.law``: eq 13/18 (:class:`~magctl.control.learning.LearningLaw`), the curve-learning law, the
 release-model law."""
+
+
+class TaskParams(NamedTuple):
+    """A push task's parameters as its kernels read them, by name (numba passes a named tuple by value).
+
+    The names are the task's own parameters (:mod:`magctl.control.push.params`, one record per ``models/push.toml``
+    table) where the kernels read one, and the values the task derives from its blocks below them; a kernel reads
+    only the fields of its task, the others keep these defaults."""
+
+    # every push task ([common], and the task's ε, attempt limit and keep-out)
+    eps: float = 0.0
+    clearance: float = 0.0
+    arrive_tol: float = 0.0
+    travel_speed: float = 0.0
+    workspace: float = 0.0
+    max_attempts: int = 0
+    settle_frames: int = 0
+    max_lost_frames: int = 0
+    phase_timeout_frames: int = 0
+    # which spheres: the pushed one, and for an assembly the fixed one, their radii and ε_as (eq 21)
+    i0: int = 0
+    i1: int = 0
+    pair: bool = False
+    r0: float = 0.0
+    r1: float = 0.0
+    eps_as: float = 0.0
+    # front push ([front])
+    push_tol: float = 0.0
+    contact: float = 0.0
+    approach: float = 0.0
+    retract: float = 0.0
+    push_speed: float = 0.0
+    # side push ([side], [assembly] θ_n, the model of eq 17, the learning law and its dirt response)
+    min_gap: float = 0.0
+    d_max: float = 0.0
+    behind: float = 0.0
+    ahead: float = 0.0
+    pass_speed: float = 0.0
+    fixed: bool = False
+    fixed_gap: float = 0.0
+    theta_n: float = 0.0
+    model: int = MODEL_EXP
+    m0: float = 0.0
+    m1: float = 0.0
+    law: int = LAW_INTEGRATOR
+    iterations: int = 0
+    push_out_weight: float = 0.0
+    push_out_min: float = 0.0
+    dirt_mobility: float = 0.0
+    dirt_passes: float = 0.0
+    prior_at_min_gap: float = 0.0
+    max_fronts: int = 0
+
 
 AROUND_STEP = math.pi / 4
 TWO_PI = 2 * math.pi
 
 
-# --- planar helpers (magctl.core.batched) -------------------------------------------------------------
+# --- planar helpers --------------------------------------------------------------------------------------
 @jit
 def norm2(x, y):
     """``norm``: ``sqrt(x² + y²)``."""
@@ -172,22 +217,22 @@ def copy3(b, st, nx):
 
 # --- the frame shared by every push task (PushTask._frame, _fail, _enter, _finish_attempt) -----------------
 @jit
-def spheres_found(b, fp, ip, goal, sp):
+def spheres_found(b, p, goal, sp):
     """``_spheres_found``: the pushed sphere finite and within ``workspace`` of the goal, or (assemblies) both
     spheres finite and within ``workspace`` of each other."""
-    i = 2 * ip[I0]
+    i = 2 * p.i0
     s0 = sp[b, i]
     s1 = sp[b, i + 1]
-    if ip[PAIR]:
-        j = 2 * ip[I1]
+    if p.pair:
+        j = 2 * p.i1
         q0 = sp[b, j]
         q1 = sp[b, j + 1]
         if not (math.isfinite(s0) and math.isfinite(s1) and math.isfinite(q0) and math.isfinite(q1)):
             return False
-        return norm2(s0 - q0, s1 - q1) < fp[WORKSPACE]
+        return norm2(s0 - q0, s1 - q1) < p.workspace
     if not (math.isfinite(s0) and math.isfinite(s1)):
         return False
-    return not (norm2(s0 - goal[b, 0], s1 - goal[b, 1]) > fp[WORKSPACE])
+    return not (norm2(s0 - goal[b, 0], s1 - goal[b, 1]) > p.workspace)
 
 
 @jit
@@ -206,31 +251,31 @@ def enter(b, phase, frames, ph):
 
 
 @jit
-def finish_attempt(b, ip, status, attempt, converged):
+def finish_attempt(b, p, status, attempt, converged):
     """``_finish_attempt``: count the attempt; converged or the limit ends the trial. True: the trial goes on."""
     attempt[b, 0] += 1
     if converged:
         status[b, 0] = CONVERGED
         return False
-    if attempt[b, 0] >= ip[MAX_ATTEMPTS]:
+    if attempt[b, 0] >= p.max_attempts:
         status[b, 0] = ATTEMPT_LIMIT
         return False
     return True
 
 
 @jit
-def frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost, found):
+def frame_begin(b, p, phase, status, frames, lost_frames, target, r0, r1, lost, found):
     """``_frame`` before ``_step``: lost-frame count, then TRACKING_LOST, SPHERE_LOST, STALLED.
     True: the trial is running and tracked (its ``_step`` runs)."""
     running = status[b, 0] == RUNNING
     lost_frames[b, 0] = lost_frames[b, 0] + 1 if (running and lost) else 0
     if running:
         frames[b, 0] += 1
-    if running and lost_frames[b, 0] > ip[MAX_LOST]:
+    if running and lost_frames[b, 0] > p.max_lost_frames:
         fail(b, status, target, TRACKING_LOST, r0, r1)
     if status[b, 0] == RUNNING and not lost and not found:
         fail(b, status, target, SPHERE_LOST, r0, r1)
-    if status[b, 0] == RUNNING and frames[b, 0] > ip[TIMEOUT]:
+    if status[b, 0] == RUNNING and frames[b, 0] > p.phase_timeout_frames:
         fail(b, status, target, STALLED, r0, r1)
     return status[b, 0] == RUNNING and not lost
 
@@ -262,37 +307,37 @@ def write_outputs(b, outputs, out):
 
 # --- front push (front.py) -------------------------------------------------------------------------------
 @jit
-def front_geometry(b, fp, ip, goal, sp):
+def front_geometry(b, p, goal, sp):
     """``_geometry``: sphere, goal point, unit pushing direction and eq 12 (front push), or for the front
     assembly the contact point of sphere 2 and eq 21."""
-    i = 2 * ip[I0]
+    i = 2 * p.i0
     s0 = sp[b, i]
     s1 = sp[b, i + 1]
-    if ip[PAIR]:
-        j = 2 * ip[I1]
+    if p.pair:
+        j = 2 * p.i1
         q0 = sp[b, j]
         q1 = sp[b, j + 1]
         v0, v1 = unit2(q0 - s0, q1 - s1)
-        rs = fp[R0] + fp[R1]
-        done = norm2(q0 - s0, q1 - s1) <= rs + fp[EPS_AS]
+        rs = p.r0 + p.r1
+        done = norm2(q0 - s0, q1 - s1) <= rs + p.eps_as
         return s0, s1, q0 - rs * v0, q1 - rs * v1, v0, v1, done
     g0 = goal[b, 0]
     g1 = goal[b, 1]
     u0, u1 = unit2(g0 - s0, g1 - s1)
-    return s0, s1, g0, g1, u0, u1, norm2(g0 - s0, g1 - s1) < fp[EPS]
+    return s0, s1, g0, g1, u0, u1, norm2(g0 - s0, g1 - s1) < p.eps
 
 
 @heavy
-def front_frame(b, fp, ip, gain, rel, st, nb, r0, r1, sp, lost):
+def front_frame(b, p, gain, rel, st, nb, r0, r1, sp, lost):
     """One frame of :class:`~magctl.control.push.front.FrontPushTask` (and the front assembly) on the next state
     ``st``: approach → push (eq 10, 11) → retract → settle → eq 12 / eq 13, or with the release-model law
-    (``ip[LAW]``, tables ``rel``, neighbours ``nb``) ``δ ← δ*(|e|, e + δ)`` in eq 13's place. Returns the
+    (``p.law``, tables ``rel``, neighbours ``nb``) ``δ ← δ*(|e|, e + δ)`` in eq 13's place. Returns the
     outputs."""
     phase, status, attempt, frames, lost_frames, target, speed, lawx, goal, u, p_ri, p_o, g_line, stand, back = st
-    found = spheres_found(b, fp, ip, goal, sp)
-    if frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost, found):
+    found = spheres_found(b, p, goal, sp)
+    if frame_begin(b, p, phase, status, frames, lost_frames, target, r0, r1, lost, found):
         ph = phase[b, 0]
-        s0, s1, g0, g1, u0, u1, done = front_geometry(b, fp, ip, goal, sp)
+        s0, s1, g0, g1, u0, u1, done = front_geometry(b, p, goal, sp)
         begin = False
         if ph == START:
             if done:
@@ -300,22 +345,22 @@ def front_frame(b, fp, ip, gain, rel, st, nb, r0, r1, sp, lost):
             else:
                 begin = True
         elif ph == F_APPROACH:
-            if arrived(r0, r1, p_ri[b, 0], p_ri[b, 1], fp[ARRIVE_TOL]):
+            if arrived(r0, r1, p_ri[b, 0], p_ri[b, 1], p.arrive_tol):
                 enter(b, phase, frames, F_PUSH)
         elif ph == F_PUSH:
-            if norm2(s0 - p_o[b, 0], s1 - p_o[b, 1]) < fp[PUSH_TOL] or \
-                    arrived(r0, r1, stand[b, 0], stand[b, 1], fp[ARRIVE_TOL]):
-                back[b, 0] = r0 - fp[RETRACT] * u[b, 0]
-                back[b, 1] = r1 - fp[RETRACT] * u[b, 1]
+            if norm2(s0 - p_o[b, 0], s1 - p_o[b, 1]) < p.push_tol or \
+                    arrived(r0, r1, stand[b, 0], stand[b, 1], p.arrive_tol):
+                back[b, 0] = r0 - p.retract * u[b, 0]
+                back[b, 1] = r1 - p.retract * u[b, 1]
                 enter(b, phase, frames, F_RETRACT)
         elif ph == F_RETRACT:
-            if arrived(r0, r1, back[b, 0], back[b, 1], fp[ARRIVE_TOL]):
+            if arrived(r0, r1, back[b, 0], back[b, 1], p.arrive_tol):
                 enter(b, phase, frames, F_SETTLE)
         elif ph == F_SETTLE:
-            if frames[b, 0] >= ip[SETTLE_FRAMES]:
+            if frames[b, 0] >= p.settle_frames:
                 e = (g_line[b, 0] - s0) * u[b, 0] + (g_line[b, 1] - s1) * u[b, 1]
-                if finish_attempt(b, ip, status, attempt, done):
-                    if ip[LAW] == LAW_RELEASE:
+                if finish_attempt(b, p, status, attempt, done):
+                    if p.law == LAW_RELEASE:
                         release_update(b, rel[0], rel[1], rel[2], rel[3], rel[4], rel[5], lawx, nb, e)
                     else:
                         lawx[b, 0] = lawx[b, 0] + law_gain(gain, b) * e   # eq 13
@@ -328,16 +373,16 @@ def front_frame(b, fp, ip, gain, rel, st, nb, r0, r1, sp, lost):
             u[b, 1] = u1
             g_line[b, 0] = g0
             g_line[b, 1] = g1
-            p_ri[b, 0] = s0 - fp[APPROACH] * u0
-            p_ri[b, 1] = s1 - fp[APPROACH] * u1
+            p_ri[b, 0] = s0 - p.approach * u0
+            p_ri[b, 1] = s1 - p.approach * u1
             p_o[b, 0] = po0
             p_o[b, 1] = po1
-            stand[b, 0] = po0 - fp[CONTACT] * u0
-            stand[b, 1] = po1 - fp[CONTACT] * u1
+            stand[b, 0] = po0 - p.contact * u0
+            stand[b, 1] = po1 - p.contact * u1
             enter(b, phase, frames, F_APPROACH)
         ph = phase[b, 0]  # _targets
         if ph == F_APPROACH:
-            t0, t1 = around(r0, r1, s0, s1, p_ri[b, 0], p_ri[b, 1], fp[CLEARANCE])
+            t0, t1 = around(r0, r1, s0, s1, p_ri[b, 0], p_ri[b, 1], p.clearance)
             target[b, 0] = t0
             target[b, 1] = t1
         elif ph == F_PUSH:
@@ -346,17 +391,17 @@ def front_frame(b, fp, ip, gain, rel, st, nb, r0, r1, sp, lost):
         elif ph == F_RETRACT or ph == F_SETTLE:
             target[b, 0] = back[b, 0]
             target[b, 1] = back[b, 1]
-        speed[b, 0] = fp[PUSH_SPEED] if ph == F_PUSH else fp[TRAVEL_SPEED]
+        speed[b, 0] = p.push_speed if ph == F_PUSH else p.travel_speed
     return frame_end(b, phase, status, attempt, target, speed, lawx[b, 0], r0, r1)
 
 
 @jit
 def front_step(b, params, state, next_state, inputs, outputs, base, noise):
     """:class:`~magctl.control.push.front.FrontPushTask` / ``FrontAssemblyTask`` step with the eq 13 law."""
-    fp, ip, gain, rs, rd, rx0, rx1, rrow, rhit, nb = params
+    p, gain, rs, rd, rx0, rx1, rrow, rhit, nb = params
     robot, sp, lost = inputs
     copy_task_state(b, state, next_state)
-    out = front_frame(b, fp, ip, gain, (rs, rd, rx0, rx1, rrow, rhit), next_state, nb, robot[b, 0], robot[b, 1],
+    out = front_frame(b, p, gain, (rs, rd, rx0, rx1, rrow, rhit), next_state, nb, robot[b, 0], robot[b, 1],
                       sp, lost[b, 0])
     write_outputs(b, outputs, out)
 
@@ -365,55 +410,55 @@ def front_step(b, params, state, next_state, inputs, outputs, base, noise):
 def release_front_step(b, params, state, next_state, inputs, outputs, base, noise):
     """:class:`~magctl.control.push.front.FrontPushTask` step with the release-model law (``learning="release"``):
     its state has ``law.neighbours`` after ``law.x``."""
-    fp, ip, gain, rs, rd, rx0, rx1, rrow, rhit = params
+    p, gain, rs, rd, rx0, rx1, rrow, rhit = params
     robot, sp, lost = inputs
     st = next_state[0:8] + next_state[9:16]
     copy_task_state(b, state[0:8] + state[9:16], st)
     _cp(b, state[8], next_state[8])
-    out = front_frame(b, fp, ip, gain, (rs, rd, rx0, rx1, rrow, rhit), st, next_state[8], robot[b, 0], robot[b, 1],
+    out = front_frame(b, p, gain, (rs, rd, rx0, rx1, rrow, rhit), st, next_state[8], robot[b, 0], robot[b, 1],
                       sp, lost[b, 0])
     write_outputs(b, outputs, out)
 
 
 # --- side push (side.py, assembly.py) ----------------------------------------------------------------------
 @jit
-def side_geometry(b, fp, ip, goal, sp, r0, r1):
+def side_geometry(b, p, goal, sp, r0, r1):
     """``_geometry``: sphere, distance still to go, pushing direction and side of the robot, eq 12 (side
     push); for the assembly the adjusted line at ``θ_n``, the gap still to close and eq 21."""
-    i = 2 * ip[I0]
+    i = 2 * p.i0
     s0 = sp[b, i]
     s1 = sp[b, i + 1]
-    if ip[PAIR]:
-        j = 2 * ip[I1]
+    if p.pair:
+        j = 2 * p.i1
         q0 = sp[b, j]
         q1 = sp[b, j + 1]
         v0, v1 = unit2(q0 - s0, q1 - s1)
         side = 1.0 if v0 * (r1 - s1) - v1 * (r0 - s0) >= 0 else -1.0
-        angle = side * fp[THETA_N]
+        angle = side * p.theta_n
         c = math.cos(angle)
         s = math.sin(angle)
         sep = norm2(q0 - s0, q1 - s1)
-        to_close = nan_max(sep - fp[R0] - fp[R1], 0.0)
-        done = sep <= fp[R0] + fp[R1] + fp[EPS_AS]
+        to_close = nan_max(sep - p.r0 - p.r1, 0.0)
+        done = sep <= p.r0 + p.r1 + p.eps_as
         return s0, s1, to_close, c * v0 - s * v1, s * v0 + c * v1, side, done
     d0 = goal[b, 0] - s0
     d1 = goal[b, 1] - s1
     u0, u1 = unit2(d0, d1)
     side = 1.0 if u0 * (r1 - s1) - u1 * (r0 - s0) >= 0 else -1.0
     dist = norm2(d0, d1)
-    return s0, s1, dist, u0, u1, side, dist < fp[EPS]
+    return s0, s1, dist, u0, u1, side, dist < p.eps
 
 
 @jit
-def model_gap(fp, ip, tg, tld, trate, ds):
+def model_gap(p, tg, tld, trate, ds):
     """``F(D_s)`` of eq 17: eq 22 (``−ln(D_s/A)/k``), eq 23 (affine) or the tabulated model; ``D_s ≤ 0`` (and
     NaN) gives an infinite gap for eq 22 and the table."""
-    kind = ip[MODEL]
+    kind = p.model
     if kind == MODEL_LIN:
-        return fp[M0] + fp[M1] * ds
+        return p.m0 + p.m1 * ds
     if kind == MODEL_EXP:
         if ds > 0:
-            return -math.log(ds / fp[M0]) / fp[M1]
+            return -math.log(ds / p.m0) / p.m1
         return math.inf
     if not ds > 0:
         return math.inf
@@ -427,39 +472,39 @@ def model_gap(fp, ip, tg, tld, trate, ds):
 
 
 @jit
-def learn_push_out(b, fp, u, p0, start, push_out, push_out_n, s0, s1):
-    """``SidePushTask._learn_push_out``: the sphere's displacement across the pass, away from the robot's side,
+def learn_push_out(b, p, u, p0, start, push_out, push_out_n, s0, s1):
+    """The push-out ratio learned from a pass: the sphere's displacement across the pass, away from the robot's side,
     over its displacement along it (a pass at least ``push_out_min`` long), taken whole the first time and with
     ``push_out_weight`` after."""
     u0 = u[b, 0]
     u1 = u[b, 1]
     d0 = s0 - p0[b, 0]
     d1 = s1 - p0[b, 1]
-    w0 = start[b, 0] - p0[b, 0] + fp[BEHIND] * u0
-    w1 = start[b, 1] - p0[b, 1] + fp[BEHIND] * u1
+    w0 = start[b, 0] - p0[b, 0] + p.behind * u0
+    w1 = start[b, 1] - p0[b, 1] + p.behind * u1
     robot_side = sign(w0 * -u1 + w1 * u0)
     along = d0 * u0 + d1 * u1
     across = -robot_side * (d0 * -u1 + d1 * u0)
-    if along >= fp[PUSH_OUT_MIN]:
+    if along >= p.push_out_min:
         ratio = across / along
-        weight = 1.0 if push_out_n[b, 0] == 0 else fp[PUSH_OUT_WEIGHT]
+        weight = 1.0 if push_out_n[b, 0] == 0 else p.push_out_weight
         push_out[b, 0] = push_out[b, 0] + weight * (ratio - push_out[b, 0])
         push_out_n[b, 0] += 1
 
 
 @heavy
-def side_frame(b, fp, ip, gain, tg, tld, trate, cp, st, cov, push_out, push_out_n, r0, r1, sp, lost):
+def side_frame(b, p, gain, tg, tld, trate, cp, st, cov, push_out, push_out_n, r0, r1, sp, lost):
     """One frame of :class:`~magctl.control.push.side.SidePushTask` (and the side-push assembly) on the next
     state ``st``: reposition → pass → settle → eq 12 (eq 21) / eq 18, or with the curve-learning law
-    (``ip[LAW]``; ``st``'s 8th entry is ``law.theta``, then ``law.cov``, ``push_out``, ``push_out_n``) the EKF
+    (``p.law``; ``st``'s 8th entry is ``law.theta``, then ``law.cov``, ``push_out``, ``push_out_n``) the EKF
     step, the push-out ratio, the estimate's bound and inverse for ``D_s,des`` and ``D_g`` and the pass turned
     by ``atan`` of the push-out. Returns the outputs and the gap output."""
     phase, status, attempt, frames, lost_frames, target, speed, lawx, goal, u, p0, start, end, d_des, gap = st
-    curve = ip[LAW] == LAW_CURVE
-    found = spheres_found(b, fp, ip, goal, sp)
-    if frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost, found):
+    curve = p.law == LAW_CURVE
+    found = spheres_found(b, p, goal, sp)
+    if frame_begin(b, p, phase, status, frames, lost_frames, target, r0, r1, lost, found):
         ph = phase[b, 0]
-        s0, s1, dist, u0, u1, side, done = side_geometry(b, fp, ip, goal, sp, r0, r1)
+        s0, s1, dist, u0, u1, side, done = side_geometry(b, p, goal, sp, r0, r1)
         begin = False
         if ph == START:
             if done:
@@ -467,18 +512,18 @@ def side_frame(b, fp, ip, gain, tg, tld, trate, cp, st, cov, push_out, push_out_
             else:
                 begin = True
         elif ph == S_REPOSITION:
-            if arrived(r0, r1, start[b, 0], start[b, 1], fp[ARRIVE_TOL]):
+            if arrived(r0, r1, start[b, 0], start[b, 1], p.arrive_tol):
                 enter(b, phase, frames, S_PASS)
         elif ph == S_PASS:
-            if arrived(r0, r1, end[b, 0], end[b, 1], fp[ARRIVE_TOL]):
+            if arrived(r0, r1, end[b, 0], end[b, 1], p.arrive_tol):
                 enter(b, phase, frames, S_SETTLE)
         elif ph == S_SETTLE:
-            if frames[b, 0] >= ip[SETTLE_FRAMES]:
+            if frames[b, 0] >= p.settle_frames:
                 d_act = (s0 - p0[b, 0]) * u[b, 0] + (s1 - p0[b, 1]) * u[b, 1]
-                if finish_attempt(b, ip, status, attempt, done):
+                if finish_attempt(b, p, status, attempt, done):
                     if curve:  # the pass (D_g, D_s,act) into the estimate, then its push-out
-                        curve_update(b, cp, ip[ITERATIONS], lawx, cov, lawx, cov, gap[b, 0], d_act)
-                        learn_push_out(b, fp, u, p0, start, push_out, push_out_n, s0, s1)
+                        curve_update(b, cp, p.iterations, lawx, cov, lawx, cov, gap[b, 0], d_act)
+                        learn_push_out(b, p, u, p0, start, push_out, push_out_n, s0, s1)
                     else:
                         lawx[b, 0] = lawx[b, 0] + law_gain(gain, b) * (d_act - d_des[b, 0])   # eq 18
                     begin = True
@@ -488,15 +533,15 @@ def side_frame(b, fp, ip, gain, tg, tld, trate, cp, st, cov, push_out, push_out_
                 c = math.cos(turn)
                 sn = side * math.sin(turn)
                 u0, u1 = c * u0 + sn * -u1, c * u1 + sn * u0
-                dd = nan_min(dist, curve_displacement(lawx, b, cp, fp[MIN_GAP]))
+                dd = nan_min(dist, curve_displacement(lawx, b, cp, p.min_gap))
             else:
-                dd = nan_min(dist, fp[D_MAX])
-            if ip[FIXED]:
-                g = fp[FIXED_GAP]
+                dd = nan_min(dist, p.d_max)
+            if p.fixed:
+                g = p.fixed_gap
             elif curve:
-                g = curve_gap(lawx, b, cp, dd, fp[MIN_GAP])
+                g = curve_gap(lawx, b, cp, dd, p.min_gap)
             else:
-                g = nan_max(model_gap(fp, ip, tg, tld, trate, dd + lawx[b, 0]), fp[MIN_GAP])
+                g = nan_max(model_gap(p, tg, tld, trate, dd + lawx[b, 0]), p.min_gap)
             finite = math.isfinite(g)
             gg = g if finite else 0.0
             n0 = side * -u1 * gg
@@ -505,11 +550,11 @@ def side_frame(b, fp, ip, gain, tg, tld, trate, cp, st, cov, push_out, push_out_
             u[b, 1] = u1
             p0[b, 0] = s0
             p0[b, 1] = s1
-            start[b, 0] = s0 - fp[BEHIND] * u0 + n0
-            start[b, 1] = s1 - fp[BEHIND] * u1 + n1
+            start[b, 0] = s0 - p.behind * u0 + n0
+            start[b, 1] = s1 - p.behind * u1 + n1
             if finite:
-                end[b, 0] = s0 + fp[AHEAD] * u0 + n0
-                end[b, 1] = s1 + fp[AHEAD] * u1 + n1
+                end[b, 0] = s0 + p.ahead * u0 + n0
+                end[b, 1] = s1 + p.ahead * u1 + n1
             else:
                 end[b, 0] = r0
                 end[b, 1] = r1
@@ -518,13 +563,13 @@ def side_frame(b, fp, ip, gain, tg, tld, trate, cp, st, cov, push_out, push_out_
             enter(b, phase, frames, S_REPOSITION if finite else S_SETTLE)
         ph = phase[b, 0]
         if ph == S_REPOSITION:
-            t0, t1 = around(r0, r1, s0, s1, start[b, 0], start[b, 1], fp[CLEARANCE])
+            t0, t1 = around(r0, r1, s0, s1, start[b, 0], start[b, 1], p.clearance)
             target[b, 0] = t0
             target[b, 1] = t1
         elif ph == S_PASS or ph == S_SETTLE:
             target[b, 0] = end[b, 0]
             target[b, 1] = end[b, 1]
-        speed[b, 0] = fp[PASS_SPEED] if ph == S_PASS else fp[TRAVEL_SPEED]
+        speed[b, 0] = p.pass_speed if ph == S_PASS else p.travel_speed
     g = gap[b, 0]
     correction = curve_correction(lawx, b, cp) if curve else lawx[b, 0]
     return frame_end(b, phase, status, attempt, target, speed, correction, r0, r1), 0.0 if math.isinf(g) else g
@@ -533,10 +578,10 @@ def side_frame(b, fp, ip, gain, tg, tld, trate, cp, st, cov, push_out, push_out_
 @jit
 def side_step(b, params, state, next_state, inputs, outputs, base, noise):
     """:class:`~magctl.control.push.side.SidePushTask` / ``AssemblyTask`` step with the eq 18 law."""
-    fp, ip, gain, tg, tld, trate, cp, cov, push_out, push_out_n = params
+    p, gain, tg, tld, trate, cp, cov, push_out, push_out_n = params
     robot, sp, lost = inputs
     copy_task_state(b, state, next_state)
-    out, g = side_frame(b, fp, ip, gain, tg, tld, trate, cp, next_state, cov, push_out, push_out_n, robot[b, 0],
+    out, g = side_frame(b, p, gain, tg, tld, trate, cp, next_state, cov, push_out, push_out_n, robot[b, 0],
                         robot[b, 1], sp, lost[b, 0])
     write_outputs(b, outputs, out)
     outputs[6][b, 0] = g
@@ -546,13 +591,13 @@ def side_step(b, params, state, next_state, inputs, outputs, base, noise):
 def curve_side_step(b, params, state, next_state, inputs, outputs, base, noise):
     """:class:`~magctl.control.push.side.SidePushTask` / ``AssemblyTask`` step with the curve-learning law: the
     state has ``law.theta``, ``law.cov``, ``push_out``, ``push_out_n`` before the task's own 7 entries."""
-    fp, ip, gain, tg, tld, trate, cp = params
+    p, gain, tg, tld, trate, cp = params
     robot, sp, lost = inputs
     st = next_state[0:8] + next_state[11:18]
     extra = next_state[8:11]
     copy_task_state(b, state[0:8] + state[11:18], st)
     copy3(b, state[8:11], extra)
-    out, g = side_frame(b, fp, ip, gain, tg, tld, trate, cp, st, extra[0], extra[1], extra[2], robot[b, 0],
+    out, g = side_frame(b, p, gain, tg, tld, trate, cp, st, extra[0], extra[1], extra[2], robot[b, 0],
                         robot[b, 1], sp, lost[b, 0])
     write_outputs(b, outputs, out)
     outputs[6][b, 0] = g
@@ -592,9 +637,9 @@ def restart_side(b, st):
 
 
 @heavy
-def side_dirt_frame(b, fp, ip, gain, tg, tld, trate, cp, ffp, fip, fgain, rel, fnb, fx0, state, next_state, robot,
+def side_dirt_frame(b, p, gain, tg, tld, trate, cp, front_p, fgain, rel, fnb, fx0, state, next_state, robot,
                     sp, lost, outputs):
-    """``SidePushTask._frame_with_front`` for trial ``b``: the side frame, and on the frame it measures a sphere
+    """The side push answering dirt, for trial ``b``: the side frame, and on the frame it measures a sphere
     the curve law reads as stuck (mobility at ``min_gap`` under ``[dirt] mobility``, more than ``[dirt] passes``
     passes to go, fewer than ``[dirt] fronts`` front pushes so far) the hand-over to a fresh front push (eq 10–13,
     no learning); while it runs the side stage is frozen (its frame is stepped on a scratch copy: its phase is the
@@ -616,8 +661,8 @@ def side_dirt_frame(b, fp, ip, gain, tg, tld, trate, cp, ffp, fip, fgain, rel, f
     r0 = robot[b, 0]
     r1 = robot[b, 1]
     in_front = stage[b, 0] == DIRT_FRONT
-    s_out, g = side_frame(b, fp, ip, gain, tg, tld, trate, cp, side, extra[0], extra[1], extra[2], r0, r1, sp, lost)
-    i = 2 * ip[I0]
+    s_out, g = side_frame(b, p, gain, tg, tld, trate, cp, side, extra[0], extra[1], extra[2], r0, r1, sp, lost)
+    i = 2 * p.i0
     goal = side[8]
     dist = norm2(goal[b, 0] - sp[b, i], goal[b, 1] - sp[b, i + 1])
     status, attempt = side[1], side[2]
@@ -625,14 +670,14 @@ def side_dirt_frame(b, fp, ip, gain, tg, tld, trate, cp, ffp, fip, fgain, rel, f
     trigger = False
     ended = False
     if in_front:
-        f = front_frame(b, ffp, fip, fgain, rel, front, fnb, r0, r1, sp, lost)
+        f = front_frame(b, front_p, fgain, rel, front, fnb, r0, r1, sp, lost)
         copy_task_state(b, side_in, side)   # the side stage is frozen while the front push runs
         copy3(b, extra_in, extra)
         ended = f[3] != RUNNING
         if ended:
             if f[3] == CONVERGED or f[3] == ATTEMPT_LIMIT:  # back to side passes: the front push was an attempt
                 restart_side(b, side)
-                finish_attempt(b, ip, status, attempt, dist < fp[EPS])
+                finish_attempt(b, p, status, attempt, dist < p.eps)
             else:
                 status[b, 0] = f[3]
             nstage[b, 0] = DIRT_SIDE
@@ -640,10 +685,10 @@ def side_dirt_frame(b, fp, ip, gain, tg, tld, trate, cp, ffp, fip, fgain, rel, f
             t0, t1, spd, phase_out = f[0], f[1], f[2], f[5] + FRONT_PHASE_OFFSET
         g = 0.0
     elif attempt[b, 0] > side_in[2][b, 0] and status[b, 0] == RUNNING:  # an attempt was just measured
-        d_min = curve_displacement(side[7], b, cp, fp[MIN_GAP])
-        stuck = d_min / fp[PRIOR_AT_MIN_GAP] < fp[DIRT_MOBILITY]
-        many = dist > fp[DIRT_PASSES] * d_min
-        trigger = stuck and many and fronts[b, 0] < ip[MAX_FRONTS]
+        d_min = curve_displacement(side[7], b, cp, p.min_gap)
+        stuck = d_min / p.prior_at_min_gap < p.dirt_mobility
+        many = dist > p.dirt_passes * d_min
+        trigger = stuck and many and fronts[b, 0] < p.max_fronts
         if trigger:
             restart_side(b, side)
             reset_front(b, front, fx0)
@@ -662,9 +707,9 @@ def side_dirt_frame(b, fp, ip, gain, tg, tld, trate, cp, ffp, fip, fgain, rel, f
 def side_dirt_step(b, params, state, next_state, inputs, outputs, base, noise):
     """:class:`~magctl.control.push.side.SidePushTask` with the curve-learning law and ``dirt_response="front"``
     (``in_place=False``: the frozen side stage is re-read from the state)."""
-    fp, ip, gain, tg, tld, trate, cp, ffp, fip, fgain, rs, rd, rx0, rx1, rrow, rhit, fnb, fx0 = params
+    p, gain, tg, tld, trate, cp, front_p, fgain, rs, rd, rx0, rx1, rrow, rhit, fnb, fx0 = params
     robot, sp, lost = inputs
-    side_dirt_frame(b, fp, ip, gain, tg, tld, trate, cp, ffp, fip, fgain, (rs, rd, rx0, rx1, rrow, rhit), fnb, fx0,
+    side_dirt_frame(b, p, gain, tg, tld, trate, cp, front_p, fgain, (rs, rd, rx0, rx1, rrow, rhit), fnb, fx0,
                     state, next_state, robot, sp, lost[b, 0], outputs)
 
 
@@ -674,14 +719,14 @@ def front_then_side(b, fparams, sparams, stage, nstage, fst, sst, extra, robot, 
     """:class:`~magctl.control.push.assembly.FrontThenSideAssemblyTask` on the next state: the front stage every
     frame, the side stage (advanced) only in stage 2, which starts the frame after the front stage hits its
     attempt limit."""
-    ffp, fip, fgain, rel, fnb = fparams
-    sfp, sip, sgain, tg, tld, trate, cp = sparams
+    front_p, fgain, rel, fnb = fparams
+    side_p, sgain, tg, tld, trate, cp = sparams
     r0 = robot[b, 0]
     r1 = robot[b, 1]
     in_side = stage[b, 0] == ASSEMBLY_SIDE
-    f = front_frame(b, ffp, fip, fgain, rel, fst, fnb, r0, r1, sp, lost)
+    f = front_frame(b, front_p, fgain, rel, fst, fnb, r0, r1, sp, lost)
     if in_side:
-        s, g = side_frame(b, sfp, sip, sgain, tg, tld, trate, cp, sst, extra[0], extra[1], extra[2], r0, r1, sp,
+        s, g = side_frame(b, side_p, sgain, tg, tld, trate, cp, sst, extra[0], extra[1], extra[2], r0, r1, sp,
                           lost)
         ph = s[5] + SIDE_PHASE_OFFSET if s[5] != FINISHED else s[5]
         write_outputs(b, outputs, (s[0], s[1], s[2], s[3], f[4] + s[4], ph, s[6]))
@@ -703,14 +748,14 @@ def front_then_side(b, fparams, sparams, stage, nstage, fst, sst, extra, robot, 
 @jit
 def front_then_side_step(b, params, state, next_state, inputs, outputs, base, noise):
     """:class:`~magctl.control.push.assembly.FrontThenSideAssemblyTask` with the eq 18 law in the side stage."""
-    (ffp, fip, fgain, rs, rd, rx0, rx1, rrow, rhit, fnb,
-     sfp, sip, sgain, tg, tld, trate, cp, cov, push_out, push_out_n) = params
+    (front_p, fgain, rs, rd, rx0, rx1, rrow, rhit, fnb,
+     side_p, sgain, tg, tld, trate, cp, cov, push_out, push_out_n) = params
     robot, sp, lost = inputs
     fst = next_state[1:16]
     sst = next_state[16:31]
     copy_task_state(b, state[1:16], fst)
     copy_task_state(b, state[16:31], sst)
-    front_then_side(b, (ffp, fip, fgain, (rs, rd, rx0, rx1, rrow, rhit), fnb), (sfp, sip, sgain, tg, tld, trate, cp),
+    front_then_side(b, (front_p, fgain, (rs, rd, rx0, rx1, rrow, rhit), fnb), (side_p, sgain, tg, tld, trate, cp),
                     state[0], next_state[0], fst, sst, (cov, push_out, push_out_n), robot, sp, lost[b, 0], outputs)
 
 
@@ -718,7 +763,7 @@ def front_then_side_step(b, params, state, next_state, inputs, outputs, base, no
 def front_then_curve_side_step(b, params, state, next_state, inputs, outputs, base, noise):
     """:class:`~magctl.control.push.assembly.FrontThenSideAssemblyTask` with the curve-learning law in the side
     stage (its state has ``law.theta``, ``law.cov``, ``push_out``, ``push_out_n``)."""
-    ffp, fip, fgain, rs, rd, rx0, rx1, rrow, rhit, fnb, sfp, sip, sgain, tg, tld, trate, cp = params
+    front_p, fgain, rs, rd, rx0, rx1, rrow, rhit, fnb, side_p, sgain, tg, tld, trate, cp = params
     robot, sp, lost = inputs
     fst = next_state[1:16]
     sst = next_state[16:24] + next_state[27:34]
@@ -726,7 +771,7 @@ def front_then_curve_side_step(b, params, state, next_state, inputs, outputs, ba
     copy_task_state(b, state[1:16], fst)
     copy_task_state(b, state[16:24] + state[27:34], sst)
     copy3(b, state[24:27], extra)
-    front_then_side(b, (ffp, fip, fgain, (rs, rd, rx0, rx1, rrow, rhit), fnb), (sfp, sip, sgain, tg, tld, trate, cp),
+    front_then_side(b, (front_p, fgain, (rs, rd, rx0, rx1, rrow, rhit), fnb), (side_p, sgain, tg, tld, trate, cp),
                     state[0], next_state[0], fst, sst, extra, robot, sp, lost[b, 0], outputs)
 
 
@@ -767,7 +812,7 @@ def planned_step(b, params, state, next_state, inputs, outputs, base, noise):
     settle → eq 21 on every bond. A trial that needs a pass (its first, or the next after a measured one) raises
     ``plan_due``; the task's ``handle_event`` plans it in Python at the end of the frame, so the pass and its path
     apply from the next frame on (the plan takes one frame, as on a rig)."""
-    fp, ip, area, bonds, contact, shape, waypoint_tol = params
+    p, area, bonds, contact, shape, waypoint_tol = params
     robot, sp, lost = inputs
     copy_planned_state(b, state, next_state)
     (phase, status, attempt, frames, lost_frames, target, speed, _start, _end, _before, _predicted, error,
@@ -775,7 +820,7 @@ def planned_step(b, params, state, next_state, inputs, outputs, base, noise):
     r0 = robot[b, 0]
     r1 = robot[b, 1]
     found = spheres_inside(b, area, sp)
-    if frame_begin(b, ip, phase, status, frames, lost_frames, target, r0, r1, lost[b, 0], found):
+    if frame_begin(b, p, phase, status, frames, lost_frames, target, r0, r1, lost[b, 0], found):
         ph = phase[b, 0]
         done = assembled(b, bonds, contact, shape, sp)
         if ph == START:
@@ -788,18 +833,18 @@ def planned_step(b, params, state, next_state, inputs, outputs, base, noise):
             w0 = waypoints[b, 2 * k]
             w1 = waypoints[b, 2 * k + 1]
             last = waypoint[b, 0] >= n_waypoints[b, 0] - 1
-            tol = fp[ARRIVE_TOL] if last else waypoint_tol
+            tol = p.arrive_tol if last else waypoint_tol
             if norm2(r0 - (0.0 if math.isnan(w0) else w0), r1 - (0.0 if math.isnan(w1) else w1)) < tol:
                 if last:
                     enter(b, phase, frames, S_PASS)
                 else:
                     waypoint[b, 0] += 1
         elif ph == S_PASS:
-            if arrived(r0, r1, end[b, 0], end[b, 1], fp[ARRIVE_TOL]):
+            if arrived(r0, r1, end[b, 0], end[b, 1], p.arrive_tol):
                 enter(b, phase, frames, S_SETTLE)
         elif ph == S_SETTLE:
-            if frames[b, 0] >= ip[SETTLE_FRAMES]:
-                if finish_attempt(b, ip, status, attempt, done):
+            if frames[b, 0] >= p.settle_frames:
+                if finish_attempt(b, p, status, attempt, done):
                     due[b, 0] = True
         ph = phase[b, 0]
         if ph == S_REPOSITION:
@@ -809,7 +854,7 @@ def planned_step(b, params, state, next_state, inputs, outputs, base, noise):
         elif ph == S_PASS or ph == S_SETTLE:
             target[b, 0] = end[b, 0]
             target[b, 1] = end[b, 1]
-        speed[b, 0] = fp[PASS_SPEED] if ph == S_PASS else fp[TRAVEL_SPEED]
+        speed[b, 0] = p.pass_speed if ph == S_PASS else p.travel_speed
     e = error[b, 0]
     out = frame_end(b, phase, status, attempt, target, speed, 0.0 if math.isnan(e) else e, r0, r1)
     write_outputs(b, outputs, out)

@@ -30,7 +30,8 @@ from magctl.control.arrangement import arrangement as make_arrangement
 from magctl.control.assembly_planner import PassPlanner, PlanLimits
 from magctl.control.phases import FINISHED, START, SidePhase
 from magctl.control.planner import KEEP_OUT_M, PlanningError, plan_path
-from magctl.control.push.common import PushTask, with_defaults
+from magctl.control.push.common import PushTask
+from magctl.control.push.params import PlannedParams
 from magctl.control.status import Status
 from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
@@ -55,13 +56,13 @@ class PlannedAssemblyTask(PushTask, Block):
     planner : {"optimal", "greedy"}
         Passes optimised on the pass map with IPOPT, or the paper's method one sphere at a time
         (:data:`~magctl.control.assembly_planner.PLANNERS`).
-    eps_as : float
-        ``ε_as`` of eq 21 (``[assembly]``).
-    max_attempts : int
-        Passes before the task gives up (30).
-    pass_speed, clearance, …
-        As :class:`~magctl.control.push.side.SidePushTask` (``[side]``): the pushing speed and the
-        repositioning keep-out.
+    params : PlannedParams, optional
+        The task's parameters (:class:`~magctl.control.push.params.PlannedParams`); by default the file's.
+    **overrides
+        Any field of the record (``None`` keeps the value): ``eps_as`` (``ε_as`` of eq 21, ``[assembly]``),
+        ``max_attempts`` (passes before the task gives up, ``[plan] max_passes``), ``clearance`` (the
+        repositioning keep-out, ``[plan]``), ``pass_speed`` (``[side]``) and the shared ``arrive_tol``,
+        ``travel_speed``, ``settle_frames``, ``max_lost_frames``, ``phase_timeout_frames``, ``workspace``.
 
     Ports: inputs as every push task; outputs as every push task plus ``gap`` (m), the smallest distance of
     the pass from a sphere, measured when it is planned; ``correction`` is the planner's predicted RMS bond
@@ -70,29 +71,19 @@ class PlannedAssemblyTask(PushTask, Block):
 
     PHASES = {START: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", FINISHED: "finished"}
 
+    PARAMS = PlannedParams
+
     def __init__(self, name: str = "planned_assembly", *, n_spheres: int = 3, arrangement: str | None = None,
-                 planner: str = "optimal", eps_as: float | None = None, max_attempts: int | None = None,
-                 clearance: float | None = None, arrive_tol: float | None = None, pass_speed: float | None = None,
-                 travel_speed: float | None = None, settle_frames: int | None = None,
-                 max_lost_frames: int | None = None, phase_timeout_frames: int | None = None,
-                 workspace: float | None = None):
+                 planner: str = "optimal", params: PlannedParams | None = None, **overrides):
         n_spheres = int(n_spheres)
+        what = f"assembly {name!r}"
         if not 2 <= n_spheres <= 4:
-            raise MagctlError(f"assembly {name!r}: n_spheres={n_spheres} must be 2, 3 or 4")
+            raise MagctlError(f"{what}: n_spheres={n_spheres} must be 2, 3 or 4")
+        self._check_common(what, params, overrides, goal=(0.0, 0.0), n_spheres=n_spheres, sphere=0)
         self.target = make_arrangement(arrangement or ("pair" if n_spheres == 2 else "line"), n_spheres,
-                                       eps_as=eps_as)
-        p = with_defaults("side", max_attempts=max_attempts, clearance=clearance, arrive_tol=arrive_tol,
-                          pass_speed=pass_speed, travel_speed=travel_speed, settle_frames=settle_frames,
-                          max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
-                          workspace=workspace, eps=None)
-        if max_attempts is None:
-            p["max_attempts"] = int(load_model("push").plan.max_passes)
-        if clearance is None:
-            p["clearance"] = float(load_model("push").plan.reposition_clearance)
-        self._check_common("assembly", name, p, goal=(0.0, 0.0), n_spheres=n_spheres, sphere=0)
+                                       eps_as=self.eps_as)
         self.sphere_indices = tuple(range(n_spheres))
         self.law = PassPlanner(self.target, f"{name}_planner", planner=planner)
-        self.pass_speed = float(p["pass_speed"])
         self.cell = float(load_model("push").plan.reposition_cell)
         self.law_limits = PlanLimits.default()
         self.bounds = self.law_limits.field
@@ -125,15 +116,11 @@ class PlannedAssemblyTask(PushTask, Block):
 
         x0, y0, x1, y1 = self.bounds
         pad = self.workspace
-        fp = np.zeros(k.N_FP)
-        ip = np.zeros(k.N_IP, dtype=np.int64)
-        fp[[k.ARRIVE_TOL, k.TRAVEL_SPEED, k.PASS_SPEED]] = self.arrive_tol, self.travel_speed, self.pass_speed
-        ip[[k.MAX_ATTEMPTS, k.SETTLE_FRAMES, k.MAX_LOST, k.TIMEOUT]] = (
-            self.max_attempts, self.settle_frames, self.max_lost_frames, self.phase_timeout_frames)
         area = np.array([x0 - pad, y0 - pad, x1 + pad, y1 + pad])
         shape = np.array([self.target.eps_as, np.cos(self.target.bend / 2)])
         return Kernel(step=k.planned_step, event="plan_due",
-                      params=(fp, ip, area, self.target.bonds, self.target.contact.copy(), shape, WAYPOINT_TOL))
+                      params=(self.params.packed(), area, self.target.bonds, self.target.contact.copy(), shape,
+                              WAYPOINT_TOL))
 
     def handle_event(self, state, u):
         """Plan the next pass (the :class:`~magctl.control.assembly_planner.PassPlanner` block: IPOPT on the pass

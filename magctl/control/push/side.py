@@ -31,10 +31,11 @@ the estimate's displacement at ``min_gap`` and the gap inverts the estimate (doc
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.config import load_model
 from magctl.control.curve_learning import CurveLearningLaw, curve_learning_law
 from magctl.control.learning import LearningLaw, side_push_law
 from magctl.control.phases import FINISHED, DirtStage, SidePhase
@@ -46,19 +47,15 @@ from magctl.control.push.common import (
     TabulatedSideModel,
     curve_dummies,
     side_model,
-    with_defaults,
 )
 from magctl.control.push.front import FrontPushTask
+from magctl.control.push.params import CommonParams, DirtParams, SideParams
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
 
 REPOSITION, PASS, SETTLE = int(SidePhase.REPOSITION), int(SidePhase.PASS), int(SidePhase.SETTLE)
-LEARNING = {"eq18": "the paper's eq 18 law correcting the fixed model F (gain K_s)",
-            "curve": "the curve D_s(D_g) re-estimated after every pass and inverted (magctl.control.curve_learning)"}
-DIRT_RESPONSES = {"none": "side passes only, whatever the sphere's mobility",
-                  "front": "one front push for the coarse part when the curve law reads the sphere as stuck"}
 SIDE_STAGE, FRONT_STAGE = int(DirtStage.SIDE), int(DirtStage.FRONT)
 KERNEL_MODELS = (ExpSideModel, LinSideModel, TabulatedSideModel)
 """The kinds of side-push model the task's kernels evaluate (:func:`magctl.control.push.kernels.model_gap`)."""
@@ -71,36 +68,29 @@ class SidePushTask(PushTask, Block):
     ----------
     goal : (2,) or (B, 2) array_like
         ``P_g`` (m).
-    ks : float
-        ``K_s`` of eq 18 (used when ``law`` is not given).
-    model : "lin", "exp", "lin-fit", "exp-fit" or a model object
-        ``F`` of eq 17: eq 23 (``lin``) or eq 22 (``exp``); with ``learning="curve"``, the prior curve
-        (eq 22's form: ``exp`` or ``exp-fit``). A model object is one of :data:`KERNEL_MODELS`.
-    learning : {"eq18", "curve"}
-        The paper's eq 18 law on ``F`` (``ks``), or the curve learned online
-        (:func:`~magctl.control.curve_learning.curve_learning_law`, prior ``model``).
     law : LearningLaw or CurveLearningLaw, optional
         The learning block itself (shared with the iteration-domain analysis); overrides ``learning``. A law of
         another type is refused: the task's kernels run these two.
-    push_out_weight, push_out_min : float
-        With the curve law: the weight of each new measurement in the estimate of the push-out ratio (the
-        sphere's displacement across the pass, away from the robot, per unit displacement along it), and the
-        least displacement along the pass that gives a measurement (m). The pass is turned towards the
-        robot's side by ``atan`` of the estimate so that the displacement points at the goal.
-    dirt_response : {"none", "front"}
-        What the curve law does on a sphere it reads as stuck (:data:`DIRT_RESPONSES`; ``models/push.toml``
-        ``[dirt]``).
     fixed_gap : float, optional
         Pass at this gap every time (the paper's naive 370/500 µm controllers).
-    min_gap : float
-        Lower bound of ``D_g`` (370 µm, the contact threshold of Fig 6).
-    eps, max_attempts
-        ``ε_p`` = 7.5 µm and 30 attempts (§VI-B).
-    behind, ahead, clearance : float
-        Motion-line start behind the sphere (1 mm, §VI), end past it, and the distance
-        kept while repositioning round the sphere (650 µm, §VI) (m).
-    pass_speed, travel_speed : float
-        ``speed_cap`` along the motion line (0.4 mm/s, §IV-C) and otherwise (m/s).
+    n_spheres, sphere : int
+        Width of the ``spheres_est`` port and which sphere to push.
+    params : SideParams, optional
+        The task's parameters (:class:`~magctl.control.push.params.SideParams`, ``models/push.toml``
+        ``[common]`` and ``[side]``); by default the file's.
+    **overrides
+        Any field of the record (``None`` keeps the value): ``ks`` (``K_s`` of eq 18); ``model`` (``F`` of
+        eq 17: ``"lin"`` eq 23, ``"exp"`` eq 22, ``"lin-fit"``/``"exp-fit"`` refitted, or a model object of
+        :data:`KERNEL_MODELS`; with ``learning="curve"`` the prior curve, eq 22's form); ``learning``
+        (``"eq18"``, or ``"curve"``: :func:`~magctl.control.curve_learning.curve_learning_law`);
+        ``push_out_weight``, ``push_out_min`` (with the curve law: the weight of each new measurement of the
+        push-out ratio — the sphere's displacement across the pass, away from the robot, per unit displacement
+        along it — and the least displacement along the pass that gives one; the pass is turned towards the
+        robot's side by ``atan`` of the estimate); ``dirt_response`` (:data:`DIRT_RESPONSES`, ``[dirt]``);
+        ``min_gap`` (the contact threshold of Fig 6); ``eps``, ``max_attempts`` (7.5 µm, 30, §VI-B);
+        ``behind``, ``ahead``, ``clearance`` (motion-line start and end, keep-out while repositioning, §VI);
+        ``pass_speed`` (0.4 mm/s, §IV-C) and the shared ``arrive_tol``, ``travel_speed``, ``settle_frames``,
+        ``max_lost_frames``, ``phase_timeout_frames``, ``workspace``.
 
     Notes
     -----
@@ -110,77 +100,49 @@ class SidePushTask(PushTask, Block):
 
     PHASES = {0: "start", REPOSITION: "reposition", PASS: "pass", SETTLE: "settle", FINISHED: "finished"}
 
-    def __init__(self, name: str = "side_push", *, goal=(0.0, 0.0), ks: float | None = None, model=None,
-                 learning: str | None = None, law: LearningLaw | CurveLearningLaw | None = None,
-                 dirt_response: str | None = None, push_out_weight: float | None = None,
-                 push_out_min: float | None = None, fixed_gap: float | None = None, n_spheres: int = 1,
-                 sphere: int = 0, min_gap: float | None = None, eps: float | None = None,
-                 max_attempts: int | None = None, behind: float | None = None, ahead: float | None = None,
-                 clearance: float | None = None, arrive_tol: float | None = None, pass_speed: float | None = None,
-                 travel_speed: float | None = None, settle_frames: int | None = None,
-                 max_lost_frames: int | None = None, phase_timeout_frames: int | None = None,
-                 workspace: float | None = None):
-        p = with_defaults("side", ks=ks, model=model, learning=learning, dirt_response=dirt_response,
-                          push_out_weight=push_out_weight, push_out_min=push_out_min,
-                          min_gap=min_gap, eps=eps,
-                          max_attempts=max_attempts, behind=behind, ahead=ahead, clearance=clearance,
-                          arrive_tol=arrive_tol,
-                          pass_speed=pass_speed, travel_speed=travel_speed, settle_frames=settle_frames,
-                          max_lost_frames=max_lost_frames, phase_timeout_frames=phase_timeout_frames,
-                          workspace=workspace)
-        self._check_common("side push", name, p, goal=goal, n_spheres=n_spheres, sphere=sphere)
-        model, min_gap, behind, ahead, pass_speed = p["model"], p["min_gap"], p["behind"], p["ahead"], p["pass_speed"]
+    PARAMS = SideParams
+
+    def __init__(self, name: str = "side_push", *, goal=(0.0, 0.0), law: LearningLaw | CurveLearningLaw | None = None,
+                 fixed_gap: float | None = None, n_spheres: int = 1, sphere: int = 0,
+                 params: SideParams | None = None, **overrides):
+        what = f"side push {name!r}"
+        self._check_common(what, params, overrides, goal=goal, n_spheres=n_spheres, sphere=sphere)
+        model = self.params.model
         self.model = side_model(model) if isinstance(model, str) else model
         if type(self.model) not in KERNEL_MODELS:
-            raise MagctlError(f"side push {name!r}: its kernels evaluate no model of type {type(self.model).__name__}; "
+            raise MagctlError(f"{what}: its kernels evaluate no model of type {type(self.model).__name__}; "
                               f"give one of {', '.join(SIDE_MODELS)} or an "
                               + ", ".join(cls.__name__ for cls in KERNEL_MODELS))
-        self.law = law if law is not None else self._law(name, p["learning"], p["ks"])
+        self.law = law if law is not None else self._law(what)
         self._check_law("side push", name, (LearningLaw, CurveLearningLaw))
         self.learns_curve = isinstance(self.law, CurveLearningLaw)
-        self.push_out_weight = float(p["push_out_weight"])
-        if not 0.0 < self.push_out_weight <= 1.0:
-            raise MagctlError(f"side push {name!r}: push_out_weight={self.push_out_weight!r} must be in (0, 1]")
-        self.push_out_min = check_positive("push_out_min", p["push_out_min"])
-        self.front = self._dirt_front(name, p["dirt_response"], n_spheres, sphere, p)
+        self.front = self._dirt_front(what, name, n_spheres, sphere)
         self.fixed_gap = None if fixed_gap is None else check_positive("fixed_gap", fixed_gap)
-        self.min_gap = check_positive("min_gap", min_gap)
         self.d_max = float(self.model.displacement(self.min_gap))
-        self.behind = check_positive("behind", behind)
-        self.ahead = check_positive("ahead", ahead)
-        self.pass_speed = check_positive("pass_speed", pass_speed)
         ins, outs = self._ports(n_spheres)
         outs.append(Port("gap", (), "m"))
         Block.__init__(self, name, inputs=ins, outputs=outs, dt=FRAME_PERIOD_S, feedthrough=True)
 
-    def _law(self, name: str, learning: str, ks: float):
-        if learning == "eq18":
-            return side_push_law(ks)
-        if learning == "curve":
-            if not hasattr(self.model, "rate"):
-                raise MagctlError(f"side push {name!r}: learning='curve' learns eq 22's form; give model='exp-fit' "
-                                  f"or 'exp' as its prior, not {getattr(self.model, 'name', self.model)!r}")
-            return curve_learning_law(self.model)
-        raise MagctlError(f"side push {name!r}: learning={learning!r} is not one of {', '.join(LEARNING)}")
+    def _law(self, what: str):
+        if self.learning == "eq18":
+            return side_push_law(self.ks)
+        if not hasattr(self.model, "rate"):
+            raise MagctlError(f"{what}: learning='curve' learns eq 22's form; give model='exp-fit' "
+                              f"or 'exp' as its prior, not {getattr(self.model, 'name', self.model)!r}")
+        return curve_learning_law(self.model)
 
-    def _dirt_front(self, name: str, response: str, n_spheres: int, sphere: int, p: dict) -> FrontPushTask | None:
-        """The front push that answers dirt (``dirt_response="front"``), else None."""
-        if response not in DIRT_RESPONSES:
-            raise MagctlError(f"side push {name!r}: dirt_response={response!r} is not one of "
-                              f"{', '.join(DIRT_RESPONSES)}")
-        if response == "none":
+    def _dirt_front(self, what: str, name: str, n_spheres: int, sphere: int) -> FrontPushTask | None:
+        """The front push that answers dirt (``dirt_response="front"``, ``models/push.toml`` ``[dirt]``), else
+        None."""
+        if self.dirt_response == "none":
             return None
         if not self.learns_curve:
-            raise MagctlError(f"side push {name!r}: dirt_response='front' needs learning='curve' (the curve law "
+            raise MagctlError(f"{what}: dirt_response='front' needs learning='curve' (the curve law "
                               "is what reads a stuck sphere)")
-        dirt = load_model("push").dirt
-        self.dirt_mobility = check_positive("[dirt] mobility", float(dirt.mobility))
-        self.dirt_passes = float(dirt.passes)
-        self.max_fronts = int(dirt.fronts)
-        shared = {k: p[k] for k in ("arrive_tol", "travel_speed", "settle_frames", "max_lost_frames",
-                                    "phase_timeout_frames", "workspace")}
+        self.dirt = DirtParams.resolve(f"{what}: [dirt]")
+        shared = {f.name: getattr(self.params, f.name) for f in fields(CommonParams)}
         return FrontPushTask(f"{name}_front", goal=self.goal, kc=0.0, delta0=0.0, max_attempts=1,
-                             push_tol=float(dirt.push_tol), n_spheres=n_spheres, sphere=sphere, **shared)
+                             push_tol=self.dirt.push_tol, n_spheres=n_spheres, sphere=sphere, **shared)
 
     def kernel(self):
         """The frame: :func:`magctl.control.push.kernels.side_step` with eq 18 (reposition → pass → settle → eq 12,
@@ -198,8 +160,9 @@ class SidePushTask(PushTask, Block):
                       params=(*params, *self.front._front_kernel_with_dummies(), float(self.front.law.initial)))
 
     def _side_kernel_params(self) -> tuple:
-        """``(fp, ip, gain, gaps, log displacements, rates, cp)``: the model as a kind code and its parameters, and
-        the curve law's (zeros with eq 18)."""
+        """``(p, gain, gaps, log displacements, rates, cp)``: the task's
+        :class:`~magctl.control.push.kernels.TaskParams` (the model as a kind code and its coefficients), the
+        integrator's gain, the tabulated model's arrays and the curve law's parameters (zeros with eq 18)."""
         from magctl.control import kernels as law_kernels
         from magctl.control.push import kernels as k
 
@@ -214,21 +177,18 @@ class SidePushTask(PushTask, Block):
             table = tuple(np.ascontiguousarray(a, dtype=float) for a in m._tab())
         radii = getattr(self, "radii", (0.0, 0.0))
         curve = {}
-        cp, iterations = np.zeros(law_kernels.N_CP), 0
+        cp, iterations = law_kernels.no_curve(), 0
         if self.learns_curve:
             cp, iterations = self.law.kernel_params()
-            curve = dict(PUSH_OUT_WEIGHT=self.push_out_weight, PUSH_OUT_MIN=self.push_out_min,
-                         PRIOR_AT_MIN_GAP=float(self.law.prior_displacement(self.min_gap)))
+            curve = dict(prior_at_min_gap=float(self.law.prior_displacement(self.min_gap)))
             if self.front is not None:
-                curve |= dict(DIRT_MOBILITY=self.dirt_mobility, DIRT_PASSES=self.dirt_passes)
-        fp, ip, gain = self._kernel_params(
-            MIN_GAP=self.min_gap, D_MAX=self.d_max, BEHIND=self.behind, AHEAD=self.ahead,
-            PASS_SPEED=self.pass_speed, FIXED_GAP=0.0 if self.fixed_gap is None else self.fixed_gap,
-            THETA_N=getattr(self, "theta_n", 0.0), M0=m0, M1=m1, R0=radii[0], R1=radii[1],
-            EPS_AS=getattr(self, "eps_as", 0.0), **curve)
-        ip[[k.MODEL, k.FIXED, k.ITERATIONS, k.MAX_FRONTS]] = (kind, self.fixed_gap is not None, iterations,
-                                                              getattr(self, "max_fronts", 0))
-        return (fp, ip, gain, *table, cp)
+                curve |= dict(dirt_mobility=self.dirt.mobility, dirt_passes=self.dirt.passes,
+                              max_fronts=self.dirt.fronts)
+        p, gain = self._kernel_params(
+            d_max=self.d_max, fixed=self.fixed_gap is not None,
+            fixed_gap=0.0 if self.fixed_gap is None else self.fixed_gap, model=kind, m0=m0, m1=m1, r0=radii[0],
+            r1=radii[1], iterations=iterations, **curve)
+        return (p, gain, *table, cp)
 
     def state_vars(self):
         from magctl.core.block import StateVar, substate
