@@ -163,7 +163,7 @@ def test_killing_the_server_stops_the_client_with_a_clear_error(start_server):
     t0 = time.monotonic()
     with pytest.raises(RigConnectionError, match="did not answer"):
         rig.read()
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 3.0   # the client's 0.3 s timeout, not a hang (loose: a loaded machine)
     # the client could not zero the coils itself: it says so and refuses to go on
     assert rig.state is Lifecycle.ERROR and "zeroing" in rig.last_error
     with pytest.raises(RigError):
