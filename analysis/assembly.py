@@ -25,7 +25,7 @@ NAME = "assembly"
 TITLE = "Figs 3, 9, 15 — two-sphere assembly: front push vs side push"
 ORDER = 53
 DEFAULT_TRIALS = 100
-PLANT = Variability(calibrated=True, release_scatter=0.1)
+PLANT = Variability(release_scatter=0.1)
 EPS_AS_UM = task_defaults("assembly")["eps_as"] / 1e-6  # ε_as of eq 21 (models/push.toml)
 THETA_DEG = np.rad2deg(task_defaults("assembly")["theta_n"])
 SIDE_TASK = {"model": "lin-fit"}

@@ -29,7 +29,7 @@ DEFAULT_TRIALS = 100
 _DEFAULTS = task_defaults("front")
 EPS_UM = _DEFAULTS["eps"] / 1e-6  # ε_p of eq 12 (models/push.toml)
 MAX_ATTEMPTS = _DEFAULTS["max_attempts"]
-PLANT = Variability(calibrated=True, release_scatter=0.1)
+PLANT = Variability(release_scatter=0.1)
 
 
 def model_delta0() -> float:

@@ -166,7 +166,6 @@ RULES: dict[str, dict[str, tuple]] = {
         "runtime.request_timeout_ms": ("number", 1.0, 60000.0, True),
         "scene.robot_start_um": ("numbers", -1e6, 1e6, False),
         "scene.sphere_spacing_um": ("number", _POS, 1e6, False),
-        "physics.calibrated_release": ("bool", None, None, False),
         "physics.robot_steps": ("bool", None, None, False),
         "physics.camera_noise": ("bool", None, None, False),
         "physics.release_scatter_ratio": ("number", 0.0, 1.0, False),

@@ -196,35 +196,30 @@ class Variability:
         gives D_p,r = 289 ± 90 µm in the task (200 seeded trials; measured 300 ± 75 µm, §IV-D).
     sticky_probability : float
         Probability that a sphere sits on a sticky patch (§VI-B, "stuck on dirt").
-    calibrated : bool
-        Use the sphere–glass gap ε fitted to the measured D_p,r = 300 µm
-        (``models/sphere.toml`` [calibration]) instead of the measured 25 nm roughness.
-    sphere_gap : float, optional
-        An explicit sphere–glass gap ε [m] (overrides ``calibrated``); the in-task
-        calibration (:mod:`magctl.studies.release_calibration`) scans it.
+    contact_gap : float, optional
+        The face–sphere gap at rough contact ``h_min`` [m] instead of ``models/sphere.toml [contact]``
+        (the in-task calibration, :mod:`magctl.studies.release_calibration`, scans it).
     """
 
     camera_noise: bool = True
     robot_steps: bool = True
     release_scatter: float = 0.1
     sticky_probability: float = 0.0
-    calibrated: bool = False
-    sphere_gap: float | None = None
+    contact_gap: float | None = None
 
     @classmethod
     def of_rig(cls, params: Params | None = None) -> Variability:
         """The simulated rig's variability (``models/rig.toml`` ``[physics]``)."""
         ph = (params or load_model("rig")).physics
         return cls(camera_noise=bool(ph.camera_noise), robot_steps=bool(ph.robot_steps),
-                   release_scatter=float(ph.release_scatter), calibrated=bool(ph.calibrated_release))
+                   release_scatter=float(ph.release_scatter))
 
     def describe(self) -> str:
         on = [name for name, v in (("camera noise", self.camera_noise), ("robot step variability", self.robot_steps),
                                    (f"release scatter ±{self.release_scatter:.0%}", self.release_scatter > 0),
                                    (f"sticky patches p={self.sticky_probability:g}", self.sticky_probability > 0),
-                                   ("D_p,r-calibrated sphere-glass gap", self.calibrated and self.sphere_gap is None),
-                                   (f"sphere-glass gap {(self.sphere_gap or 0) * 1e6:.3g} µm",
-                                    self.sphere_gap is not None))
+                                   (f"face-sphere contact gap {(self.contact_gap or 0) * 1e6:.3g} µm",
+                                    self.contact_gap is not None))
               if v]
         return ", ".join(on) if on else "none (deterministic)"
 
@@ -322,10 +317,7 @@ def _physics_plant(scene: Scene, var: Variability) -> Diagram:
     if n:
         sp = dataclasses.replace(sphere_params(), release_scatter=var.release_scatter,
                                  sticky_probability=var.sticky_probability)
-        roughness = var.sphere_gap
-        if roughness is None and var.calibrated:
-            roughness = float(load_model("sphere").calibration.release_roughness)
-        blocks.append(Spheres(scene.spheres, params=sp, roughness=roughness))
+        blocks.append(Spheres(scene.spheres, params=sp, contact_gap=var.contact_gap))
         wires += [("robot.position", "spheres.position"), ("robot.heading", "spheres.heading"),
                   ("robot.velocity", "spheres.velocity"), ("spheres.spheres", "camera.spheres")]
     else:  # the sphere block needs at least one sphere; an empty scene feeds the camera none

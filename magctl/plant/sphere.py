@@ -12,7 +12,10 @@ split into sub-steps. Each sub-step
 2. moves each sphere with the inertia-free near-wall balance F_G = 0 of eq 4
    (``V_p = k(δ) U``, :mod:`magctl.plant.fluid.wall_drag`), and its gap δ with the
    vertical balance of eq 8-9 (buoyant weight, drag, adhesion P within ε);
-3. enforces non-penetration against the robot's footprint (including the concave
+3. within a radius of the robot's face, replaces the sphere's velocity along the face normal by the
+   squeeze film's (:mod:`magctl.plant.fluid.lubrication`; the two-way robot–sphere coupling the
+   robot-only flow map misses, ``accurate`` mode), closing to rough contact at ``contact_gap``;
+4. enforces non-penetration against the robot's footprint (including the concave
    front face) and between spheres.
 
 A frame is the block's kernel (:mod:`magctl.plant.sphere_kernel`, either drag mode), run by both
@@ -41,6 +44,7 @@ from magctl.plant.fluid import params as fluid_params
 from magctl.plant.fluid.domain import Domain
 from magctl.plant.fluid.flow import RobotFlow, robot_flow
 from magctl.plant.fluid.geometry import Polygon, RobotGeometry
+from magctl.plant.fluid.lubrication import edge_curvatures, film_area
 from magctl.plant.fluid.params import GRAVITY, SphereParams, fluid_viscosity, sphere_params
 from magctl.plant.fluid.surface import pull_off_range
 from magctl.plant.fluid.wall_drag import mobility, normal_factors, wall_table
@@ -109,7 +113,10 @@ class Spheres(Block):
     drag_mode : {"paper", "accurate"}, optional
         Overrides ``params.drag_mode``.
     roughness : float, optional
-        Overrides ε (a calibration knob; see docs/fluid.md).
+        Overrides the sphere–glass ε (``models/sphere.toml``, the measured 25 nm).
+    contact_gap : float, optional
+        Overrides ``h_min``, the face–sphere gap at rough contact where the squeeze film ends
+        (``models/sphere.toml [contact]``; docs/fluid.md §7).
     dt : float
         Frame period [s].
     flow : RobotFlow, optional
@@ -122,8 +129,8 @@ class Spheres(Block):
                  params: SphereParams | None = None, geometry: RobotGeometry | None = None,
                  domain: Domain | None = None,
                  viscosity: float | None = None, fluid_density: float | None = None,
-                 drag_mode: str | None = None, roughness: float | None = None, dt: float = FRAME_PERIOD_S,
-                 flow: RobotFlow | None = None):
+                 drag_mode: str | None = None, roughness: float | None = None, contact_gap: float | None = None,
+                 dt: float = FRAME_PERIOD_S, flow: RobotFlow | None = None):
         self.params = params if params is not None else sphere_params()
         self.init = initial_positions
         n = self._count(initial_positions)
@@ -166,6 +173,12 @@ class Spheres(Block):
         self._wall = tuple(wall_table()) if self.mode == "accurate" else _no_wall_table()
         poly = self._footprint
         self._edges = tuple(np.ascontiguousarray(a) for a in (poly.x0, poly.y0, poly.dx, poly.dy, poly.ab2, poly.y1))
+        # the face–sphere squeeze film (accurate mode only: the paper's simulation had none)
+        self.film_area = film_area(r, edge_curvatures(self.footprint))
+        self.contact_gap = float(contact_gap) if contact_gap is not None else self.params.contact_gap
+        if self.contact_gap <= 0:
+            raise ParameterError(f"contact_gap must be positive, got {self.contact_gap!r} m")
+        self.film_cutoff = self.params.film_cutoff * r if self.mode == "accurate" else 0.0
 
     @staticmethod
     def _count(init) -> int:
@@ -302,9 +315,10 @@ class Spheres(Block):
         flat, dgx, dgy = self.flow._flat_maps()
         return (self.params.substeps, self.dt / self.params.substeps, flat, self.flow.gx, self.flow.gy, dgx, dgy,
                 self.flow.points, self.flow.forces, self.flow.eps, self.flow.viscosity, self.flow.height,
-                *self._edges, self.radius, self.reach, self._box[0], self._box[1], self.buoyant_weight / self.zeta,
+                *self._edges, self.film_area, self.radius, self.reach, self._box[0], self._box[1], self.buoyant_weight / self.zeta,
                 (self.buoyant_weight + self.pull_off) / self.zeta, self.params.adhesion_range, self._k_contact,
-                self.mode == "paper", self.roughness, self._inv_lambda_contact, self._flow_push_contact)
+                self.mode == "paper", self.roughness, self._inv_lambda_contact, self._flow_push_contact,
+                self.contact_gap, self.film_cutoff)
 
     def kernel(self):
         """The block's frame (:func:`~magctl.plant.sphere_kernel.spheres_update`), one trial per call, run by

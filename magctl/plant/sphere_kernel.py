@@ -30,6 +30,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from magctl.plant.fluid.lubrication import film_gap
 from magctl.plant.fluid.wall_drag import (
     ROT_BOUND,
     SHEAR_CONTACT,
@@ -199,6 +200,62 @@ def accurate_state(radius, gap, roughness, table, out):
 
 
 @jit
+def translation_resistance(radius, gap, roughness, table, out):
+    """ζ/(6πμR) of a torque-free sphere translating along the glass at gap δ (δ/a = (δ + ε)/R):
+    ``|f_t − f_r t_t / t_r|`` of the accurate mode's resistance functions (Goldman, Cox & Brenner 1967a:
+    with the torque-balance ``t_t V + t_r aΩ = 0`` the force is ``6πμa V (f_t t_r − f_r t_t)/t_r``)."""
+    wall_functions((gap + roughness) / radius, table, out)
+    f_t, f_r, t_t, t_r = out[0], out[1], out[2], out[3]
+    return abs((f_t * t_r - f_r * t_t) / t_r)
+
+
+@jit
+def _nearest_edge(px, py, x0, y0, dx, dy, ab2, y1):
+    """Distance from robot-frame ``(px, py)`` to the polygon, the nearest point ``(qx, qy)``, its edge and
+    whether the point lies inside."""
+    best, bx, by, edge = np.inf, 0.0, 0.0, 0
+    crossings = 0
+    for e in range(x0.shape[0]):
+        t = min(max(((px - x0[e]) * dx[e] + (py - y0[e]) * dy[e]) / ab2[e], 0.0), 1.0)
+        qx, qy = x0[e] + t * dx[e], y0[e] + t * dy[e]
+        ex, ey = px - qx, py - qy
+        d2 = ex * ex + ey * ey
+        if d2 < best:
+            best, bx, by, edge = d2, qx, qy, e
+        if (y0[e] > py) != (y1[e] > py) and px < x0[e] + (py - y0[e]) * dx[e] / dy[e]:
+            crossings += 1
+    return np.sqrt(best), bx, by, edge, crossings % 2 == 1
+
+
+@jit
+def _film_velocity(v, rel, vel, turn, gi, m, footprint, film, radius, roughness, viscosity, tau, table, scratch):
+    """The sphere's velocity ``v`` (world, complex) with the squeeze film between it and the robot's face
+    (:mod:`magctl.plant.fluid.lubrication`): its component along the face normal replaced by the one that
+    advances the face–sphere gap exactly over the sub-step (:func:`~magctl.plant.fluid.lubrication.film_gap`).
+    ``rel`` is the centre in the robot frame at the sub-step's start, ``vel`` the robot's velocity, ``m`` the
+    sphere's mobility multiplier. Returns the velocity and whether the film closed to rough contact."""
+    x0, y0, dx, dy, ab2, y1, area = footprint
+    h_min, h_cut = film
+    dist, qx, qy, e, inside = _nearest_edge(rel.real, rel.imag, x0, y0, dx, dy, ab2, y1)
+    if inside or dist <= 0.0:
+        return v, False
+    h = max(dist - radius, h_min)
+    if h >= h_cut:
+        return v, False
+    n = complex((rel.real - qx) / dist, (rel.imag - qy) / dist) * turn      # face → sphere, world frame
+    zeta = 6.0 * np.pi * viscosity * radius * translation_resistance(radius, gi, roughness, table, scratch) / m
+    c = 6.0 * np.pi * viscosity * area[e]
+    zeta_p = max(zeta - c / h_cut, 1e-3 * zeta)
+    un = (vel * n.conjugate()).real
+    vn = (v * n.conjugate()).real
+    h1 = film_gap(h, zeta / zeta_p * (vn - un) * tau, c / zeta_p)
+    closed = h1 <= h_min and vn < un       # the robot drives the face into the sphere
+    if h1 < h_min:
+        h1 = h_min
+    return v + (un + (h1 - h) / tau - vn) * n, closed
+
+
+@jit
 def _push_out_point(px, py, x0, y0, dx, dy, ab2, y1, radius, iterations):
     """One circle centre (robot frame) moved off the polygon: up to ``iterations`` passes of
     nearest-edge projection, as ``magctl.plant.sphere._push_out``. Returns ``x, y, touched``."""
@@ -274,21 +331,24 @@ def trial_frame(b, xy, gap, mult, pos, vel, turn, frame, flow, footprint, table,
     multipliers; ``pos, vel, turn`` the robot's position, held velocity and ``e^{iθ}`` as complex
     numbers. The other arguments of :func:`sphere_frame` come in tuples (few arguments, so that the
     call can be inlined): ``frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate,
-    adhesion_range, k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact)``,
+    adhesion_range, k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact, film)``,
     ``flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)``, ``footprint = (x0, y0,
-    dx, dy, ab2, y1)``, the wall ``table``, and ``work = (cx, cy, scratch)``: work arrays, one
-    correction per sphere pair and ``(8,)`` for :func:`wall_functions`.
+    dx, dy, ab2, y1, area)`` (``area`` the squeeze film's ``A`` per edge), the wall ``table``, and
+    ``work = (cx, cy, scratch)``: work arrays, one correction per sphere pair and ``(8,)`` for
+    :func:`wall_functions`. ``film = (h_min, h_cut)``: the face–sphere squeeze film acts below ``h_cut``
+    and closes to rough contact at ``h_min`` (``h_cut = 0``: no film, as in the ``paper`` mode).
     """
     (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
-     roughness, inv_lambda_contact, flow_push_contact) = frame
+     roughness, inv_lambda_contact, flow_push_contact, film) = frame
     flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height = flow
-    x0, y0, dx, dy, ab2, y1 = footprint
+    x0, y0, dx, dy, ab2, y1, _ = footprint
     cx, cy, scratch = work
     n = gap.shape[1]
     back = turn.conjugate()
     vb = vel * back
     touched = False
     for k in range(n_sub):
+        p_start = pos + vel * (k * tau)
         p_mid = pos + vel * (k + 0.5) * tau
         p_end = pos + vel * (k + 1.0) * tau
         for i in range(n):
@@ -309,7 +369,14 @@ def trial_frame(b, xy, gap, mult, pos, vel, turn, frame, flow, footprint, table,
                 k_now, lam, push = accurate_state(radius, gi, roughness, table, scratch)
                 rate = (push * uz - settle) * (1.0 / lam)
             # capped at the free-sphere limit 1
-            zi += min(k_now * mult[b, i], 1.0) * (complex(ux, uy) * turn) * tau
+            v = min(k_now * mult[b, i], 1.0) * (complex(ux, uy) * turn)
+            if film[1] > 0.0:
+                d0 = zi - p_start
+                if abs(d0) < reach + film[1]:
+                    v, closed = _film_velocity(v, d0 * back, vel, turn, gi, mult[b, i], footprint, film, radius,
+                                               roughness, viscosity, tau, table, scratch)
+                    touched = touched or closed
+            zi += v * tau
             xy[b, 2 * i] = zi.real
             xy[b, 2 * i + 1] = zi.imag
             gap[b, i] = max(gi + rate * tau, 0.0)
@@ -334,8 +401,8 @@ def trial_frame(b, xy, gap, mult, pos, vel, turn, frame, flow, footprint, table,
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps,
                  viscosity, height,
-                 x0, y0, dx, dy, ab2, y1, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range,
-                 k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact, table):
+                 x0, y0, dx, dy, ab2, y1, area, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range,
+                 k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact, h_min, h_cut, table):
     """Advance every trial's spheres by one frame of ``n_sub`` sub-steps, in place (:func:`trial_frame`
     per trial).
 
@@ -353,8 +420,9 @@ def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, d
         The flow maps as one ``(ny·nx, 6)`` table and the grid (``RobotFlow._flat_maps``).
     points, forces, eps, viscosity, height
         The flow's far-field point forces (``RobotFlow``), for spheres off the map.
-    x0, y0, dx, dy, ab2, y1
-        Footprint edges (:class:`~magctl.plant.fluid.geometry.Polygon`).
+    x0, y0, dx, dy, ab2, y1, area
+        Footprint edges (:class:`~magctl.plant.fluid.geometry.Polygon`) and the squeeze film's ``A`` per edge
+        (:func:`~magctl.plant.fluid.lubrication.film_area`).
     sink_rate, held_rate : float
         ``W_b/ζ`` and ``(W_b + P)/ζ`` of eq 8–9 [m/s]; the adhesion ``P`` acts within
         ``adhesion_range`` of the glass.
@@ -364,9 +432,12 @@ def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, d
         1/λ and g of the gap balance on the glass in the ``accurate`` mode (Brenner's normal drag
         factor and Goren & O'Neill's wall-flow factor at δ = 0, ``Spheres._gap_rate``); unused in
         the ``paper`` mode (eq 9 as printed).
+    h_min, h_cut : float
+        The face–sphere film closes to rough contact at ``h_min`` and acts below ``h_cut`` [m]
+        (``h_cut = 0``: no film).
     table : WallTable
-        The ``accurate`` mode's resistance functions (:func:`wall_functions`), for lifted spheres;
-        unused in the ``paper`` mode.
+        The ``accurate`` mode's resistance functions (:func:`wall_functions`), for lifted spheres and the
+        film; unused in the ``paper`` mode.
 
     Returns
     -------
@@ -380,9 +451,9 @@ def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, d
     cy = np.empty(npair)
     scratch = np.empty(8)
     frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
-             roughness, inv_lambda_contact, flow_push_contact)
+             roughness, inv_lambda_contact, flow_push_contact, (h_min, h_cut))
     flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)
-    footprint = (x0, y0, dx, dy, ab2, y1)
+    footprint = (x0, y0, dx, dy, ab2, y1, area)
     work = (cx, cy, scratch)
     for b in range(batch):
         contact[b] = trial_frame(b, xy, gap, mult, pos[b], vel[b], turn[b], frame, flow, footprint, table, work)
@@ -404,9 +475,9 @@ def spheres_output(b, params, state, outputs):
 def spheres_update(b, params, state, next_state, inputs, base, noise):
     """``Spheres.update``: one frame of trial ``b`` by :func:`trial_frame` (the heading's ``e^{iθ}`` as
     the reference forms it). No draws: the mobility multipliers are drawn at step 0."""
-    (n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height, x0, y0, dx, dy, ab2, y1,
+    (n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height, x0, y0, dx, dy, ab2, y1, area,
      radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode, roughness,
-     inv_lambda_contact, flow_push_contact, knots, coef, signs, near_lo, near_hi, far_lo, far_hi,
+     inv_lambda_contact, flow_push_contact, h_min, h_cut, knots, coef, signs, near_lo, near_hi, far_lo, far_hi,
      cx, cy, scratch) = params
     xy, gap, mult, contact = state
     nxy, ngap, nmult, ncontact = next_state
@@ -421,9 +492,9 @@ def spheres_update(b, params, state, next_state, inputs, base, noise):
     pos = complex(position[b, 0], position[b, 1])
     vel = complex(velocity[b, 0], velocity[b, 1])
     frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
-             roughness, inv_lambda_contact, flow_push_contact)
+             roughness, inv_lambda_contact, flow_push_contact, (h_min, h_cut))
     flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)
-    footprint = (x0, y0, dx, dy, ab2, y1)
+    footprint = (x0, y0, dx, dy, ab2, y1, area)
     table = (knots, coef, signs, near_lo, near_hi, far_lo, far_hi)
     ncontact[b, 0] = trial_frame(b, nxy, ngap, nmult, pos, vel, turn, frame, flow, footprint, table,
                                  (cx, cy, scratch))

@@ -1,4 +1,4 @@
-"""D_p,r as the front-push task performs it, and the sphere–glass gap ε calibrated there.
+"""D_p,r as the front-push task performs it, and the face–sphere contact gap calibrated there.
 
 The paper measured D_p,r ≈ 300 ± 75 µm (§IV-D) as the distance a pushed sphere follows
 the robot when it backs away. The idealised scenario of
@@ -13,10 +13,13 @@ of ``P_o``) with the servo still settling, backs ``retract`` at the travel speed
 ``loops.push_loop`` the studies and the rig use) and measures the pull-back: the sphere's
 displacement against the push direction from the farthest point it reaches after the task
 enters ``RETRACT`` (the servo's overshoot still pushes it on by contact for a few frames) to
-the frame the task measures (end of ``SETTLE``). :func:`calibrate_in_task` fits ε so that the mean
-pull-back equals the measured 300 µm (Pchip in log ε through a geometric grid, then brentq),
-and reports the uncalibrated (ε = 25 nm) prediction beside it. ``models/sphere.toml``
-``[calibration] release_roughness_um`` holds the result; a test recomputes it.
+the frame the task measures (end of ``SETTLE``). The sphere follows the robot through the squeeze
+film between the robot's face and the sphere (:mod:`magctl.plant.fluid.lubrication`), by
+``(A/aζ*) ln(h_c/h_min)``: the one parameter of the plant the paper does not give is the gap
+``h_min`` at which that film ends in rough contact. :func:`calibrate_in_task` fits it so that the
+mean pull-back equals the measured 300 µm (Pchip in log h_min through a geometric grid, then
+brentq), with the sphere–glass gap at the measured ε = 25 nm. ``models/sphere.toml``
+``[contact] robot_gap_um`` holds the result; a test recomputes it.
 """
 
 from __future__ import annotations
@@ -38,8 +41,8 @@ PHASE, ATTEMPT = "controller/task.phase", "controller/task.attempt"
 SPHERES, ROBOT = "plant/spheres.spheres", "plant/robot.position"
 FIRST_ATTEMPT_FRAMES = 400
 """Frames that hold the first attempt of the default front push (approach, push, retract, settle ≈ 160)."""
-GAP_GRID = tuple(float(e) for e in np.geomspace(25e-9, 80e-6, 8))
-"""ε grid of the calibration [m]: the measured 25 nm up to 80 µm."""
+GAP_GRID = tuple(float(e) for e in np.geomspace(25e-9, 30e-6, 7))
+"""h_min grid of the calibration [m]: the sphere's measured 25 nm roughness up to 30 µm."""
 
 
 @dataclass(frozen=True)
@@ -67,15 +70,15 @@ class InTaskRelease:
     retract: np.ndarray
 
 
-def release_experiment(sphere_gap: float | None, *, scatter: float = 0.0) -> Experiment:
+def release_experiment(contact_gap: float | None, *, scatter: float = 0.0) -> Experiment:
     """The front push whose first attempt is measured: the study's plant (camera noise and
-    stick-slip variability on) with sphere–glass gap ``sphere_gap`` (``None``: 25 nm)."""
-    var = Variability(release_scatter=scatter, sphere_gap=sphere_gap)
+    stick-slip variability on) with face–sphere contact gap ``contact_gap`` (``None``: the model's)."""
+    var = Variability(release_scatter=scatter, contact_gap=contact_gap)
     return Experiment("front", task=dict(kc=0.0, delta0=0.0), max_frames=FIRST_ATTEMPT_FRAMES, variability=var,
                       label="release in task")
 
 
-def in_task_release(sphere_gap: float | None = None, *, trials: int = 16, seed: int = 0,
+def in_task_release(contact_gap: float | None = None, *, trials: int = 16, seed: int = 0,
                     scatter: float = 0.0) -> InTaskRelease:
     """Run the first attempt of ``trials`` closed-loop front pushes and measure the release.
 
@@ -86,7 +89,7 @@ def in_task_release(sphere_gap: float | None = None, *, trials: int = 16, seed: 
     """
     if trials < 1:
         raise ValueError(f"trials must be >= 1, got {trials}")
-    exp = release_experiment(sphere_gap, scatter=scatter)
+    exp = release_experiment(contact_gap, scatter=scatter)
     res = simulate(push_loop(exp), FIRST_ATTEMPT_FRAMES, batch=trials, seed=seed, engine=study_engine(),
                    record=[PHASE, ATTEMPT, SPHERES, ROBOT])
     phase, attempt = res[PHASE], res[ATTEMPT]
@@ -112,30 +115,30 @@ def in_task_release(sphere_gap: float | None = None, *, trials: int = 16, seed: 
 
 def calibrate_in_task(target: float = PAPER_RELEASE_EXPERIMENT, *, trials: int = 16, seed: int = 0,
                       grid: tuple[float, ...] = GAP_GRID, refine: int = 2) -> dict:
-    """ε for which the mean in-task pull-back equals ``target`` [m].
+    """``h_min`` for which the mean in-task pull-back equals ``target`` [m].
 
-    A Pchip interpolant of log(mean pull-back) in log ε through ``grid`` brackets the root
+    A Pchip interpolant of log(mean pull-back) in log h_min through ``grid`` brackets the root
     (brentq); ``refine`` Newton steps on the simulated response then remove the interpolation error.
 
-    Returns ``roughness`` (ε, m), ``grid`` and ``grid_release`` (mean pull-back at each ε, m),
-    ``uncalibrated`` (mean, std at the measured ε of ``models/sphere.toml``) and
-    ``calibrated`` (mean, std at the fitted ε), all in metres.
+    Returns ``contact_gap`` (h_min, m), ``grid`` and ``grid_release`` (mean pull-back at each h_min, m),
+    ``model`` (mean, std at the value of ``models/sphere.toml``) and ``calibrated`` (mean, std at the
+    fitted value), all in metres.
     """
-    means = np.array([in_task_release(e, trials=trials, seed=seed).pull_back.mean() for e in grid])
-    if not np.all(np.diff(means) > 0):
-        raise RuntimeError(f"in-task release is not increasing in ε on the grid: {np.round(means * 1e6, 1)} µm")
-    le = np.log(grid)
-    f = PchipInterpolator(le, np.log(means))
-    if not f(le[0]) <= np.log(target) <= f(le[-1]):
-        raise RuntimeError(f"target {target * 1e6:.0f} µm outside the grid's {means[0] * 1e6:.0f}–"
-                           f"{means[-1] * 1e6:.0f} µm")
-    x = brentq(lambda x: f(x) - np.log(target), le[0], le[-1], xtol=1e-6)
+    means = np.array([in_task_release(h, trials=trials, seed=seed).pull_back.mean() for h in grid])
+    if not np.all(np.diff(means) < 0):
+        raise RuntimeError(f"in-task release is not decreasing in h_min on the grid: {np.round(means * 1e6, 1)} µm")
+    lh = np.log(grid)
+    f = PchipInterpolator(lh, np.log(means))
+    if not f(lh[-1]) <= np.log(target) <= f(lh[0]):
+        raise RuntimeError(f"target {target * 1e6:.0f} µm outside the grid's {means[-1] * 1e6:.0f}–"
+                           f"{means[0] * 1e6:.0f} µm")
+    x = brentq(lambda x: f(x) - np.log(target), lh[0], lh[-1], xtol=1e-6)
     slope = float(f.derivative()(x))
     for _ in range(refine):  # Newton steps on the simulated response, with the interpolant's slope
         cal = in_task_release(float(np.exp(x)), trials=trials, seed=seed).pull_back
         x += (np.log(target) - np.log(cal.mean())) / slope
-    eps = float(np.exp(x))
-    un = in_task_release(sphere_params().roughness, trials=trials, seed=seed).pull_back
-    cal = in_task_release(eps, trials=trials, seed=seed).pull_back
-    return {"roughness": eps, "grid": np.asarray(grid), "grid_release": means,
-            "uncalibrated": (float(un.mean()), float(un.std())), "calibrated": (float(cal.mean()), float(cal.std()))}
+    gap = float(np.exp(x))
+    now = in_task_release(None, trials=trials, seed=seed).pull_back
+    cal = in_task_release(gap, trials=trials, seed=seed).pull_back
+    return {"contact_gap": gap, "grid": np.asarray(grid), "grid_release": means,
+            "model": (float(now.mean()), float(now.std())), "calibrated": (float(cal.mean()), float(cal.std()))}

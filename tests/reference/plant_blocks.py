@@ -19,6 +19,8 @@ from magctl.core.batched import rows_times
 from magctl.plant.coils import CoilActuator
 from magctl.plant.drive import ActuatedRobot, Drive
 from magctl.plant.fluid.geometry import Polygon
+from magctl.plant.fluid.lubrication import film_gap
+from magctl.plant.fluid.wall_drag import accurate_coefficients
 from magctl.plant.robot import StickSlipRobot, steady_speed
 from magctl.plant.sphere import Spheres, separate_spheres
 from magctl.plant.standin import (
@@ -238,11 +240,46 @@ class RefSpheres(NumpyForm, Spheres):
             k_now = self._capped(mult, gap) if (gap > 0).any() else k_rest
             rel = (z - p_mid[:, k, None]) * back                        # robot frame
             ux, uy, uz = self.flow.lookup_components(rel.real, rel.imag, vbx, vby)
-            z += k_now * ((ux + 1j * uy) * turn) * tau
+            v = k_now * ((ux + 1j * uy) * turn)
+            if self.film_cutoff > 0:
+                v, closed = self._film(v, z, gap, mult, pos + vel * k * tau, vel, turn, tau)
+                contact |= closed
+            z += v * tau
             gap = np.maximum(gap + self._gap_rate(uz, gap) * tau, 0.0)
             z, touched = self._contacts(z, p_end[:, k], turn)
             contact |= touched
         return {"xy": np.stack([z.real, z.imag], axis=-1), "gap": gap, "mobility": mult, "contact": contact}
+
+    def _film(self, v, z, gap, mult, p_start, vel, turn, tau):
+        """The face–sphere squeeze film (magctl.plant.fluid.lubrication): each sphere's velocity along the
+        face normal replaced by the one that advances the film's gap exactly over the sub-step."""
+        v = v.copy()
+        closed = np.zeros(len(z), bool)
+        poly, r, mu = self._footprint, self.radius, self.flow.viscosity
+        h_min, h_cut = self.contact_gap, self.film_cutoff
+        rel = (z - p_start[:, None]) * turn.conj()
+        near = np.abs(z - p_start[:, None]) < self.reach + h_cut
+        for b, i in zip(*np.nonzero(near), strict=True):
+            x, y = rel[b, i].real, rel[b, i].imag
+            t = np.clip(((x - poly.x0) * poly.dx + (y - poly.y0) * poly.dy) / poly.ab2, 0.0, 1.0)
+            qx, qy = poly.x0 + t * poly.dx, poly.y0 + t * poly.dy
+            e = int(np.argmin((x - qx) ** 2 + (y - qy) ** 2))
+            dist = np.hypot(x - qx[e], y - qy[e])
+            if poly.contains(np.array(x), np.array(y)) or dist <= 0:
+                continue
+            h = max(dist - r, h_min)
+            if h >= h_cut:
+                continue
+            n = complex((x - qx[e]) / dist, (y - qy[e]) / dist) * turn[b, 0]
+            f_t, f_r, t_t, t_r, _, _ = accurate_coefficients((gap[b, i] + self.roughness) / r)
+            zeta = 6 * np.pi * mu * r * abs((f_t * t_r - f_r * t_t) / t_r) / mult[b, i]
+            c = 6 * np.pi * mu * self.film_area[e]
+            zeta_p = max(zeta - c / h_cut, 1e-3 * zeta)
+            un, vn = (vel[b] * n.conjugate()).real, (v[b, i] * n.conjugate()).real
+            h1 = film_gap(h, zeta / zeta_p * (vn - un) * tau, c / zeta_p)
+            closed[b] |= bool(h1 <= h_min and vn < un)
+            v[b, i] += (un + (max(h1, h_min) - h) / tau - vn) * n
+        return v, closed
 
     def _contacts(self, z, pos, turn):
         """Non-penetration of the robot's footprint and between spheres after a sub-step.

@@ -20,7 +20,7 @@ TRIALS = 8
 
 def test_a_trial_does_not_depend_on_its_batch():
     exp = Experiment("front", task=dict(kc=1.0, delta0=100 * UM, max_attempts=2), max_frames=450,
-                     variability=Variability(calibrated=True))
+                     variability=Variability())
     together = run_push_trials([2, 5, 7], 11, exp=exp, keep_paths=True)
     alone = run_push_trials([5], 11, exp=exp, keep_paths=True)
     assert np.array_equal(together["spheres_xy"][1], alone["spheres_xy"][0])
@@ -30,7 +30,7 @@ def test_a_trial_does_not_depend_on_its_batch():
 
 @pytest.fixture(scope="module")
 def front_runs():
-    plant = Variability(calibrated=True, release_scatter=0.1)
+    plant = Variability(release_scatter=0.1)
     runs = {}
     for label, kc, d0 in (("naive", 0.0, 0.0), ("kc1_model", 1.0, 100 * UM)):
         exp = Experiment("front", task=dict(kc=kc, delta0=d0, max_attempts=6), max_frames=2600, variability=plant)

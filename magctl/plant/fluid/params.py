@@ -40,17 +40,21 @@ class SphereParams:
     sticky_probability: float
     sticky_mobility: float
     release_scatter: float
+    contact_gap: float
+    film_cutoff: float
 
 
 def sphere_params(p=None) -> SphereParams:
     """Load and check ``models/sphere.toml``."""
     p = p if p is not None else load_model("sphere")
-    s, v = p.sphere, p.variability
+    s, v, c = p.sphere, p.variability, p.contact
     out = SphereParams(s.radius, s.density, s.roughness, s.adhesion_range, bool(s.adhesion), str(s.drag_mode),
                        int(s.substeps), s.contact_tolerance, v.sticky_probability, v.sticky_mobility,
-                       v.release_scatter)
+                       v.release_scatter, c.robot_gap, c.film_cutoff)
     if out.radius <= 0 or out.roughness <= 0:
         raise ParameterError(f"{p._path}: sphere radius and roughness must be positive")
+    if out.contact_gap <= 0 or out.film_cutoff <= 0:
+        raise ParameterError(f"{p._path}: contact.robot_gap and contact.film_cutoff must be positive")
     if out.drag_mode not in ("paper", "accurate"):
         raise ParameterError(f"{p._path}: sphere.drag_mode must be 'paper' or 'accurate', got {out.drag_mode!r}")
     if out.substeps < 1:
