@@ -315,7 +315,8 @@ class Spheres(Block):
         flat, dgx, dgy = self.flow._flat_maps()
         return (self.params.substeps, self.dt / self.params.substeps, flat, self.flow.gx, self.flow.gy, dgx, dgy,
                 self.flow.points, self.flow.forces, self.flow.eps, self.flow.viscosity, self.flow.height,
-                *self._edges, self.film_area, self.radius, self.reach, self._box[0], self._box[1], self.buoyant_weight / self.zeta,
+                *self._edges, self.film_area, self.radius, self.reach, self._box[0], self._box[1],
+                self.buoyant_weight / self.zeta,
                 (self.buoyant_weight + self.pull_off) / self.zeta, self.params.adhesion_range, self._k_contact,
                 self.mode == "paper", self.roughness, self._inv_lambda_contact, self._flow_push_contact,
                 self.contact_gap, self.film_cutoff)

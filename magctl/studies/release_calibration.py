@@ -34,7 +34,6 @@ from magctl.control.push.front import PUSH, RETRACT
 from magctl.core import simulate
 from magctl.loops import Experiment, Variability, geometry, push_loop
 from magctl.plant.fluid.calibration import PAPER_RELEASE_EXPERIMENT
-from magctl.plant.fluid.params import sphere_params
 from magctl.studies.trials import study_engine
 
 PHASE, ATTEMPT = "controller/task.phase", "controller/task.attempt"

@@ -10,8 +10,8 @@ import scipy.sparse as sp
 from scipy.integrate import solve_ivp
 from scipy.sparse.linalg import spsolve
 
-from magctl.plant.fluid.bispherical import normal_translation
 from magctl.config import load_model
+from magctl.plant.fluid.bispherical import normal_translation
 from magctl.plant.fluid.geometry import star_outline
 from magctl.plant.fluid.lubrication import edge_curvatures, film_area, film_gap
 from magctl.plant.sphere import Spheres
