@@ -144,19 +144,17 @@ def test_actuator_speeds(computed):
 
 
 # --- release (§IV-D) -------------------------------------------------------------------------
-def test_release_calibration_reaches_the_measured_displacement(computed):
-    """Calibrated in the task, the task's mean release is the paper's measured 300 µm (§IV-D), the stored
-    ε in models/sphere.toml is the one the calibration returns, and a larger ε means a larger release."""
+def test_release_follows_the_film_and_the_robots_turn(computed):
+    """The paper's set-up (robot backing without turning) releases far more with the face–sphere film than
+    with eq 4-5's one-way flow; in the task the robot turns round to back away (> 150°), and the task's
+    release barely depends on the face's contact gap (the film is left behind in the turn)."""
     r = computed["release"].results
-    it = r["in_task"]
-    assert it["calibrated_mean_um"] == pytest.approx(300.0, rel=0.01)
-    assert it["stored_roughness_um"] == pytest.approx(it["roughness_um"], rel=0.01)
-    assert it["uncalibrated_mean_um"] < it["calibrated_mean_um"]
-    assert np.all(np.diff(it["grid_release_um"]) > 0)
-    assert r["paper_setup"]["uncalibrated_um"] < r["paper_setup"]["calibrated_um"]
-    mc = r["monte_carlo"]
-    assert mc["trials"] == 16 and mc["std_um"] > 0
-    assert 150 < mc["mean_um"] < 450
+    ps, it, mc = r["paper_setup"], r["in_task"], r["monte_carlo"]
+    assert ps["film_um"] > 2 * ps["paper_drag_um"]
+    assert mc["turn_median_deg"] > 150
+    rel = np.asarray(it["grid_release_um"])
+    assert np.ptp(rel) < 0.3 * rel.mean()
+    assert mc["trials"] == 16 and mc["std_um"] > 0 and 0 < mc["mean_um"] < ps["film_um"]
 
 
 # --- side-push curve (Fig 6) ---------------------------------------------------------------------
@@ -175,6 +173,16 @@ def test_sidepush_curve_threshold_and_fit(computed):
     assert r["fit"]["a_um"] == pytest.approx(math.exp(icpt), rel=1e-9)
     assert 0.9 < r["fit"]["r2"] <= 1.0
     assert r["paper"]["a_um"] == pytest.approx(1755.0) and r["paper"]["b_per_um"] == pytest.approx(0.009042)
+
+
+def test_fig6_of_the_one_plant_is_within_15_percent_of_eq22(computed):
+    """Issue target: the plant's D_s at 370-650 µm within 15 % of the paper's eq 22 (computed here from its
+    printed constants), with ε = 25 nm and no fitted sphere parameter."""
+    r = computed["sidepush-curve"].results["against_eq22"]
+    gaps = np.asarray(r["gaps_um"])
+    eq22 = 1755.0 * np.exp(-0.009042 * gaps)
+    np.testing.assert_allclose(r["eq22_um"], eq22, rtol=1e-12)
+    assert np.all(np.abs(np.asarray(r["displacement_um"]) / eq22 - 1) <= 0.15)
 
 
 def test_side_models_are_fitted_to_this_fig6_curve(computed):
