@@ -18,6 +18,7 @@ import numpy as np
 from magctl.control.push.common import task_defaults
 from magctl.control.status import Status
 from magctl.loops import Experiment, Variability, geometry
+from magctl.studies.paper_statistics import p_all, p_none
 from magctl.studies.push import controller_summary, run_experiments, trial_path
 from magctl.studies.runner import Computed, PaperRow, StudyContext, claim
 
@@ -106,11 +107,11 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
         claim(sec, "front pushing does not assemble: the spheres separate as the robot retracts",
               "fails (Figs 3, 15c–d)",
               f"{front['converged_fraction']:.0%} assembled, median gap {front['final_error_um_median']:.0f} µm",
-              loop, holds=front["converged_fraction"] < 0.1,
+              loop, holds=front["converged_fraction"] < 0.1, p_paper=p_none(front["converged_fraction"], n=1),
               cause="the retraction's pull-back is shorter than the gap the push closes in some trials."),
         claim(sec, f"side pushing assembles (θ_n = {THETA_DEG:.0f}°)", "succeeds",
               f"{side['converged_fraction']:.0%} assembled, {side['mean_attempts_all']:.1f} mean passes",
-              loop, holds=side["converged_fraction"] >= 0.9,
+              loop, holds=side["converged_fraction"] >= 0.9, p_paper=p_all(side["converged_fraction"], n=1),
               cause="passes at the minimum gap move sphere 1 less than the gap left after some passes."),
         claim(sec, "Fig 15: a front push, then side passes assemble the pair (two passes in the paper's run)",
               "assembled after two side passes",

@@ -39,7 +39,7 @@ from magctl.sweep import run_sweeps
 
 TRIALS = 8
 SEED = 0
-plant = Variability(calibrated=True, release_scatter=0.1)
+plant = Variability(release_scatter=0.1)
 experiments = {f"K_c={kc:g}": Experiment("front", task={"kc": kc, "delta0": 0.0}, max_frames=4000,
                                          variability=plant, label=f"K_c={kc:g}")
                for kc in (0.0, 0.5, 1.0)}

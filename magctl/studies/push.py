@@ -105,6 +105,8 @@ def controller_summary(result: dict) -> dict:
         "converged_by_attempt": by_attempt,
         "mean_attempts_converged": float(attempts[conv].mean()) if conv.any() else None,
         "mean_attempts_all": float(np.where(conv, attempts, max_att).mean()),
+        # per trial, the unconverged counted at the attempt budget: for the paper's ten-trial statistics
+        "attempts_all": np.where(conv, attempts, max_att).astype(int).tolist(),
         "mean_error_um_by_attempt": np.nanmean(err, axis=0).tolist(),
         "std_error_um_by_attempt": np.nanstd(err, axis=0).tolist(),
         "final_error_um_median": float(np.median(result["final_error_um"])),

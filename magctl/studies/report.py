@@ -5,7 +5,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from magctl.studies.paper_statistics import PAPER_TRIALS, RULE
 from magctl.studies.runner import VERDICTS, StudyResult
+
+
+def _probability(p: float | None) -> str:
+    return "—" if p is None else "< 0.001" if p < 0.001 else f"{p:.3f}"
 
 
 def write_report(out: Path, results: list[StudyResult], timings: dict[str, float]) -> Path:
@@ -19,11 +24,12 @@ def write_report(out: Path, results: list[StudyResult], timings: dict[str, float
         lines += ["## The paper's claims, one row each", "",
                   ", ".join(f"{n} {v}" for v, n in counts.items()) + ". _model_: what produced magctl's number "
                   "(closed loop: the 30 Hz simulation; attempt map: eq 14–18 iterated; analysis: closed form "
-                  "or linear analysis; fluid model: the flow alone).", "",
-                  "| § | claim | paper | magctl | model | verdict | cause | study |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "or linear analysis; fluid model: the flow alone). _P(paper)_: probability of the paper's "
+                  f"observation at its {PAPER_TRIALS} trials under magctl's model.", "", RULE, "",
+                  "| § | claim | paper | magctl | model | P(paper) | verdict | cause | study |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         lines += [f"| {row.section} | {row.quantity} | {row.paper} | {row.magctl} | {row.model} | "
-                  f"**{row.verdict}** | {row.cause} | {name} |" for name, row in claims]
+                  f"{_probability(row.p_paper)} | **{row.verdict}** | {row.cause} | {name} |" for name, row in claims]
         lines.append("")
     if rows:
         lines += ["## Paper vs magctl: quantities", "", "| study | quantity | paper | magctl | model | note |",

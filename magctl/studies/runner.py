@@ -51,7 +51,8 @@ STEPS = ("compute", "draw", "summarise")
 MODELS = ("closed loop", "attempt map", "analysis", "fluid model")
 """What can produce a row's magctl number: the 30 Hz closed-loop simulation, the attempt-to-attempt
 map (eq 14–18 iterated), a closed-form or linear analysis, or the fluid model on its own."""
-VERDICTS = ("reproduced", "not reproduced", "opposite")
+VERDICTS = ("reproduced", "consistent at n = 10", "not resolvable", "not reproduced", "opposite")
+"""The verdicts of :data:`magctl.studies.paper_statistics.RULE`."""
 
 
 @dataclass
@@ -78,6 +79,9 @@ class PaperRow:
         Why the claim is not reproduced (required then).
     section : str
         The paper's section of the claim, e.g. "§VI-A".
+    p_paper : float or None
+        Probability of the paper's observation (at its ten trials) under magctl's model
+        (:mod:`magctl.studies.paper_statistics`); None where the claim is not a ten-trial observation.
     """
 
     quantity: str
@@ -88,6 +92,7 @@ class PaperRow:
     verdict: str = ""
     cause: str = ""
     section: str = ""
+    p_paper: float | None = None
 
     def __post_init__(self):
         if self.model and self.model not in MODELS:
@@ -102,11 +107,16 @@ class PaperRow:
 
 
 def claim(section: str, quantity: str, paper: str, magctl: str, model: str, *, holds: bool,
-          cause: str, opposite: bool = False, note: str = "") -> PaperRow:
-    """A claim of the paper with its verdict: reproduced when ``holds``, otherwise "opposite" when
-    ``opposite`` (magctl finds the reverse) or "not reproduced", with ``cause``."""
-    verdict = "reproduced" if holds else "opposite" if opposite else "not reproduced"
-    return PaperRow(quantity, paper, magctl, note=note, model=model, verdict=verdict, cause=cause, section=section)
+          cause: str, opposite: bool = False, note: str = "", p_paper: float | None = None,
+          ordering: bool = False) -> PaperRow:
+    """A claim of the paper with its verdict by :func:`magctl.studies.paper_statistics.verdict`: reproduced when
+    ``holds``; otherwise judged by ``p_paper``, the probability of the paper's ten-trial observation under
+    magctl's model (``ordering``: the claim ranks two controllers), with ``cause``."""
+    from magctl.studies.paper_statistics import verdict
+
+    v = verdict(holds, p_paper, ordering=ordering, opposite=opposite)
+    return PaperRow(quantity, paper, magctl, note=note, model=model, verdict=v, cause=cause, section=section,
+                    p_paper=p_paper)
 
 
 @dataclass

@@ -31,7 +31,35 @@ def test_report_puts_claims_in_one_table_ordered_by_section(tmp_path):
     path = write_report(tmp_path, [StudyResult("s", {}, [], ["summary"], rows)], {"s": 1.0})
     text = path.read_text()
     claims = text[text.index("## The paper's claims"):text.index("## Paper vs magctl: quantities")]
-    assert "1 reproduced, 1 not reproduced, 0 opposite" in claims
+    assert "1 reproduced, 0 consistent at n = 10, 0 not resolvable, 1 not reproduced, 0 opposite" in claims
     assert claims.index("front claim") < claims.index("side claim")
-    assert "| **not reproduced** | because of x. | s |" in claims
+    assert "| — | **not reproduced** | because of x. | s |" in claims
+    assert "Verdicts: reproduced" in claims
     assert "a quantity" not in claims and "| s | a quantity | 1 | 2 | fluid model |" in text
+
+
+def test_claims_are_judged_at_the_papers_ten_trials():
+    """A share magctl's sample does not bear out is consistent at n = 10 when the paper's observation has
+    probability ≥ 5 % under magctl's model, an ordering is not resolvable then; below 5 % the verdict stands."""
+    from magctl.studies.paper_statistics import p_all, p_at_least, p_none, p_order
+
+    assert p_none(0.18) == pytest.approx(0.82**10)                     # 0.137: "never" seen in 10 trials
+    assert p_all(0.99) == pytest.approx(0.99**10) and p_all(1.0) == 1.0
+    row = claim("§VI-A", "q", "never", "18 %", "closed loop", holds=False, cause="c", p_paper=p_none(0.18))
+    assert row.verdict == "consistent at n = 10" and row.p_paper == pytest.approx(0.1374, abs=1e-4)
+    assert claim("§VI-A", "q", "p", "m", "closed loop", holds=False, cause="c",
+                 p_paper=0.01).verdict == "not reproduced"
+    # two controllers whose attempts overlap: ten-trial means come out either way
+    a, b = [2, 4, 6, 8], [3, 5, 7, 9]
+    p = p_order(b, a)
+    assert 0.05 < p < 0.5
+    assert claim("§VI-B", "b faster than a", "yes", "no", "closed loop", holds=False, cause="c", p_paper=p,
+                 ordering=True).verdict == "not resolvable"
+    # identical samples: the paper's order half the time (ties count half); disjoint samples: never
+    assert p_order([2, 3], [2, 3]) == pytest.approx(0.5, abs=0.02)
+    assert p_order([9, 10], [1, 2]) == 0.0
+    # at least 5 of 10 failures at a 30 % failure rate: the binomial tail, summed here term by term
+    from math import comb
+    assert p_at_least(5, 0.3) == pytest.approx(sum(comb(10, k) * 0.3**k * 0.7 ** (10 - k) for k in range(5, 11)))
+    with pytest.raises(ValueError, match="share"):
+        p_all(1.5)

@@ -1,0 +1,77 @@
+"""The paper's claims judged at the paper's own sample size (its §VI: ten trials per controller).
+
+magctl runs hundreds of trials per controller; the paper ran ten. A claim magctl's large sample does not
+bear out may still be what ten trials of magctl's plant would show. For each claim this module gives the
+probability of the paper's observation under magctl's model at ``n`` = 10:
+
+* a share the paper saw in all ten trials (``p_all``: ``q¹⁰`` for magctl's per-trial share ``q``) or in
+  none (``p_none``: ``(1 − q)¹⁰``), binomial;
+* an ordering of two controllers' mean attempts (``p_order``): the share of bootstrap pairs of ten-trial
+  samples, drawn from magctl's per-trial attempts of each, whose means come out in the paper's order.
+
+The verdict rule (:func:`verdict`, stated in every report by :data:`RULE`): **reproduced** when
+magctl's large sample says what the paper says; otherwise, for a share, **consistent at n = 10** when
+the paper's observation has probability ≥ :data:`ALPHA` under magctl's model, and for an ordering
+**not resolvable** when ten-trial samples give the paper's order with probability ≥ :data:`ALPHA`
+(two such controllers cannot be ranked from ten trials each); else **not reproduced** (or
+**opposite** when magctl finds the reverse).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import binom
+
+PAPER_TRIALS = 10
+"""Trials per controller in the paper's §VI experiments."""
+ALPHA = 0.05
+"""Smallest probability of the paper's observation under magctl's model that still counts as consistent."""
+RULE = (f"Verdicts: reproduced — magctl's large sample says what the paper says; consistent at n = "
+        f"{PAPER_TRIALS} — it does not, but the paper's observation (a share seen in all or none of its "
+        f"{PAPER_TRIALS} trials) has probability ≥ {ALPHA:.0%} under magctl's model (binomial); not resolvable — "
+        f"an ordering of two controllers that {PAPER_TRIALS}-trial samples of magctl's plant give in the paper's "
+        f"direction with probability ≥ {ALPHA:.0%} (bootstrap); not reproduced / opposite — otherwise.")
+
+
+def _share(q: float) -> float:
+    q = float(q)
+    if not 0.0 <= q <= 1.0:
+        raise ValueError(f"a share must lie in [0, 1], got {q!r}")
+    return q
+
+
+def p_all(q: float, n: int = PAPER_TRIALS) -> float:
+    """Probability that all ``n`` trials show an outcome each shows with probability ``q``: ``qⁿ``."""
+    return _share(q) ** n
+
+
+def p_none(q: float, n: int = PAPER_TRIALS) -> float:
+    """Probability that none of ``n`` trials shows an outcome each shows with probability ``q``: ``(1 − q)ⁿ``."""
+    return (1.0 - _share(q)) ** n
+
+
+def p_at_least(k: int, q: float, n: int = PAPER_TRIALS) -> float:
+    """Probability that at least ``k`` of ``n`` trials show an outcome each shows with probability ``q``."""
+    return float(binom.sf(k - 1, n, _share(q)))
+
+
+def p_order(a, b, n: int = PAPER_TRIALS, draws: int = 20000, seed: int = 0) -> float:
+    """Probability that the mean of ``n`` trials drawn from ``a`` is below that of ``n`` drawn from ``b``
+    (ties count half): a bootstrap over magctl's per-trial attempts of the two controllers."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    if a.size == 0 or b.size == 0:
+        raise ValueError("p_order needs per-trial values of both controllers")
+    rng = np.random.default_rng(seed)
+    ma = rng.choice(a, size=(draws, n)).mean(axis=1)
+    mb = rng.choice(b, size=(draws, n)).mean(axis=1)
+    return float(np.mean(ma < mb) + 0.5 * np.mean(ma == mb))
+
+
+def verdict(holds: bool, p_paper: float | None, *, ordering: bool = False, opposite: bool = False) -> str:
+    """The verdict of :data:`RULE` for a claim whose large-sample test ``holds`` and whose observation has
+    probability ``p_paper`` at the paper's ten trials (None: not a ten-trial observation)."""
+    if holds:
+        return "reproduced"
+    if p_paper is not None and p_paper >= ALPHA:
+        return "not resolvable" if ordering else f"consistent at n = {PAPER_TRIALS}"
+    return "opposite" if opposite else "not reproduced"
