@@ -14,8 +14,8 @@ scaled by the mobility learned so far), and minimises the arrangement's squared 
 choice. The planner samples passes first — every sphere, :data:`directions` directions, both sides, the
 gaps of ``[plan] sample_gaps`` — and evaluates them in one call, the objective and the constraints mapped over
 the samples (casadi ``Function.map``; the objective only where the bounds are kept). It refines the
-``starts`` best with IPOPT (casadi ``nlpsol``), but not a start beside one already refined
-(:data:`SAME_BASIN`), and returns the best refined pass, or the best sample when IPOPT improves on none;
+``starts`` best with IPOPT (casadi ``nlpsol``) and returns the best refined pass, or the best sample when
+IPOPT improves on none;
 samples of equal cost (a pair's mirror images) rank in sample order (:data:`TIE`). After the pass it
 measures the spheres again and plans the next one (receding horizon).
 
@@ -66,14 +66,6 @@ TIE = 1e-9
 SAME_COST = 1e-6
 """A refined pass replaces the best so far only when it is lower by more than this (relative, at least
 absolute): IPOPT's ``tol`` of 1e-6 leaves the same optimum reached from two starts this far apart."""
-SAME_BASIN = 0.3e-3
-"""A start whose sampled pass lies within this of one already refined, both ends, every coordinate (m), is not
-refined: it is the same pass at the neighbouring direction or gap (a 15° step moves the ends of a 2 mm sample
-0.26 mm). Of the 608 second and third starts on the study layouts' passes and on them perturbed (30 µm,
-mobility 0.7–1.2), 279 were this near one refined before: IPOPT took 278 to the pass it took that one to and
-one to a worse pass."""
-
-
 @dataclass(frozen=True)
 class PlanLimits:
     """The bounds every planned pass keeps (metres), from ``models/push.toml`` ``[plan]`` and the camera field."""
@@ -350,9 +342,10 @@ class AssemblyPlanner:
     def plan(self, spheres, mobility: float = 1.0) -> Pass | None:
         """The next pass for spheres ``(N, 2)`` (m), or None when no sampled pass keeps the bounds.
 
-        The ``starts`` best samples are refined with IPOPT, except a start whose sample lies within
-        :data:`SAME_BASIN` of one already refined; the best refined pass that keeps the bounds is returned if it
-        beats the best sample (by more than :data:`SAME_COST`), else that sample.
+        The ``starts`` best samples are refined with IPOPT; the best refined pass that keeps the bounds is
+        returned if it beats the best sample (by more than :data:`SAME_COST`), else that sample. (Skipping a start
+        beside one already refined saved solves on the earlier plant's map, but on the one plant's map it changed
+        the assemblies of three of the four study layouts, so every start is refined.)
         """
         t0 = time.perf_counter()
         spheres = np.asarray(spheres, float).reshape(self.target.n, 2)
@@ -367,10 +360,8 @@ class AssemblyPlanner:
         t1 = time.perf_counter()
         top = [samples[:, int(k)].full().ravel() for k in order[: max(self.starts, 1)]]
         best_x, best_f, how = top[0], float(costs[order[0]]), "sample"
-        refined, iterations, basin = [], 0, SAME_BASIN / _MM
+        refined, iterations = [], 0
         for x0 in top[: self.starts]:
-            if any(np.abs(x0 - r).max() <= basin for r in refined):
-                continue
             refined.append(x0)
             sol = self.solver(x0=x0, p=prm, lbx=self._x_lb, ubx=self._x_ub, lbg=self._g_lb, ubg=self._g_ub)
             iterations += int(self.solver.stats()["iter_count"])

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from magctl.core.units import UM
+from magctl.plant.fluid.domain import Domain
 
 REACH_UM = 3000.0
 """The map spans robot positions ±3 mm about the sphere: beyond, a pass moves it under 0.1 µm more."""
@@ -60,7 +61,7 @@ def model_toml(m: dict) -> str:
         return "[" + ", ".join(f"{v:.4f}" for v in np.asarray(a, float).ravel()) + "]"
 
     src = ("magctl.studies.pass_map.identify(): magctl.plant.fluid.scenarios.pass_profile on the closed loop's "
-           "sphere block (uncalibrated sphere, unbounded oil, robot at 0.4 mm/s)")
+           f"sphere block (the one plant: {Domain.from_params().label()}, robot at 0.4 mm/s)")
     lines = [
         "# The pass map: a sphere's displacement while the robot passes it on a straight line, as a function of",
         "# the robot's position x along its line relative to the sphere and the side gap h (docs/push-control.md §8).",

@@ -18,7 +18,7 @@ from magctl.stability import iteration as S
 from magctl.stability.switched import ScaledSideModel
 
 UM = 1e-6
-MIN_GAP = 370 * UM
+MIN_GAP = 370 * UM   # the paper's bound: the law's properties below are stated there (docs/push-control.md §6)
 
 
 def law(**kw):
@@ -31,7 +31,9 @@ def test_kalman_step_matches_filterpy_extended_kalman_filter():
     cl = law(iterations=1)
     rng = np.random.default_rng(3)
     gaps = rng.uniform(380, 650, 5) * UM
-    meas = rng.uniform(5, 60, 5) * UM
+    # passes scattered ±30 % round the prior's curve (far-off ones would drive the rate to its floor)
+    xg0 = (gaps - cl.reference_gap) / cl.reference_gap
+    meas = np.exp(cl.prior_mean[0] - cl.prior_mean[1] * xg0) * rng.lognormal(0.0, 0.3, 5)
     ekf = ExtendedKalmanFilter(dim_x=3, dim_z=1)
     ekf.x = cl.prior_mean.copy().reshape(3, 1)
     ekf.P = cl.prior_cov.copy()
@@ -169,7 +171,8 @@ def test_attempt_map_converges_over_plant_scales_where_eq18_does_not(gap_scale):
     for rho in SCALES:
         plant = ScaledSideModel(scale=float(rho), gap_scale=gap_scale)
         fewest = int(np.ceil((e0 - eps) / plant.displacement(MIN_GAP)))
-        run = S.side_attempt_map(0.0, e0, model="exp", plant=plant, law=law(prior=ExpSideModel()), max_attempts=30)
+        run = S.side_attempt_map(0.0, e0, model="exp", plant=plant, law=law(prior=ExpSideModel()), max_attempts=30,
+                                 min_gap=MIN_GAP)
         attempts = run["attempts"][0]
         if fewest > 30:
             assert attempts == -1
@@ -177,7 +180,7 @@ def test_attempt_map_converges_over_plant_scales_where_eq18_does_not(gap_scale):
         assert fewest <= attempts <= fewest + 5, (rho, attempts, fewest)
         if gap_scale == 1.0 and rho > 2.25:
             paper = S.side_attempt_map(0.9, e0, model="exp", plant=plant, law=side_push_law(0.9), eps=0.05 * UM,
-                                       max_attempts=100)
+                                       max_attempts=100, min_gap=MIN_GAP)
             assert paper["attempts"][0] == -1, (rho, paper["attempts"][0])
 
 
@@ -244,7 +247,7 @@ def _dirt_runs(scales, dirt_response):
     """The curve law's side push round the stand-in plant, eq 22 scaled per trial, a sticky sphere's release
     (flow-driven, so scaled with its mobility) taken as none; returns final status, attempts and front pushes
     started."""
-    task = _side_task(ExpSideModel(), arrive_tol=1 * UM, dirt_response=dirt_response)
+    task = _side_task(ExpSideModel(), arrive_tol=1 * UM, dirt_response=dirt_response, min_gap=MIN_GAP)
     status, attempts, final = _standin_runs(scales, task)
     task_state = next(leaf for leaf in final["leaves"] if "d_des" in leaf)
     fronts = task_state["fronts"] if dirt_response == "front" else np.zeros(len(scales), dtype=int)
@@ -252,7 +255,8 @@ def _dirt_runs(scales, dirt_response):
 
 
 def test_a_stuck_sphere_gets_a_front_push_and_converges_sooner():
-    """A sphere at 15 % of the prior's mobility: side passes alone need ⌈292.5/9.3⌉ = 32 passes (beyond the
+    """A sphere at 15 % of the prior's mobility, passes bounded at the paper's 370 µm: side passes alone need
+    ⌈292.5/9.3⌉ = 32 passes (beyond the
     30-attempt limit); with the front push answering dirt it converges within 10 attempts. A sphere as the
     prior is never front-pushed, and converges as without the option."""
     scales = np.array([0.15, 1.0])

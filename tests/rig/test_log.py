@@ -23,7 +23,7 @@ from magctl.rig.sim import SimRig
 @pytest.fixture(scope="module")
 def push_log(tmp_path_factory):
     path = tmp_path_factory.mktemp("logs") / "push.jsonl"
-    report = Runtime(SimRig(n_spheres=1), "front-push", {}, log_path=path, realtime=False, max_ticks=900,
+    report = Runtime(SimRig(n_spheres=1), "front-push", {}, log_path=path, realtime=False, max_ticks=2400,
                      quiet=True).run()
     assert report.exit_status == "done"
     return path

@@ -113,6 +113,10 @@ def test_region_differs_from_the_signed_model_and_eq_20():
 
 
 # --- the command against the attempt map and the 30 Hz task -------------------------------------------
+PAPER_MIN_GAP = 370 * UM
+"""The grid below is laid out for the paper's bound (eq 22's plant, where the paper's robot touched)."""
+
+
 def _cli(argv, capsys):
     args = build_parser().parse_args(["stability", "side", *argv, "--json"])
     assert args.func(args) == 0
@@ -130,7 +134,7 @@ def _task_runs(ks, rho):
     p = standin_params()
     task = SidePushTask(goal=(300 * UM, 0.0), law=side_push_law(ks), model="exp", clearance=2.5e-3, behind=3e-3,
                         ahead=3e-3, pass_speed=3e-3, travel_speed=3e-3, arrive_tol=0.1 * UM, eps=TIGHT_EPS,
-                        max_attempts=MAX_ATTEMPTS)
+                        max_attempts=MAX_ATTEMPTS, min_gap=PAPER_MIN_GAP)
     r0, s0 = (-1e-3, 0.0), np.array([[0.0, 0.0]])
     n = task.name
     dia = Diagram("loop", [
@@ -155,12 +159,12 @@ def test_command_verdict_agrees_with_the_attempt_map_and_the_30hz_task(capsys):
     status, task_attempts = _task_runs(ks, rho)
     verdicts = []
     for i, (k, r) in enumerate(zip(ks, rho, strict=True)):
-        d = _cli(["--ks", f"{k:g}", "--model", "exp", "--plant-scale", f"{r:g}"], capsys)
+        d = _cli(["--ks", f"{k:g}", "--model", "exp", "--plant-scale", f"{r:g}", "--min-gap-um", "370"], capsys)
         assert d["ratio"] == pytest.approx(r) and d["ratio_source"].startswith("exact")
         assert d["verdict"] == d["switched"]["verdict"]
         verdicts.append(d["verdict"])
         run = S.side_attempt_map(k, 300 * UM, model="exp", plant=W.ScaledSideModel(scale=r), eps=TIGHT_EPS,
-                                 max_attempts=MAX_ATTEMPTS)
+                                 max_attempts=MAX_ATTEMPTS, min_gap=PAPER_MIN_GAP)
         map_ok = run["attempts"][0] >= 0
         task_ok = status[i] == Status.CONVERGED
         assert (d["verdict"] == "stable") == map_ok == task_ok, (k, r, d["verdict"], run["attempts"][0], status[i])

@@ -158,7 +158,8 @@ def test_memory_and_disk_caches(tiny, tmp_path, monkeypatch):
 
 def test_memory_cache_is_keyed_by_every_input(flow):
     assert robot_flow(flow.geometry, MU, H, Domain()) is flow
-    assert robot_flow(flow.geometry, MU, H) is flow           # models/fluid.toml [domain] is unbounded
+    assert robot_flow(flow.geometry, MU, H) is robot_flow(flow.geometry, MU, H, Domain.from_params())
+    assert robot_flow(flow.geometry, MU, H) is not flow       # models/fluid.toml [domain] is a lid
 
 
 def test_mirror_solve_equals_the_full_solve(tiny):

@@ -1,0 +1,37 @@
+"""The side push's minimum gap comes from the plant in use (magctl.studies.side_bounds): its contact threshold
+plus the closed loop's cross-track margin, recomputed here against models/push.toml."""
+
+import numpy as np
+import pytest
+
+from magctl.config import load_model
+from magctl.plant.fluid.scenarios import sidepush_curve
+from magctl.studies.side_bounds import PERCENTILE, cross_track, min_gap
+
+
+@pytest.mark.slow
+def test_stored_min_gap_is_the_plants_threshold_plus_the_measured_margin():
+    """The stored bound is a fixed point of the measurement (the margin is measured at the bound in use):
+    recomputed, it moves by less than 1.5 µm; the margin is a positive part of it."""
+    m = min_gap()
+    stored = float(load_model("push").side.min_gap)
+    assert stored == pytest.approx(m["min_gap"], abs=1.5e-6)
+    assert 0 < m["margin"] < 30e-6 and m["passes"] > 50
+
+
+def test_no_contact_just_above_the_threshold_and_contact_below():
+    """The threshold part of the bound is where the passing robot first touches (the plant's own pass, not the
+    paper's 370 µm): a pass 5 µm wider does not touch, one 5 µm closer does."""
+    m = load_model("push").side.min_gap
+    from magctl.plant.fluid.scenarios import contact_threshold
+
+    thr = contact_threshold()
+    res = sidepush_curve(np.array([thr - 5e-6, thr + 5e-6]))
+    assert res.contact.tolist() == [True, False]
+    assert thr < m < 370e-6
+
+
+def test_cross_track_margin_is_the_percentile_of_the_shortfalls():
+    track = cross_track(trials=4, frames=1200)
+    assert track["passes"] == track["shortfall"].size > 0
+    assert track["margin"] == pytest.approx(np.percentile(track["shortfall"], PERCENTILE))
