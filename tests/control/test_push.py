@@ -164,7 +164,7 @@ def test_side_push_with_the_printed_eq_18_sign_fails_explicitly():
     a = res["side_push.attempt"][0]
     ends = np.flatnonzero(np.diff(a) > 0)
     assert np.all(np.diff(res["side_push.correction"][0, ends]) > 0)
-    assert np.allclose(res["side_push.gap"][0, ends], 370 * UM)
+    assert np.allclose(res["side_push.gap"][0, ends], task.min_gap)
     assert S.side_attempt_map(0.9, 280 * UM, model="lin", printed_sign=True)["attempts"][0] == -1
 
 

@@ -253,6 +253,8 @@ def _study_loop(label, sticky=None):
     exp = exps[label]
     if sticky is not None:   # every sphere on a sticky patch: the curve law reads it as stuck
         exp = dataclasses.replace(exp, variability=dataclasses.replace(exp.variability, sticky_probability=sticky))
+        # at the paper's 370 µm bound a stuck sphere needs more passes than [dirt] allows, so the front push runs
+        exp = dataclasses.replace(exp, task=exp.task | {"min_gap": 370 * UM})
     return push_loop(exp)
 
 

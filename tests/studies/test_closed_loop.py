@@ -23,8 +23,10 @@ def test_a_trial_does_not_depend_on_its_batch():
                      variability=Variability())
     together = run_push_trials([2, 5, 7], 11, exp=exp, keep_paths=True)
     alone = run_push_trials([5], 11, exp=exp, keep_paths=True)
-    assert np.array_equal(together["spheres_xy"][1], alone["spheres_xy"][0])
-    assert np.array_equal(together["robot_xy"][1], alone["robot_xy"][0])
+    n = alone["spheres_xy"].shape[1]          # alone, the run stops when trial 5 has; together, with the last
+    assert n > 100 and together["spheres_xy"].shape[1] >= n
+    assert np.array_equal(together["spheres_xy"][1, :n], alone["spheres_xy"][0])
+    assert np.array_equal(together["robot_xy"][1, :n], alone["robot_xy"][0])
     assert not np.array_equal(together["robot_xy"][0], together["robot_xy"][1])  # trials do differ
 
 
@@ -39,10 +41,12 @@ def front_runs():
 
 
 def test_naive_front_push_keeps_a_steady_error_of_the_release_order(front_runs):
-    """K_c = 0, δ(0) = 0 (§VI-A): the release displacement leaves the sphere short of the goal."""
+    """K_c = 0, δ(0) = 0 (§VI-A): the release displacement leaves the sphere short of the goal in the trials that
+    use every attempt (on the one plant the in-task release is ≈ 135 µm, so a share of the naive pushes lands
+    within ε_p by chance: the front-push study reports it)."""
     r = front_runs["naive"]
     stuck = r["status"] == ATTEMPT_LIMIT
-    assert stuck.mean() >= 0.5
+    assert stuck.any()
     steady = np.median(r["final_error_um"][stuck])
     assert 75 < steady < 400  # paper: about 200 µm (300 µm release minus ~100 µm servo overshoot)
 
@@ -78,16 +82,16 @@ def test_learning_beats_the_fixed_small_gap(side_runs):
 
 
 def test_side_push_study_repositions_where_the_sphere_is_not_disturbed():
-    """§VI repositions at ≥ 650 µm because eq 22 predicts only ≈ 4.9 µm of drift there. Our flow
-    drifts the sphere more at 650 µm; the side-push clearance of the controller every study and the rig
-    run (models/push.toml) must meet the paper's criterion."""
+    """§VI repositions at ≥ 650 µm because eq 22 predicts only ≈ 4.9 µm of drift there. The side-push
+    clearance of the controller every study and the rig run (models/push.toml) must meet the paper's criterion
+    on the plant in use; in the default oil layer the drift at 650 µm is eq 22's within 15 %."""
     from analysis import side_push
     from magctl.plant.fluid.scenarios import sidepush_curve
 
     paper_drift_650 = 1755.0 * np.exp(-0.009042 * 650.0)  # eq 22, µm
     clearance = task_defaults("side")["clearance"]
     ours = sidepush_curve([650 * UM, clearance]).displacement / UM
-    assert ours[0] > 2 * paper_drift_650  # why 650 µm is not enough in our flow
+    assert ours[0] == pytest.approx(paper_drift_650, rel=0.15)
     assert ours[1] <= paper_drift_650
     assert all(experiment_controller(e).blocks["task"].clearance == clearance
                for e in side_push.experiments().values())
