@@ -52,6 +52,7 @@ MEAN_TARGET = 5.0
 FRONT_MAX_ATTEMPTS = 10
 FRONT_GAIN_TARGET = 0.5
 RELEASE = "release-model controller"
+FRONT_SIDE = "front push, then side passes (curve law)"
 KC1 = "K_c=1, δ(0)=0"
 FRONT_TRIALS = 2000
 BY_TARGET = 10
@@ -81,11 +82,16 @@ def scale_grid(min_gap: float, eps: float) -> list[dict]:
 
 
 def front_experiments() -> dict:
-    """The release-model front push and eq 13 with K_c = 1 (its better δ(0) = 0 in the front-push study) on the
-    front-push study's plant."""
+    """The release-model front push, the front push then side passes (one task: the curve-law side push with
+    ``dirt_response="front-first"``, judged by the front push's ε_p and attempt budget) and eq 13 with K_c = 1 (its
+    better δ(0) = 0 in the front-push study) on the front-push study's plant."""
     front = studies.get("front-push")
     kc1 = front.controllers(0.0)[KC1]
-    return {RELEASE: dataclasses.replace(kc1, task={"learning": "release"}, label=RELEASE), KC1: kc1}
+    eps, budget = task_defaults("front")["eps"], FRONT_MAX_ATTEMPTS
+    hybrid = dataclasses.replace(kc1, kind="front-side", label=FRONT_SIDE,
+                                 task=CURVE_TASK | {"dirt_response": "front-first", "eps": eps, "max_attempts": budget})
+    return {RELEASE: dataclasses.replace(kc1, task={"learning": "release"}, label=RELEASE), FRONT_SIDE: hybrid,
+            KC1: kc1}
 
 
 def experiments() -> dict:
@@ -211,7 +217,7 @@ def compute(ctx: StudyContext) -> Computed:
     results = {"trials_per_controller": n, "controllers": summaries, "clean_plant": side.PLANT.describe(),
                "dirty_plant": exps[f"{CURVE}, dirt"].variability.describe(), "trials_from_study": sources,
                "baseline": best, "curve": CURVE, "scale_grid": scale_grid(d["min_gap"], d["eps"]),
-               "curve_task": dict(task.task), "front_bound": front_bound(),
+               "curve_task": dict(task.task), "front_bound": front_bound(), "min_gap_um": d["min_gap"] / UM,
                "front_controllers": {label: controller_summary(r) for label, r in front_runs.items()},
                "assembly": {label: assembly_summary(r) for label, r in assembly_runs.items()},
                "pair_question": pair_question(), "planning_seconds": planning_seconds()}
@@ -261,6 +267,15 @@ def targets(r: dict) -> list[tuple[str, str, bool]]:
          f"{dirt['attempts_p95']:.0f} against {base_dirt['attempts_p95']:.0f}",
          dirt["attempts_p95"] < base_dirt["attempts_p95"]),
     ]
+
+
+def front_side_target(r: dict) -> tuple[str, str, bool]:
+    """(target, measured, met): the front push for the coarse move then side passes, against K_c = 1."""
+    fc = r["front_controllers"]
+    gain = fc[KC1]["mean_attempts_all"] - fc[FRONT_SIDE]["mean_attempts_all"]
+    return (f"front then side: {FRONT_GAIN_TARGET:g} attempts fewer than K_c = 1 (same ε_p = 75 µm, same budget)",
+            f"{fc[FRONT_SIDE]['mean_attempts_all']:.2f} against {fc[KC1]['mean_attempts_all']:.2f} "
+            f"(gain {gain:+.2f}; {fc[FRONT_SIDE]['converged_fraction']:.0%} converged)", gain >= FRONT_GAIN_TARGET)
 
 
 def front_target(r: dict) -> tuple[str, str, bool]:
@@ -331,13 +346,13 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
     fb = r["front_bound"]
     t, m, ok = front_target(r)
     lines.append(f"| {t} | {m} | {'met' if ok else '**not beaten: bound below**'} |")
-    lines += ["", "Where it does not win: a mean of 5 attempts is the floor of any side push that keeps the contact "
-              "bound (≈ 71 µm per pass at 370 µm less the few µm repositioning takes back, with the ±10 % mobility "
-              "scatter: 4.8–5.0 on average), and a one-pixel ε_p leaves a few trials stepping over the band. With "
-              "dirt, side passes alone are held by the sticky spheres' ≈ 14 µm passes whatever the law; the front "
-              "push that answers a sphere read as stuck moves it by contact (docs/push-control.md §6). Without dirt "
-              "that answer never fires (it reads no sphere of the ±10 % scatter as stuck), so the clean numbers "
-              "are the curve law's.", "",
+    t, m, ok = front_side_target(r)
+    lines.append(f"| {t} | {m} | {'met' if ok else '**missed**'} |")
+    lines += ["", f"The side passes are bounded at the plant's own minimum gap, {r['min_gap_um']:.1f} µm "
+              "(its contact threshold plus the closed loop's cross-track margin, magctl.studies.side_bounds), not "
+              "the paper's 370 µm. With dirt, the front push that answers a sphere read as stuck moves it by "
+              "contact (docs/push-control.md §6); without dirt it fires only where the curve law reads a sphere of "
+              "the ±10 % scatter as stuck.", "",
               "Attempt map from 300 µm against eq 22 scaled (ρ in displacement × gap scale; no noise; both laws on "
               "eq 22 as their model): attempts to ε_p of the curve law / eq 18 with K_s = 0.9 (fewest possible); "
               "— where a law is not within ε_p by attempt 30.", "",
@@ -358,7 +373,8 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
               "against eq 13.", "", *controller_table(fc, FRONT_MAX_ATTEMPTS)]
     lines += ["", f"Front push, attempt map on the identified release (models/front_release.toml), {fb['trials']} "
               f"trials per fold, the policy built on one half of the identification trials and run on the other "
-              f"({folds}). Why no controller choosing δ from (d, R_prev) gains {FRONT_GAIN_TARGET:g} attempts: the "
+              f"({folds}). A statement about one policy family — one front push per attempt, δ chosen from "
+              f"(d, R_prev) — not about front pushing: no member gains {FRONT_GAIN_TARGET:g} attempts because the "
               f"first push ends within ε_p in at most {fb['first_success_best']:.0%} of trials, so a mean of "
               f"{fb['kc1_mean_attempts'] - FRONT_GAIN_TARGET:.2f} needs every later attempt to succeed with "
               f"{fb['later_success_needed']:.1%}; the policy that maximises each attempt's success reaches "
@@ -367,6 +383,8 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
               f"than K_c = 1 itself. The cause is the release's scatter about its conditional mean, "
               f"{fb['conditional_release_std_um']:.0f} µm (median over the logged attempts): even a normal release "
               f"with that scatter, aimed exactly at its mean and with no lateral miss, would end within "
-              f"±{fb['eps_um']:.0f} µm only {fb['normal_cap']:.1%} of the time (docs/push-control.md §7).",
+              f"±{fb['eps_um']:.0f} µm only {fb['normal_cap']:.1%} of the time (docs/push-control.md §7). "
+              f"The task that leaves the family — a front push for the coarse move, then side passes — is the "
+              f"'{FRONT_SIDE}' row above.",
               "", *assembly_lines(r), "", reuse_note(r["trials_from_study"], NAME)]
     return lines, []

@@ -388,7 +388,7 @@ def closed_loop(ctrl: Diagram, plnt: Diagram, name: str = "loop") -> Diagram:
 # --- the paper's experiments (§VI) as closed loops -----------------------------------------------------------
 ORIGIN = np.array([2.0e-3, 1.8e-3])
 """Where the (first) sphere starts: near the middle of the 4.8 × 3.6 mm camera field."""
-EXPERIMENT_TASKS = {"front": "front-push", "side": "side-push", "assembly": "assemble",
+EXPERIMENT_TASKS = {"front": "front-push", "side": "side-push", "front-side": "side-push", "assembly": "assemble",
                     "front-assembly": "front-assemble", "front-side-assembly": "front-side-assemble",
                     "assembly-close": "assemble", "assembly-far": "assemble", "assembly-3": "assemble",
                     "assembly-4": "assemble"}
@@ -405,9 +405,10 @@ class Experiment:
 
     Attributes
     ----------
-    kind : {"front", "side", "assembly", "front-assembly", "front-side-assembly", "assembly-close", "assembly-far", \
-"assembly-3", "assembly-4"}
-        Set-up: front push (§V-A), side push (§V-B), side-push assembly (§V-C), the
+    kind : {"front", "side", "front-side", "assembly", "front-assembly", "front-side-assembly", "assembly-close", \
+"assembly-far", "assembly-3", "assembly-4"}
+        Set-up: front push (§V-A), side push (§V-B), the side push on the front push's set-up, side-push
+        assembly (§V-C), the
         front-push assembly the paper shows failing (Fig 3), the paper's Fig 15 protocol
         (a front push, then side-push assembly), or the assemblies of 2-4 spheres of :data:`ASSEMBLY_LAYOUTS_UM`.
     task : dict
@@ -431,7 +432,8 @@ def geometry(kind: str) -> dict:
     """Start positions and goal of the paper's set-ups (§VI), in metres.
 
     The robot starts 1 mm behind the (first) sphere. Front push: goal 750 µm beyond the sphere;
-    side push: 300 µm from it, square to the robot's line (both :func:`default_goal`).
+    side push: 300 µm from it, square to the robot's line (both :func:`default_goal`); ``front-side``: the
+    side-push task (with its front push first) on the front push's set-up.
     Assembly: a second sphere 600 µm (centre to centre) ahead of the first; the goal is it. The
     set-ups beyond the paper place their spheres by :data:`ASSEMBLY_LAYOUTS_UM` (no goal).
     """
@@ -439,9 +441,9 @@ def geometry(kind: str) -> dict:
         raise MagctlError(f"experiment kind {kind!r} is not one of {', '.join(EXPERIMENT_TASKS)}")
     sphere = ORIGIN.copy()
     robot = sphere - (1e-3, 0.0)
-    if kind in ("front", "side"):
-        return {"spheres": sphere[None], "robot": robot, "goal": default_goal(EXPERIMENT_TASKS[kind], robot,
-                                                                               sphere[None])}
+    if kind in ("front", "side", "front-side"):   # front-side: the side-push task on the front push's set-up
+        setup = "front-push" if kind == "front-side" else EXPERIMENT_TASKS[kind]
+        return {"spheres": sphere[None], "robot": robot, "goal": default_goal(setup, robot, sphere[None])}
     if kind in ASSEMBLY_LAYOUTS_UM:
         return {"spheres": sphere + np.asarray(ASSEMBLY_LAYOUTS_UM[kind], float) * UM, "robot": robot, "goal": None}
     second = sphere + (600 * UM, 0.0)

@@ -76,6 +76,7 @@ CASES = {
     "side-push curve": lambda: (_curve_task(), ONE, 1500),
     "side-push curve, fixed gap": lambda: (_curve_task(fixed_gap=450 * UM, max_attempts=4), ONE, 900),
     "side-push curve, front push on dirt": lambda: (_curve_task(dirt_response="front"), ONE, 2400),
+    "side-push curve, front push first": lambda: (_curve_task(dirt_response="front-first"), ONE, 2400),
     "front-push release model": lambda: (FrontPushTask(goal=(750 * UM, 0.0), learning="release", **EXACT), ONE, 900),
     "assemble curve": lambda: (AssemblyTask(learning="curve", model="exp-fit", clearance=850 * UM, eps_as=10 * UM,
                                             **EXACT), [[0.0, 0.0], [500 * UM, 0.0]], 1500),
@@ -101,6 +102,11 @@ def _assert_paths_taken(case, task, phase, final):
     if "dirt" in case:
         fronting = (phase > FRONT_PHASE_OFFSET) & (phase < FINISHED)
         assert list(fronting.any(axis=1)) == list(final["fronts"] > 0) == [True, False, True]
+    if "front push first" in case:   # every trial starts with the coarse front push, then passes
+        fronting = (phase > FRONT_PHASE_OFFSET) & (phase < FINISHED)
+        assert fronting[:, :5].any(axis=1).all() and (final["fronts"] >= 1).all()
+        passing = phase == 2                                  # side passes (SidePhase.PASS) follow the front push
+        assert passing.any(axis=1).all() and (fronting.argmax(axis=1) < passing.argmax(axis=1)).all()
 
 
 def task_law(task):

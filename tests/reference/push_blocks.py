@@ -494,6 +494,8 @@ class RefSidePush(PushFrame, SidePushTask):
         stuck = self.law_form.mobility(s_new["law"], self.min_gap) < self.dirt.mobility
         many = dist > self.dirt.passes * self.law_form.displacement(s_new["law"], self.min_gap)
         trigger = measured & stuck & many & (state["fronts"] < self.dirt.fronts)
+        if self.dirt_response == "front-first":   # the coarse move first: a front push before any side pass
+            trigger |= (~in_front & (state["fronts"] == 0) & (s_new["attempt"] == 0) & (s_new["status"] == RUNNING))
         ended = in_front & (f_out["status"] != RUNNING)
         failed = ended & ~np.isin(f_out["status"], (CONVERGED, ATTEMPT_LIMIT))
         back = ended & ~failed

@@ -246,7 +246,8 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
     n = 4
     attempts = {beyond.CURVE: [4, 5, 6, 11], "lin-fit, K_s=0.9": [5, 6, 6, 7],
                 f"{beyond.CURVE}, dirt": [5, 6, 20, 30], "lin-fit, K_s=0.9, dirt": [5, 6, 22, 30],
-                f"{beyond.CURVE_FRONT}, dirt": [5, 6, 7, 9], beyond.RELEASE: [2, 3, 4, 10], beyond.KC1: [2, 2, 3, 4]}
+                f"{beyond.CURVE_FRONT}, dirt": [5, 6, 7, 9], beyond.RELEASE: [2, 3, 4, 10], beyond.KC1: [2, 2, 3, 4],
+                beyond.FRONT_SIDE: [1, 2, 2, 2]}
     planned, greedy = beyond.PLANNED, beyond.GREEDY
     attempts |= {label: [12, 14, 16, 18] for label in beyond.assembly_experiments()}
     attempts |= {f"3 line, {planned}": [18, 20, 22, 30], f"3 line, {greedy}": [25, 30, 30, 30],
@@ -254,7 +255,7 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
                  f"2 pair, {planned}": [8, 9, 10, 11]}
     cache = studies.TrialCache()
     for label, exp in exps.items():
-        limit = 10 if label in (beyond.RELEASE, beyond.KC1) else 30
+        limit = 10 if label in (beyond.RELEASE, beyond.KC1, beyond.FRONT_SIDE) else 30
         status = [CONVERGED] * (n - 1) + [ATTEMPT_LIMIT if attempts[label][-1] == limit else CONVERGED]
         cache.store(push.trials_key(exp, n, 0), "beyond", fake_trials(status, attempts[label], limit))
     computed = studies.compute("beyond", context(tmp_path, "beyond", cache=cache, trials=n))
@@ -268,6 +269,8 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
     assert fc[beyond.RELEASE]["mean_attempts_all"] == pytest.approx(4.75)
     assert fc[beyond.KC1]["mean_attempts_all"] == pytest.approx(2.75)
     assert beyond.front_target(computed.results)[2] is False  # 2 attempts worse, not 0.5 better
+    assert fc[beyond.FRONT_SIDE]["mean_attempts_all"] == pytest.approx(1.75)
+    assert beyond.front_side_target(computed.results)[2] is True   # 1.75 against 2.75: 1 attempt fewer
     a = computed.results["assembly"]
     assert a[f"3 line, {planned}"]["assembled"] == pytest.approx(0.75)       # the 30-pass trial hit the limit
     assert a[f"3 line, {planned}"]["passes_mean"] == pytest.approx(20.0)

@@ -122,6 +122,7 @@ class TaskParams(NamedTuple):
     dirt_passes: float = 0.0
     prior_at_min_gap: float = 0.0
     max_fronts: int = 0
+    front_first: bool = False
 
 
 AROUND_STEP = math.pi / 4
@@ -641,7 +642,8 @@ def side_dirt_frame(b, p, gain, tg, tld, trate, cp, front_p, fgain, rel, fnb, fx
                     sp, lost, outputs):
     """The side push answering dirt, for trial ``b``: the side frame, and on the frame it measures a sphere
     the curve law reads as stuck (mobility at ``min_gap`` under ``[dirt] mobility``, more than ``[dirt] passes``
-    passes to go, fewer than ``[dirt] fronts`` front pushes so far) the hand-over to a fresh front push (eq 10–13,
+    passes to go, fewer than ``[dirt] fronts`` front pushes so far) — or, with ``front_first``, on its first
+    frame — the hand-over to a fresh front push (eq 10–13,
     no learning); while it runs the side stage is frozen (its frame is stepped on a scratch copy: its phase is the
     output on the frame the front push ends), and its end counts as an attempt (eq 12), or ends the task with its
     failure."""
@@ -684,11 +686,14 @@ def side_dirt_frame(b, p, gain, tg, tld, trate, cp, front_p, fgain, rel, fnb, fx
         else:
             t0, t1, spd, phase_out = f[0], f[1], f[2], f[5] + FRONT_PHASE_OFFSET
         g = 0.0
-    elif attempt[b, 0] > side_in[2][b, 0] and status[b, 0] == RUNNING:  # an attempt was just measured
-        d_min = curve_displacement(side[7], b, cp, p.min_gap)
-        stuck = d_min / p.prior_at_min_gap < p.dirt_mobility
-        many = dist > p.dirt_passes * d_min
-        trigger = stuck and many and fronts[b, 0] < p.max_fronts
+    else:
+        if p.front_first and fronts[b, 0] == 0 and attempt[b, 0] == 0 and status[b, 0] == RUNNING:
+            trigger = True   # the coarse move first: a front push before any side pass
+        elif attempt[b, 0] > side_in[2][b, 0] and status[b, 0] == RUNNING:  # an attempt was just measured
+            d_min = curve_displacement(side[7], b, cp, p.min_gap)
+            stuck = d_min / p.prior_at_min_gap < p.dirt_mobility
+            many = dist > p.dirt_passes * d_min
+            trigger = stuck and many and fronts[b, 0] < p.max_fronts
         if trigger:
             restart_side(b, side)
             reset_front(b, front, fx0)

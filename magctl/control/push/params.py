@@ -33,8 +33,11 @@ SIDE_LEARNING = {"eq18": "the paper's eq 18 law correcting the fixed model F (ga
                           "(magctl.control.curve_learning)"}
 """The side push's learning laws by name."""
 DIRT_RESPONSES = {"none": "side passes only, whatever the sphere's mobility",
-                  "front": "one front push for the coarse part when the curve law reads the sphere as stuck"}
-"""The side push's answers to a sphere held by dirt (``learning="curve"`` only for ``"front"``)."""
+                  "front": "one front push for the coarse part when the curve law reads the sphere as stuck",
+                  "front-first": "a front push for the coarse move first (paper §IV-D, §V-C), then side passes "
+                                 "(and front pushes for a stuck sphere as 'front', [dirt] fronts in all)"}
+"""The side push's front pushes: none, for a sphere held by dirt, or first for the coarse move and then for dirt
+(``learning="curve"`` for both)."""
 
 
 def _from(table: str, key: str | None = None, *, check: str = "positive", choices: dict | None = None):

@@ -16,6 +16,8 @@ When ``D_s,des + Δ ≤ 0`` (possible after an over-push with ``K_s`` ≥ 1 or a
 the model) eq 22 gives an infinite gap: the attempt makes no pass, settles and measures
 ``D_s,act = 0`` (the no-push branch of :mod:`magctl.stability.switched`).
 
+With ``dirt_response="front-first"`` the task starts with that front push, for the coarse move (the paper's own
+advice, §IV-D, §V-C: front pushing is the faster coarse move, side pushing the finer), then passes as below.
 With ``dirt_response="front"`` (and the curve law) a sphere the estimate reads as stuck — under
 ``[dirt] mobility`` of the prior's displacement at the contact threshold with more than ``[dirt] passes``
 passes to go — gets one front push to the goal (:class:`~magctl.control.push.front.FrontPushTask`, eq 11's
@@ -137,8 +139,8 @@ class SidePushTask(PushTask, Block):
         if self.dirt_response == "none":
             return None
         if not self.learns_curve:
-            raise MagctlError(f"{what}: dirt_response='front' needs learning='curve' (the curve law "
-                              "is what reads a stuck sphere)")
+            raise MagctlError(f"{what}: dirt_response={self.dirt_response!r} needs learning='curve' (the curve "
+                              "law is what reads a stuck sphere and hands over)")
         self.dirt = DirtParams.resolve(f"{what}: [dirt]")
         shared = {f.name: getattr(self.params, f.name) for f in fields(CommonParams)}
         return FrontPushTask(f"{name}_front", goal=self.goal, kc=0.0, delta0=0.0, max_attempts=1,
@@ -183,7 +185,7 @@ class SidePushTask(PushTask, Block):
             curve = dict(prior_at_min_gap=float(self.law.prior_displacement(self.min_gap)))
             if self.front is not None:
                 curve |= dict(dirt_mobility=self.dirt.mobility, dirt_passes=self.dirt.passes,
-                              max_fronts=self.dirt.fronts)
+                              max_fronts=self.dirt.fronts, front_first=self.dirt_response == "front-first")
         p, gain = self._kernel_params(
             d_max=self.d_max, fixed=self.fixed_gap is not None,
             fixed_gap=0.0 if self.fixed_gap is None else self.fixed_gap, model=kind, m0=m0, m1=m1, r0=radii[0],
