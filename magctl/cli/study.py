@@ -45,6 +45,9 @@ def _common(p) -> None:
     p.add_argument("--no-figures", action="store_true", help="compute and summarise only; draw no figures")
     p.add_argument("--fem", action="store_true",
                    help="also run the finite-element models (fig6-domain's COMSOL box; minutes; needs magctl[fem])")
+    p.add_argument("--conditions", choices=("magctl", "paper"), default="magctl",
+                   help="controllers as magctl runs them (default) or as the paper did: its overshooting servo, "
+                        "printed eq 22/23, 370 µm bound, 650 µm clearance, δ(0) = 127 µm")
 
 
 def _context(args, name: str, cache=None):
@@ -53,7 +56,7 @@ def _context(args, name: str, cache=None):
     return studies.StudyContext(
         out=args.out / name, trials=args.trials, seed=args.seed, scheduler=args.scheduler,
         workers=args.workers, quiet=args.quiet, fem=args.fem,
-        trial_cache=cache if cache is not None else studies.TrialCache(),
+        trial_cache=cache if cache is not None else studies.TrialCache(), conditions=args.conditions,
     )
 
 
@@ -108,7 +111,7 @@ def cmd_reproduce(args) -> int:
     }
     (args.out / "results.json").write_text(json.dumps(to_jsonable(doc), indent=2))
     (args.out / "timings.json").write_text(json.dumps({"wall_time_s": timings}, indent=2))
-    report = write_report(args.out, results, timings)
+    report = write_report(args.out, results, timings, conditions=args.conditions)
     print(f"wrote {report}, {args.out / 'results.json'} and timings.json ({len(results)} studies, "
           f"{sum(timings.values()):.1f} s)")
     return 0

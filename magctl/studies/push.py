@@ -21,7 +21,7 @@ def trials_key(exp: Experiment, n_trials: int, seed: int) -> str:
 
 
 def run_experiments(ctx, exps: dict[str, Experiment], n_trials: int) -> tuple[dict[str, dict], dict[str, str]]:
-    """``n_trials`` trials of every experiment, all on one executor at once.
+    """``n_trials`` trials of every experiment, all on one executor at once, under ``ctx.conditions``.
 
     Each controller runs as few, large lockstep batches as keep the workers busy.
     Trials already in ``ctx.trial_cache`` — stored by this study or by one it names in
@@ -41,8 +41,10 @@ def run_experiments(ctx, exps: dict[str, Experiment], n_trials: int) -> tuple[di
     sources : dict of str to str
         The study whose run produced each label's trials (``ctx.study`` when run here).
     """
+    from magctl.studies.conditions import conditioned
     from magctl.sweep import default_workers, run_sweeps
 
+    exps = {label: conditioned(exp, ctx.conditions) for label, exp in exps.items()}
     allowed = (ctx.study, *ctx.reuses)
     keys = {label: trials_key(exp, n_trials, ctx.seed) for label, exp in exps.items()}
     found = {label: ctx.trial_cache.lookup(key, allowed) for label, key in keys.items()}

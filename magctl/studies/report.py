@@ -1,4 +1,10 @@
-"""The Markdown report written by ``magctl reproduce``."""
+"""The Markdown report written by ``magctl reproduce``, and the claims table the README carries.
+
+``report.md`` opens with the paper's claims, one row each, judged by the rule of
+:mod:`magctl.studies.paper_statistics`; ``claims.md`` is that table alone. The README's claims table is
+generated from a committed copy of it (``docs/claims.md``): ``python -m magctl.studies.report docs/claims.md``
+rewrites the README's block between :data:`BEGIN` and :data:`END`, and a test keeps the two equal.
+"""
 
 from __future__ import annotations
 
@@ -13,24 +19,49 @@ def _probability(p: float | None) -> str:
     return "—" if p is None else "< 0.001" if p < 0.001 else f"{p:.3f}"
 
 
-def write_report(out: Path, results: list[StudyResult], timings: dict[str, float]) -> Path:
-    """Write ``out/report.md``: the paper-vs-magctl table, then one section per study."""
-    lines = ["# magctl reproduce — report", ""]
+BEGIN, END = "<!-- claims:begin -->", "<!-- claims:end -->"
+"""The markers of the README's generated claims table (magctl's conditions); the paper's conditions' table sits
+between the same markers with ``claims-paper`` (:func:`markers`)."""
+
+
+def markers(conditions: str = "magctl") -> tuple[str, str]:
+    """The README markers of the claims table of ``conditions``."""
+    if conditions == "magctl":
+        return BEGIN, END
+    return BEGIN.replace("claims", f"claims-{conditions}"), END.replace("claims", f"claims-{conditions}")
+
+
+def claims_table(results: list[StudyResult], conditions: str = "magctl") -> list[str]:
+    """The paper's claims, one row each (sorted by section), with their counts and the verdict rule."""
     claims = sorted(((r.name, row) for r in results for row in r.paper if row.verdict),
                     key=lambda item: item[1].section)
+    if not claims:
+        return []
+    counts = {v: sum(row.verdict == v for _, row in claims) for v in VERDICTS}
+    lines = [f"Conditions: **{conditions}**. " + ", ".join(f"{n} {v}" for v, n in counts.items())
+             + ". _model_: what produced magctl's number "
+             "(closed loop: the 30 Hz simulation; attempt map: eq 14–18 iterated; analysis: closed form "
+             "or linear analysis; fluid model: the flow alone). _P(paper)_: probability of the paper's "
+             f"observation at its {PAPER_TRIALS} trials under magctl's model.", "", RULE, "",
+             "| § | claim | paper | magctl | model | P(paper) | verdict | cause | study |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {row.section} | {row.quantity} | {row.paper} | {row.magctl} | {row.model} | "
+              f"{_probability(row.p_paper)} | **{row.verdict}** | {row.cause} | {name} |" for name, row in claims]
+    return lines
+
+
+def write_report(out: Path, results: list[StudyResult], timings: dict[str, float],
+                 conditions: str = "magctl") -> Path:
+    """Write ``out/report.md`` (the claims table, the paper-vs-magctl quantities, then one section per study)
+    and ``out/claims.md`` (the claims table alone), under ``conditions`` (:mod:`magctl.studies.conditions`)."""
+    from magctl.studies.conditions import CONDITIONS
+
+    lines = ["# magctl reproduce — report", "", f"Conditions: **{conditions}** — {CONDITIONS[conditions]}.", ""]
+    table = claims_table(results, conditions)
     rows = [(r.name, row) for r in results for row in r.paper if not row.verdict]
-    if claims:
-        counts = {v: sum(row.verdict == v for _, row in claims) for v in VERDICTS}
-        lines += ["## The paper's claims, one row each", "",
-                  ", ".join(f"{n} {v}" for v, n in counts.items()) + ". _model_: what produced magctl's number "
-                  "(closed loop: the 30 Hz simulation; attempt map: eq 14–18 iterated; analysis: closed form "
-                  "or linear analysis; fluid model: the flow alone). _P(paper)_: probability of the paper's "
-                  f"observation at its {PAPER_TRIALS} trials under magctl's model.", "", RULE, "",
-                  "| § | claim | paper | magctl | model | P(paper) | verdict | cause | study |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        lines += [f"| {row.section} | {row.quantity} | {row.paper} | {row.magctl} | {row.model} | "
-                  f"{_probability(row.p_paper)} | **{row.verdict}** | {row.cause} | {name} |" for name, row in claims]
-        lines.append("")
+    if table:
+        lines += ["## The paper's claims, one row each", "", *table, ""]
+        (out / "claims.md").write_text("\n".join(table) + "\n")
     if rows:
         lines += ["## Paper vs magctl: quantities", "", "| study | quantity | paper | magctl | model | note |",
                   "|---|---|---|---|---|---|"]
@@ -47,3 +78,31 @@ def write_report(out: Path, results: list[StudyResult], timings: dict[str, float
     path = out / "report.md"
     path.write_text("\n".join(lines))
     return path
+
+
+def readme_block(claims_md: str, conditions: str = "magctl") -> str:
+    """The README's generated block for the text of a ``claims.md`` written under ``conditions``."""
+    begin, end = markers(conditions)
+    return f"{begin}\n{claims_md.rstrip()}\n{end}"
+
+
+def update_readme(claims_path: Path, readme: Path, conditions: str = "magctl") -> None:
+    """Rewrite ``readme``'s claims block of ``conditions`` from ``claims_path``."""
+    begin, end = markers(conditions)
+    text = readme.read_text()
+    if begin not in text or end not in text:
+        raise SystemExit(f"{readme}: no {begin} … {end} block to rewrite")
+    head, rest = text.split(begin, 1)
+    tail = rest.split(end, 1)[1]
+    readme.write_text(head + readme_block(Path(claims_path).read_text(), conditions) + tail)
+
+
+if __name__ == "__main__":
+    import sys
+
+    if len(sys.argv) not in (2, 3):
+        raise SystemExit("usage: python -m magctl.studies.report CLAIMS.md [PAPER-CLAIMS.md]  (rewrites README.md's "
+                         "claims tables: magctl's conditions, then the paper's)")
+    readme_path = Path(__file__).resolve().parents[2] / "README.md"
+    for path, cond in zip(sys.argv[1:], ("magctl", "paper"), strict=False):
+        update_readme(Path(path), readme_path, cond)

@@ -221,6 +221,9 @@ class StudyContext:
         The study running in this context (set by :func:`run_study`).
     reuses : tuple of str
         Studies whose cached trials this one may use (its ``REUSES``, set by :func:`run_study`).
+    conditions : str
+        ``"magctl"`` or ``"paper"``: the conditions its closed-loop controllers run under
+        (:mod:`magctl.studies.conditions`).
     """
 
     out: Path
@@ -233,6 +236,7 @@ class StudyContext:
     trial_cache: TrialCache = field(default_factory=TrialCache)
     study: str = ""
     reuses: tuple[str, ...] = ()
+    conditions: str = "magctl"
 
     def n_trials(self, default: int) -> int:
         """Trials to run: ``--trials`` if given, else the study's ``default``."""

@@ -1,0 +1,50 @@
+"""The conditions a reproduction runs under: magctl's own (the default) or the paper's (§VI).
+
+``magctl reproduce --conditions paper`` runs every closed-loop controller of the studies as the paper ran its
+own, where the route allows: the paper-like PI servo with its ≈ 100 µm overshoot (``servo = "paper"``,
+``models/servo.toml``, §VI-A), the side-push models as printed (eq 22 for ``exp-fit``, eq 23 for ``lin-fit``),
+the paper's contact bound (370 µm, §IV-D) and clearance (650 µm, §VI), and the paper's simulated release as
+the model δ(0) (127 µm, §IV-D). The plant stays magctl's: the paper's rig is not available, only its
+controllers. The default, ``magctl``, runs magctl's controllers with the bounds taken from magctl's plant.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from magctl.core.errors import MagctlError
+from magctl.plant.fluid.calibration import PAPER_RELEASE_SIMULATION
+
+CONDITIONS = {"magctl": "magctl's controllers, bounds from magctl's plant (the default)",
+              "paper": "the paper's servo, printed eq 22/23, 370 µm bound, 650 µm clearance, δ(0) = 127 µm"}
+PAPER_OPTIONS = {"min_gap": 370e-6, "clearance": 650e-6}
+"""Task options the paper's conditions set wherever the task has them (§IV-D bound, §VI clearance)."""
+PAPER_SERVO = "paper"
+"""The servo setting of every controller (``models/servo.toml [paper]``: §VI-A's overshooting PI)."""
+PAPER_MODELS = {"lin-fit": "lin", "exp-fit": "exp"}
+"""magctl's refitted side-push models replaced by the paper's printed eq 23 and eq 22."""
+
+
+def task_fields(kind: str) -> set[str]:
+    """The options the task of an experiment ``kind`` takes (its parameter record's fields)."""
+    from magctl.loops import EXPERIMENT_TASKS, PUSH_TASKS
+
+    return {f.name for f in dataclasses.fields(PUSH_TASKS[EXPERIMENT_TASKS[kind]].PARAMS)}
+
+
+def conditioned(exp, conditions: str):
+    """``exp`` (an :class:`~magctl.loops.Experiment`) under ``conditions`` (:data:`CONDITIONS`)."""
+    if conditions not in CONDITIONS:
+        raise MagctlError(f"conditions {conditions!r} is not one of {', '.join(CONDITIONS)}")
+    if conditions == "magctl":
+        return exp
+    names = task_fields(exp.kind)
+    task = dict(exp.task)
+    task.update({k: v for k, v in PAPER_OPTIONS.items() if k in names})
+    task["servo"] = PAPER_SERVO
+    if isinstance(task.get("model"), str):      # the default model is already the printed eq 23
+        task["model"] = PAPER_MODELS.get(task["model"], task["model"])
+    if task.get("delta0", 0.0) > 0:
+        task["delta0"] = PAPER_RELEASE_SIMULATION
+    return dataclasses.replace(exp, task=task)
+
