@@ -27,9 +27,12 @@ PAPER_MODELS = {"lin-fit": "lin", "exp-fit": "exp"}
 
 def task_fields(kind: str) -> set[str]:
     """The options the task of an experiment ``kind`` takes (its parameter record's fields)."""
+    from magctl.control.push.params import AssemblyParams
     from magctl.loops import EXPERIMENT_TASKS, PUSH_TASKS
 
-    return {f.name for f in dataclasses.fields(PUSH_TASKS[EXPERIMENT_TASKS[kind]].PARAMS)}
+    # Fig 15's protocol has no record of its own: its options go to its side-push assembly
+    record = getattr(PUSH_TASKS[EXPERIMENT_TASKS[kind]], "PARAMS", AssemblyParams)
+    return {f.name for f in dataclasses.fields(record)}
 
 
 def conditioned(exp, conditions: str):

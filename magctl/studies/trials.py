@@ -22,7 +22,7 @@ from magctl.plant.fluid.params import sphere_params
 def task_error(kind: str, spheres: np.ndarray, goal: np.ndarray, radius: float) -> np.ndarray:
     """Positioning error of the true sphere positions ``(…, N, 2)``: distance to the goal
     (push tasks) or the surface gap between the two spheres (assembly, eq 21)."""
-    if kind in ("front", "side"):
+    if kind in ("front", "side", "front-side"):
         return np.linalg.norm(spheres[..., 0, :] - goal, axis=-1)
     return np.linalg.norm(spheres[..., 1, :] - spheres[..., 0, :], axis=-1) - 2 * radius
 

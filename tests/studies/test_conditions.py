@@ -19,6 +19,8 @@ def test_paper_conditions_set_the_papers_servo_models_bounds_and_release():
     assert conditioned(Experiment("side", task={"model": "exp-fit"}), "paper").task["model"] == "exp"
     fixed = conditioned(Experiment("side", task={"fixed_gap": 500 * UM}), "paper")
     assert fixed.task["fixed_gap"] == pytest.approx(500 * UM) and "model" not in fixed.task
+    fig15 = conditioned(Experiment("front-side-assembly", task={}), "paper")   # options go to its side stage
+    assert fig15.task["min_gap"] == pytest.approx(370 * UM) and fig15.task["servo"] == "paper"
     mine = Experiment("side", task={"model": "lin-fit"})
     assert conditioned(mine, "magctl") is mine
     with pytest.raises(MagctlError, match="conditions 'lab' is not one of magctl, paper"):
