@@ -261,19 +261,7 @@ def _push_out_point(px, py, x0, y0, dx, dy, ab2, y1, radius, iterations):
     nearest-edge projection, as ``magctl.plant.sphere._push_out``. Returns ``x, y, touched``."""
     touched = False
     for _ in range(iterations):
-        best, bx, by = np.inf, 0.0, 0.0
-        crossings = 0
-        for e in range(x0.shape[0]):
-            t = min(max(((px - x0[e]) * dx[e] + (py - y0[e]) * dy[e]) / ab2[e], 0.0), 1.0)
-            qx, qy = x0[e] + t * dx[e], y0[e] + t * dy[e]
-            ex, ey = px - qx, py - qy
-            d2 = ex * ex + ey * ey
-            if d2 < best:
-                best, bx, by = d2, qx, qy
-            if (y0[e] > py) != (y1[e] > py) and px < x0[e] + (py - y0[e]) * dx[e] / dy[e]:
-                crossings += 1
-        dist = np.sqrt(best)
-        inside = crossings % 2 == 1
+        dist, bx, by, _, inside = _nearest_edge(px, py, x0, y0, dx, dy, ab2, y1)
         if not (inside or dist < radius * _TOUCH):
             break
         touched = True
