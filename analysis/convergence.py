@@ -31,7 +31,7 @@ def compute(ctx: StudyContext) -> Computed:
     """Errors after every attempt of the best front (K_c=1, model δ(0)) and side (lin, K_s=0.9) controllers."""
     n = ctx.n_trials(DEFAULT_TRIALS)
     front, side = studies.get("front-push"), studies.get("side-push")
-    f_exp = front.controllers(front.model_delta0())
+    f_exp = front.controllers(front.model_delta0(ctx.conditions))
     f_label = next(k for k in f_exp if k.startswith("K_c=1,") and "δ(0)=0" not in k)
     s_label = side.BEST
     runs, sources = run_experiments(ctx, {f_label: f_exp[f_label], s_label: side.experiments()[s_label]}, n)
