@@ -176,7 +176,8 @@ def test_naive_fixed_gaps_behave_as_reported():
 
 
 def test_nonlinear_gain_range_contains_paper_gains():
-    out = S.side_nonlinear_gain_range("lin", gains=np.arange(0, 6.01, 0.1))
+    # at the paper's 370 µm bound (the paper's gains are stated for its plant)
+    out = S.side_nonlinear_gain_range("lin", gains=np.arange(0, 6.01, 0.1), min_gap=370e-6)
     lo, hi = out["range"]
     assert lo == 0.0 and 0.9 < hi < 6.0
 
@@ -198,7 +199,7 @@ def test_cli_front_verdicts(capsys):
 
 
 def test_cli_side(capsys):
-    d = _run(["side", "--ks", "0.9", "--model", "lin", "--json"], capsys)
+    d = _run(["side", "--ks", "0.9", "--model", "lin", "--min-gap-um", "370", "--json"], capsys)
     assert d["nonlinear_map"]["converged"] and d["paper_analysis"]["verdict"] == "stable"
     assert d["operating_range"]["local_ratio_max"] == pytest.approx(5.29 * 0.009042 * 1755 * math.exp(-0.009042 * 370),
                                                                      rel=1e-6)

@@ -84,8 +84,10 @@ def test_regenerating_the_map_gives_the_stored_numbers(tmp_path):
 def test_identified_model_predicts_the_closed_loop_at_reduced_trials():
     # 48 closed-loop trials per controller (seed 0; the stored map came from seed 1). The loop's
     # converged-by-attempt fraction is binomial: SE = sqrt(p(1-p)/48) <= 7.2 points; the model's
-    # 40000 draws add nothing noticeable. Every bin must lie within 3 SE (p from the model, floored
-    # at 2/48 so a bin the model puts at 0 or 1 still allows one or two trials), and the mean
+    # 40000 draws add nothing noticeable. Every bin must lie within z SE (p from the model, floored
+    # at 2/48 so a bin the model puts at 0 or 1 still allows one or two trials), z = 3.4 the
+    # Bonferroni bound of a 5 % family-wise error over the 60 bins (6 controllers x 10 attempts; 3 SE
+    # alone would fail one bin of a correct model in ~15 % of seeds), and the mean
     # attempts within 3 sd/sqrt(48). This is the statistical check at this trial count; the
     # 200-trial targets (0.3 attempts, 5 points) are benchmarks/bench_front_model.py's.
     n = 48
@@ -94,7 +96,7 @@ def test_identified_model_predicts_the_closed_loop_at_reduced_trials():
         model = np.asarray(r["model"]["converged_by_attempt"])
         loop = np.asarray(r["loop"]["converged_by_attempt"])
         p = np.clip(model, 2 / n, 1 - 2 / n)
-        tol = 3 * np.sqrt(p * (1 - p) / n)
+        tol = 3.4 * np.sqrt(p * (1 - p) / n)
         assert np.all(np.abs(model - loop) <= tol), (label, np.round(model - loop, 3), np.round(tol, 3))
         assert abs(r["mean_diff"]) <= 3 * r["mean_se"], (label, r["mean_diff"], r["mean_se"])
     # the paper's 0th-order plant misses where the identified map does not: the naive controllers

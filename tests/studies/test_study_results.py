@@ -61,10 +61,12 @@ def test_front_monte_carlo_agrees_with_the_markov_chain(computed):
 
 def test_side_local_ratio_from_the_papers_fits(computed):
     """ρ = F_lin′ / F_act′ at D_s: eq 23's slope 5.29 against eq 22's 1/(b D_s), b = 0.009042/µm, over
-    D_s from ε_p = 7.5 µm to eq 22 at the contact threshold 370 µm."""
+    D_s from ε_p = 7.5 µm to eq 22 at the side push's minimum gap (models/push.toml: the plant's bound)."""
+    from magctl.config import load_model
+
     r = computed["stability"].results
     b = 0.009042
-    d_max = 1755.0 * math.exp(-b * 370.0)
+    d_max = 1755.0 * math.exp(-b * load_model("push").side.min_gap * 1e6)
     lo, hi = r["side_local_ratio_range"]
     assert lo == pytest.approx(5.29 * b * 7.5, rel=1e-3)
     assert hi == pytest.approx(5.29 * b * d_max, rel=1e-3)
