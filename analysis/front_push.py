@@ -19,7 +19,6 @@ from magctl.config import load_model
 from magctl.control.push.common import task_defaults
 from magctl.control.status import Status
 from magctl.loops import Experiment, Variability, geometry
-from magctl.plant.fluid.calibration import PAPER_RELEASE_SIMULATION
 from magctl.plant.fluid.scenarios import release_displacement
 from magctl.studies.paper_statistics import p_none, p_order
 from magctl.studies.push import controller_summary, controller_table, run_experiments, trial_path
@@ -37,9 +36,9 @@ PLANT = Variability(release_scatter=0.1)
 
 def model_delta0(conditions: str = "magctl") -> float:
     """The feed-forward δ(0) [m]: the fluid model's release displacement in the paper's set-up, as the paper
-    used its simulated one; under the paper's conditions its printed 127 µm."""
+    used its simulated one; under the paper's conditions its printed 127 µm (``models/push.toml [release]``)."""
     if conditions == "paper":
-        return PAPER_RELEASE_SIMULATION
+        return float(load_model("push").release.model)
     return float(np.ravel(release_displacement())[0])
 
 

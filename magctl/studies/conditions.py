@@ -6,21 +6,18 @@ own, where the route allows: the paper-like PI servo with its ≈ 100 µm oversh
 the paper's contact bound (370 µm, §IV-D) and clearance (650 µm, §VI), and the paper's simulated release as
 the model δ(0) (127 µm, §IV-D). The plant stays magctl's: the paper's rig is not available, only its
 controllers. The default, ``magctl``, runs magctl's controllers with the bounds taken from magctl's plant.
+The paper's values are ``models/push.toml [paper_conditions]`` and ``[release] model_um``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 
+from magctl.config import load_model
 from magctl.core.errors import MagctlError
-from magctl.plant.fluid.calibration import PAPER_RELEASE_SIMULATION
 
 CONDITIONS = {"magctl": "magctl's controllers, bounds from magctl's plant (the default)",
               "paper": "the paper's servo, printed eq 22/23, 370 µm bound, 650 µm clearance, δ(0) = 127 µm"}
-PAPER_OPTIONS = {"min_gap": 370e-6, "clearance": 650e-6}
-"""Task options the paper's conditions set wherever the task has them (§IV-D bound, §VI clearance)."""
-PAPER_SERVO = "paper"
-"""The servo setting of every controller (``models/servo.toml [paper]``: §VI-A's overshooting PI)."""
 PAPER_MODELS = {"lin-fit": "lin", "exp-fit": "exp"}
 """magctl's refitted side-push models replaced by the paper's printed eq 23 and eq 22."""
 
@@ -41,13 +38,15 @@ def conditioned(exp, conditions: str):
         raise MagctlError(f"conditions {conditions!r} is not one of {', '.join(CONDITIONS)}")
     if conditions == "magctl":
         return exp
+    push = load_model("push")
+    paper = push.paper_conditions      # models/push.toml [paper_conditions]: §IV-D bound, §VI clearance, servo
     names = task_fields(exp.kind)
     task = dict(exp.task)
-    task.update({k: v for k, v in PAPER_OPTIONS.items() if k in names})
-    task["servo"] = PAPER_SERVO
+    task.update({k: float(getattr(paper, k)) for k in ("min_gap", "clearance") if k in names})
+    task["servo"] = str(paper.servo)
     if isinstance(task.get("model"), str):      # the default model is already the printed eq 23
         task["model"] = PAPER_MODELS.get(task["model"], task["model"])
     if task.get("delta0", 0.0) > 0:
-        task["delta0"] = PAPER_RELEASE_SIMULATION
+        task["delta0"] = float(push.release.model)         # the paper's simulated D_p,r, 127 µm
     return dataclasses.replace(exp, task=task)
 
