@@ -18,7 +18,7 @@ from reference import reference_of
 from test_push import EXACT, UM, ideal_loop, rig_loop
 
 from magctl.control.learning import front_push_law
-from magctl.control.phases import FINISHED, FRONT_PHASE_OFFSET
+from magctl.control.phases import FINISHED, FRONT_PHASE_OFFSET, SidePhase
 from magctl.control.push.assembly import AssemblyTask, FrontAssemblyTask, FrontThenSideAssemblyTask
 from magctl.control.push.common import TabulatedSideModel, side_model
 from magctl.control.push.front import FrontPushTask
@@ -105,7 +105,7 @@ def _assert_paths_taken(case, task, phase, final):
     if "front push first" in case:   # every trial starts with the coarse front push, then passes
         fronting = (phase > FRONT_PHASE_OFFSET) & (phase < FINISHED)
         assert fronting[:, :5].any(axis=1).all() and (final["fronts"] >= 1).all()
-        passing = phase == 2                                  # side passes (SidePhase.PASS) follow the front push
+        passing = phase == int(SidePhase.PASS)                # side passes follow the front push
         assert passing.any(axis=1).all() and (fronting.argmax(axis=1) < passing.argmax(axis=1)).all()
 
 
