@@ -10,7 +10,7 @@ import numpy as np
 from magctl.control.push.common import ExpSideModel, LinSideModel
 from magctl.stability import iteration as S
 from magctl.stability import switched as W
-from magctl.studies.runner import Computed, PaperRow, StudyContext, claim
+from magctl.studies.runner import Cause, Computed, PaperRow, StudyContext, claim
 
 NAME = "stability"
 TITLE = "Iteration-domain stability of front and side pushing (eq 13-23)"
@@ -341,7 +341,8 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
         claim("§VI-B", "with an exact model (F_lin·F_act⁻¹ = 1) K_s = 1 is critically damped",
               "K_s = 1.0", f"poles {critical['poles']} at K_s = 1, ρ = 1 (attempt loop with feed-forward, eq 16–19)",
               "analysis", holds=critical["deadbeat"],
-              cause="with the feed-forward of eq 16–17 the loop has a second pole, so K_s = 1 is not dead-beat."),
+              cause=Cause(f"with the feed-forward of eq 16–17 the attempt loop's poles at K_s = 1 are "
+                          f"{critical['poles']}, so K_s = 1 is not dead-beat.", not critical["deadbeat"])),
     ]
     summary = [
         "Front push (eq 15): pole 1 - K_c; K_c = 1 is dead-beat (the paper's 'critically damped').",

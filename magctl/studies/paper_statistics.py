@@ -22,6 +22,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import binom
 
+from magctl.studies.runner import Cause
+
 PAPER_TRIALS = 10
 """Trials per controller in the paper's §VI experiments."""
 ALPHA = 0.05
@@ -30,7 +32,9 @@ RULE = (f"Verdicts: reproduced — magctl's large sample says what the paper say
         f"{PAPER_TRIALS} — it does not, but the paper's observation (a share seen in all or none of its "
         f"{PAPER_TRIALS} trials) has probability ≥ {ALPHA:.0%} under magctl's model (binomial); not resolvable — "
         f"an ordering of two controllers that {PAPER_TRIALS}-trial samples of magctl's plant give in the paper's "
-        f"direction with probability ≥ {ALPHA:.0%} (bootstrap); not reproduced / opposite — otherwise.")
+        f"direction with probability ≥ {ALPHA:.0%} (bootstrap); not reproduced / opposite — otherwise. "
+        "Causes: each is built from the numbers it cites and printed only where its own check of those numbers "
+        "holds in this run; otherwise the row says \"unexplained\" and shows what was checked.")
 
 
 def _share(q: float) -> float:
@@ -75,3 +79,21 @@ def verdict(holds: bool, p_paper: float | None, *, ordering: bool = False, oppos
     if p_paper is not None and p_paper >= ALPHA:
         return "not resolvable" if ordering else f"consistent at n = {PAPER_TRIALS}"
     return "opposite" if opposite else "not reproduced"
+
+
+def mean_difference(a, b) -> tuple[float, float]:
+    """Difference of the mean attempts of two controllers' trials and its standard error."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(a.mean() - b.mean()), float(np.sqrt(a.var(ddof=1) / a.size + b.var(ddof=1) / b.size))
+
+
+def ordering_cause(faster: str, slower: str, trials: dict) -> Cause:
+    """Why the paper's ``faster`` controller does not beat ``slower`` here: the two are indistinguishable
+    (mean difference within twice its standard error), or the order is reversed beyond it."""
+    d, se = mean_difference(trials[faster], trials[slower])
+    n = len(trials[faster])
+    if abs(d) <= 2 * se:
+        return Cause(f"{faster} and {slower} differ by {d:+.1f} mean attempts over {n} trials, within twice its "
+                     f"standard error ({2 * se:.1f}).", True)
+    return Cause(f"over {n} trials {slower} is faster than {faster} by {d:.1f} ± {se:.1f} mean attempts (± standard "
+                 "error): on magctl's plant the order is the reverse of the paper's.", d > 0)
