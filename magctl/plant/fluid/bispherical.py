@@ -298,3 +298,31 @@ def resistance(gap_ratio, rtol: float = 1e-10):
     f_r, t_r = parallel_rotation(gap_ratio, rtol)
     f_s, t_s = shear_flow(gap_ratio, rtol)
     return f_t, f_r, t_t, t_r, f_s, t_s, normal_translation(gap_ratio, rtol)
+
+
+def _pair_series(gap_ratio: float, kind: str) -> float:
+    """Drag factor of one of two equal spheres moving along their line of centres (``kind`` "together":
+    the same velocity; "approach": equal and opposite), surface gap ``gap_ratio`` in radii."""
+    alpha = float(np.arccosh(1.0 + 0.5 * gap_ratio))
+    n = np.arange(1.0, min(MAX_TERMS, np.ceil(340.0 / alpha)))       # e^{-(2n+1)α} is below 1e-290 beyond
+    weight = n * (n + 1) / ((2 * n - 1) * (2 * n + 3))
+    s1, s2, sa = np.sinh((2 * n + 1) * alpha), np.sinh(2 * alpha), np.sinh(alpha)
+    if kind == "together":
+        term = 1.0 - (4 * np.sinh((n + 0.5) * alpha) ** 2 - (2 * n + 1) ** 2 * sa**2) / (2 * s1 + (2 * n + 1) * s2)
+    else:
+        term = (4 * np.cosh((n + 0.5) * alpha) ** 2 + (2 * n + 1) ** 2 * sa**2) / (2 * s1 - (2 * n + 1) * s2) - 1.0
+    return float(4.0 / 3.0 * np.sinh(alpha) * np.sum(weight * term))
+
+
+def two_spheres_together(gap_ratio):
+    """λ of two equal spheres translating with the same velocity along their line of centres (each feels
+    ``6πμaUλ``), surface gap ``gap_ratio`` = δ/a: Stimson & Jeffery (1926, *Proc. R. Soc. A* 111, 110), the
+    exact series in bispherical coordinates with ``cosh α = 1 + δ/2a``. λ → 0.6451 at contact."""
+    return np.vectorize(lambda g: _pair_series(g, "together"), otypes=[float])(gap_ratio)
+
+
+def two_spheres_approach(gap_ratio):
+    """λ of two equal spheres approaching each other with equal and opposite velocities ``U`` (each feels
+    ``6πμaUλ``): Maude (1961, *Br. J. Appl. Phys.* 12, 293) and Brenner (1961), the exact series; at small gaps
+    ``λ = X¹¹_A − X¹²_A → a/(2δ) + (9/20) ln(a/δ) + O(1)`` (Jeffrey & Onishi 1984)."""
+    return np.vectorize(lambda g: _pair_series(g, "approach"), otypes=[float])(gap_ratio)
