@@ -63,10 +63,9 @@ def refine(tris: np.ndarray, size, split=_split_flat) -> np.ndarray:
     raise ValueError(f"surface refinement did not finish in {MAX_SPLITS} rounds (a size field of zero?)")
 
 
-def sphere_half(centre, radius: float, size) -> np.ndarray:
-    """The ``y ≥ 0`` half of a sphere (outward normals) refined by ``size`` from an octahedron, its new
-    vertices projected onto the sphere; ``centre`` must lie on ``y = 0``."""
-    centre = np.asarray(centre, float)
+def octahedron_half() -> np.ndarray:
+    """The four faces ``(4, 3, 3)`` of the unit octahedron on the ``y ≥ 0`` side, outward normals (the seed of
+    a sphere mesh: no face crosses ``y = 0``, so the mirror ``y → −y`` completes it)."""
     e = np.eye(3)
     faces = []
     for sx in (1, -1):
@@ -75,7 +74,14 @@ def sphere_half(centre, radius: float, size) -> np.ndarray:
             if np.dot(np.cross(tri[1] - tri[0], tri[2] - tri[0]), tri.sum(0)) < 0:
                 tri = tri[[0, 2, 1]]
             faces.append(tri)
-    unit = np.array(faces)
+    return np.array(faces)
+
+
+def sphere_half(centre, radius: float, size) -> np.ndarray:
+    """The ``y ≥ 0`` half of a sphere (outward normals) refined by ``size`` from an octahedron, its new
+    vertices projected onto the sphere; ``centre`` must lie on ``y = 0``."""
+    centre = np.asarray(centre, float)
+    unit = octahedron_half()
 
     def split(t):
         s = _split_flat(t)

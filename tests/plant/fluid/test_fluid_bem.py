@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from magctl.plant.fluid import bem
+from magctl.plant.fluid.three_body import octahedron_half
 
 
 def _split(t, radius=1.0):
@@ -25,15 +26,7 @@ def _split(t, radius=1.0):
 
 def sphere_half(centre_height, h_max, beta, h_min, radius=1.0):
     """y > 0 half of a sphere of ``radius`` centred at ``(0, 0, centre_height)``, graded to the glass."""
-    e = np.eye(3)
-    t = []
-    for sx in (1, -1):
-        for sz in (1, -1):
-            tri = np.array([e[0] * sx, e[1], e[2] * sz])
-            if np.dot(np.cross(tri[1] - tri[0], tri[2] - tri[0]), tri.sum(0)) < 0:
-                tri = tri[[0, 2, 1]]
-            t.append(tri)
-    t = np.array(t) * radius
+    t = octahedron_half() * radius
     for _ in range(12):
         edge = np.linalg.norm(t[:, 1] - t[:, 0], axis=1)
         height = t[..., 2].min(axis=1) + centre_height
