@@ -28,12 +28,13 @@ from magctl.plant.fluid.three_body import (
     Mesh,
     at_wall_gap,
     effective_film,
+    glide_resistance,
     notch_front,
     predict,
     robot_only_flow,
     solve_response,
 )
-from magctl.plant.fluid.wall_drag import accurate_coefficients, accurate_mobility
+from magctl.plant.fluid.wall_drag import accurate_mobility
 from magctl.studies.runner import Computed, PaperRow, StudyContext
 
 NAME = "three-body"
@@ -56,11 +57,6 @@ def _case(geometry, radius, viscosity, gap, wall_gap, scale=1.0):
     return solve_response(geometry, centre, radius, viscosity, Mesh().scaled(scale))
 
 
-def _zeta(radius: float, gap: float) -> float:
-    f_t, f_r, t_t, t_r, _, _ = accurate_coefficients(gap / radius)
-    return float(abs((f_t * t_r - f_r * t_t) / t_r))
-
-
 def compute(ctx: StudyContext) -> Computed:
     geometry = RobotGeometry.from_params()
     sphere = load_model("sphere")
@@ -76,7 +72,7 @@ def compute(ctx: StudyContext) -> Computed:
         lowered[2] = radius + eps
         u_eps = float(robot_only_flow(geometry, viscosity, lowered[None])[0, 0])
         model = predict(geometry, lowered, radius, u_eps, cutoff / radius)
-        c_log, a_face = effective_film(float(at_eps[0]), model.one_way, _zeta(radius, eps),
+        c_log, a_face = effective_film(float(at_eps[0]), model.one_way, glide_resistance(eps / radius),
                                        model.gap_footprint / radius, cutoff / radius)
         rows.append({"gap_a": gap, "gap_footprint_um": model.gap_footprint / UM, "gap_3d_um": resp.gap_robot / UM,
                      "panels": resp.panels,

@@ -270,6 +270,13 @@ def notch_front(geometry: RobotGeometry) -> float:
     return float(x.max())
 
 
+def glide_resistance(gap_ratio: float) -> float:
+    """``ζ/(6πμa)`` of a torque-free sphere translating along the glass at gap δ/a: ``|f_t − f_r t_t/t_r|``
+    (Goldman, Cox & Brenner 1967a; the compiled form is :func:`magctl.plant.sphere_kernel.translation_resistance`)."""
+    f_t, f_r, t_t, t_r, _, _ = accurate_coefficients(gap_ratio)
+    return float(abs((f_t * t_r - f_r * t_t) / t_r))
+
+
 def predict(geometry: RobotGeometry, centre, radius: float, flow_x: float, film_cutoff: float) -> Prediction:
     """The sphere block's ``V_x`` for a sphere on the robot's axis at ``centre`` in the robot-only flow
     ``flow_x`` (its wall gap ``z − a``): one-way (eq 4) and with the film (steady rate of
@@ -282,8 +289,7 @@ def predict(geometry: RobotGeometry, centre, radius: float, flow_x: float, film_
     dist, edge = nearest_edge(centre[:2], footprint)
     h = dist - radius
     area = film_area(radius, edge_curvatures(footprint))[edge]
-    f_t, f_r, t_t, t_r, _, _ = accurate_coefficients(gap / radius)
-    zeta = abs((f_t * t_r - f_r * t_t) / t_r)                         # ζ/(6πμa), torque-free
+    zeta = glide_resistance(gap / radius)
     cutoff = film_cutoff * radius
     if h >= cutoff:
         return Prediction(one_way, one_way, h)
