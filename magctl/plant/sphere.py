@@ -12,8 +12,9 @@ split into sub-steps. Each sub-step
 2. moves each sphere with the inertia-free near-wall balance F_G = 0 of eq 4
    (``V_p = k(δ) U``, :mod:`magctl.plant.fluid.wall_drag`), and its gap δ with the
    vertical balance of eq 8-9 (buoyant weight, drag, adhesion P within ε);
-3. within a radius of the robot's face, replaces the sphere's velocity along the face normal by the
-   squeeze film's (:mod:`magctl.plant.fluid.lubrication`; the two-way robot–sphere coupling the
+3. within a radius of the robot, replaces the sphere's velocity along the outline's normal by the one the
+   lubrication between them gives (:mod:`magctl.plant.fluid.lubrication`: a face film where the sphere meets
+   a face, the edge law fitted to the three-body solution where it meets an edge; the two-way coupling the
    robot-only flow map misses, ``accurate`` mode), closing to rough contact at ``contact_gap``;
 4. enforces non-penetration against the robot's footprint (including the concave
    front face) and between spheres.
@@ -44,7 +45,7 @@ from magctl.plant.fluid import params as fluid_params
 from magctl.plant.fluid.domain import Domain
 from magctl.plant.fluid.flow import RobotFlow, robot_flow
 from magctl.plant.fluid.geometry import Polygon, RobotGeometry
-from magctl.plant.fluid.lubrication import edge_curvatures, film_area
+from magctl.plant.fluid.lubrication import edge_curvatures, film_area, film_laws
 from magctl.plant.fluid.params import GRAVITY, SphereParams, fluid_viscosity, sphere_params
 from magctl.plant.fluid.surface import pull_off_range
 from magctl.plant.fluid.wall_drag import mobility, normal_factors, wall_table
@@ -114,9 +115,13 @@ class Spheres(Block):
         Overrides ``params.drag_mode``.
     roughness : float, optional
         Overrides the sphere–glass ε (``models/sphere.toml``, the measured 25 nm).
+    lubrication : {"edges", "face", "none"}
+        The robot–sphere lubrication in the accurate mode: ``edges`` (default) gives each footprint edge the
+        law of where a resting sphere meets it (:func:`~magctl.plant.fluid.lubrication.film_laws`), ``face``
+        the face film on every edge (the vertical-face model, a sensitivity case), ``none`` none (one-way flow).
     contact_gap : float, optional
-        Overrides ``h_min``, the face–sphere gap at rough contact where the squeeze film ends
-        (``models/sphere.toml [contact]``; docs/fluid.md §7).
+        Overrides ``h_min``, the robot–sphere gap at rough contact where the lubrication ends
+        (``models/sphere.toml [contact]``; docs/fluid.md §5).
     dt : float
         Frame period [s].
     flow : RobotFlow, optional
@@ -130,7 +135,7 @@ class Spheres(Block):
                  domain: Domain | None = None,
                  viscosity: float | None = None, fluid_density: float | None = None,
                  drag_mode: str | None = None, roughness: float | None = None, contact_gap: float | None = None,
-                 dt: float = FRAME_PERIOD_S, flow: RobotFlow | None = None):
+                 lubrication: str = "edges", dt: float = FRAME_PERIOD_S, flow: RobotFlow | None = None):
         self.params = params if params is not None else sphere_params()
         self.init = initial_positions
         n = self._count(initial_positions)
@@ -173,12 +178,19 @@ class Spheres(Block):
         self._wall = tuple(wall_table()) if self.mode == "accurate" else _no_wall_table()
         poly = self._footprint
         self._edges = tuple(np.ascontiguousarray(a) for a in (poly.x0, poly.y0, poly.dx, poly.dy, poly.ab2, poly.y1))
-        # the face–sphere squeeze film (accurate mode only: the paper's simulation had none)
-        self.film_area = film_area(r, edge_curvatures(self.footprint))
+        # robot–sphere lubrication per edge (accurate mode only: the paper's simulation had none)
+        if lubrication not in ("edges", "face", "none"):
+            raise ParameterError(f"lubrication must be 'edges', 'face' or 'none', got {lubrication!r}")
+        self.lubrication = lubrication if self.mode == "accurate" else "none"
+        self.film_area, self.edge_law = film_laws(self.geometry, r, self.params.edge_coefficient)
+        if self.lubrication == "face":
+            self.film_area, self.edge_law = film_area(r, edge_curvatures(self.footprint)), np.zeros_like(self.edge_law)
         self.contact_gap = float(contact_gap) if contact_gap is not None else self.params.contact_gap
         if self.contact_gap <= 0:
             raise ParameterError(f"contact_gap must be positive, got {self.contact_gap!r} m")
-        self.film_cutoff = self.params.film_cutoff * r if self.mode == "accurate" else 0.0
+        on = self.lubrication != "none"
+        self.film_cutoff = self.params.film_cutoff * r if on else 0.0
+        self.edge_cutoff = self.params.edge_cutoff * r if on else 0.0
 
     @staticmethod
     def _count(init) -> int:
@@ -315,11 +327,11 @@ class Spheres(Block):
         flat, dgx, dgy = self.flow._flat_maps()
         return (self.params.substeps, self.dt / self.params.substeps, flat, self.flow.gx, self.flow.gy, dgx, dgy,
                 self.flow.points, self.flow.forces, self.flow.eps, self.flow.viscosity, self.flow.height,
-                *self._edges, self.film_area, self.radius, self.reach, self._box[0], self._box[1],
+                *self._edges, self.film_area, self.edge_law, self.radius, self.reach, self._box[0], self._box[1],
                 self.buoyant_weight / self.zeta,
                 (self.buoyant_weight + self.pull_off) / self.zeta, self.params.adhesion_range, self._k_contact,
                 self.mode == "paper", self.roughness, self._inv_lambda_contact, self._flow_push_contact,
-                self.contact_gap, self.film_cutoff)
+                self.contact_gap, self.film_cutoff, self.edge_cutoff)
 
     def kernel(self):
         """The block's frame (:func:`~magctl.plant.sphere_kernel.spheres_update`), one trial per call, run by

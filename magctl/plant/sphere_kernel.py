@@ -229,29 +229,30 @@ def _nearest_edge(px, py, x0, y0, dx, dy, ab2, y1):
 
 @jit
 def _film_velocity(v, rel, vel, turn, gi, m, footprint, film, radius, roughness, viscosity, tau, table, scratch):
-    """The sphere's velocity ``v`` (world, complex) with the squeeze film between it and the robot's face
-    (:mod:`magctl.plant.fluid.lubrication`): its component along the face normal replaced by the one that
-    advances the face–sphere gap exactly over the sub-step (:func:`~magctl.plant.fluid.lubrication.film_gap`).
-    ``rel`` is the centre in the robot frame at the sub-step's start, ``vel`` the robot's velocity, ``m`` the
-    sphere's mobility multiplier. Returns the velocity and whether the film closed to rough contact."""
-    x0, y0, dx, dy, ab2, y1, area = footprint
-    h_min, h_cut = film
+    """The sphere's velocity ``v`` (world, complex) with the lubrication between it and the robot
+    (:mod:`magctl.plant.fluid.lubrication`: the face film or the edge law of the nearest footprint edge): its
+    component along the outline's normal replaced by the one that advances the gap exactly over the sub-step
+    (:func:`~magctl.plant.fluid.lubrication.film_gap`). ``rel`` is the centre in the robot frame at the
+    sub-step's start, ``vel`` the robot's velocity, ``m`` the sphere's mobility multiplier. Returns the
+    velocity and whether the gap closed to rough contact."""
+    x0, y0, dx, dy, ab2, y1, area, log_coef = footprint
+    h_min, h_face, h_edge = film
     dist, qx, qy, e, inside = _nearest_edge(rel.real, rel.imag, x0, y0, dx, dy, ab2, y1)
     if inside or dist <= 0.0:
         return v, False
     h = max(dist - radius, h_min)
-    if h >= h_cut:
+    face = area[e] > 0.0 and h < h_face
+    edge = log_coef[e] > 0.0 and h < h_edge
+    if not (face or edge):
         return v, False
-    n = complex((rel.real - qx) / dist, (rel.imag - qy) / dist) * turn      # face → sphere, world frame
+    n = complex((rel.real - qx) / dist, (rel.imag - qy) / dist) * turn      # robot → sphere, world frame
     zeta = 6.0 * np.pi * viscosity * radius * translation_resistance(radius, gi, roughness, table, scratch) / m
-    c = 6.0 * np.pi * viscosity * area[e]
-    zeta_p = max(zeta - c / h_cut, 1e-3 * zeta)
+    k_face = 6.0 * np.pi * viscosity * area[e] / zeta
+    k_edge = 6.0 * np.pi * viscosity * log_coef[e] / zeta
     un = (vel * n.conjugate()).real
     vn = (v * n.conjugate()).real
-    h1 = film_gap(h, zeta / zeta_p * (vn - un) * tau, c / zeta_p)
-    closed = h1 <= h_min and vn < un       # the robot drives the face into the sphere
-    if h1 < h_min:
-        h1 = h_min
+    h1 = film_gap(h, (vn - un) * tau, k_face, h_face, k_edge, h_edge, h_min)
+    closed = h1 <= h_min and vn < un       # the robot drives the outline into the sphere
     return v + (un + (h1 - h) / tau - vn) * n, closed
 
 
@@ -321,15 +322,16 @@ def trial_frame(b, xy, gap, mult, pos, vel, turn, frame, flow, footprint, table,
     call can be inlined): ``frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate,
     adhesion_range, k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact, film)``,
     ``flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)``, ``footprint = (x0, y0,
-    dx, dy, ab2, y1, area)`` (``area`` the squeeze film's ``A`` per edge), the wall ``table``, and
-    ``work = (cx, cy, scratch)``: work arrays, one correction per sphere pair and ``(8,)`` for
-    :func:`wall_functions`. ``film = (h_min, h_cut)``: the face–sphere squeeze film acts below ``h_cut``
-    and closes to rough contact at ``h_min`` (``h_cut = 0``: no film, as in the ``paper`` mode).
+    dx, dy, ab2, y1, area, log_coef)`` (per edge, the face film's ``A`` and the edge law's ``aC``,
+    :func:`~magctl.plant.fluid.lubrication.film_laws`), the wall ``table``, and ``work = (cx, cy, scratch)``:
+    work arrays, one correction per sphere pair and ``(8,)`` for :func:`wall_functions`. ``film = (h_min,
+    h_face, h_edge)``: the face film acts below ``h_face``, the edge law below ``h_edge``, and either closes
+    to rough contact at ``h_min`` (both cut-offs 0: no lubrication, as in the ``paper`` mode).
     """
     (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
      roughness, inv_lambda_contact, flow_push_contact, film) = frame
     flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height = flow
-    x0, y0, dx, dy, ab2, y1, _ = footprint
+    x0, y0, dx, dy, ab2, y1, _, _ = footprint
     cx, cy, scratch = work
     n = gap.shape[1]
     back = turn.conjugate()
@@ -358,9 +360,9 @@ def trial_frame(b, xy, gap, mult, pos, vel, turn, frame, flow, footprint, table,
                 rate = (push * uz - settle) * (1.0 / lam)
             # capped at the free-sphere limit 1
             v = min(k_now * mult[b, i], 1.0) * (complex(ux, uy) * turn)
-            if film[1] > 0.0:
+            if film[1] > 0.0 or film[2] > 0.0:
                 d0 = zi - p_start
-                if abs(d0) < reach + film[1]:
+                if abs(d0) < reach + max(film[1], film[2]):
                     v, closed = _film_velocity(v, d0 * back, vel, turn, gi, mult[b, i], footprint, film, radius,
                                                roughness, viscosity, tau, table, scratch)
                     touched = touched or closed
@@ -389,8 +391,9 @@ def trial_frame(b, xy, gap, mult, pos, vel, turn, frame, flow, footprint, table,
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps,
                  viscosity, height,
-                 x0, y0, dx, dy, ab2, y1, area, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range,
-                 k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact, h_min, h_cut, table):
+                 x0, y0, dx, dy, ab2, y1, area, log_coef, radius, reach, box_x, box_y, sink_rate, held_rate,
+                 adhesion_range, k_contact, paper_mode, roughness, inv_lambda_contact, flow_push_contact, h_min,
+                 h_face, h_edge, table):
     """Advance every trial's spheres by one frame of ``n_sub`` sub-steps, in place (:func:`trial_frame`
     per trial).
 
@@ -408,9 +411,9 @@ def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, d
         The flow maps as one ``(ny·nx, 6)`` table and the grid (``RobotFlow._flat_maps``).
     points, forces, eps, viscosity, height
         The flow's far-field point forces (``RobotFlow``), for spheres off the map.
-    x0, y0, dx, dy, ab2, y1, area
-        Footprint edges (:class:`~magctl.plant.fluid.geometry.Polygon`) and the squeeze film's ``A`` per edge
-        (:func:`~magctl.plant.fluid.lubrication.film_area`).
+    x0, y0, dx, dy, ab2, y1, area, log_coef
+        Footprint edges (:class:`~magctl.plant.fluid.geometry.Polygon`), the face film's ``A`` and the edge
+        law's ``aC`` per edge (:func:`~magctl.plant.fluid.lubrication.film_laws`).
     sink_rate, held_rate : float
         ``W_b/ζ`` and ``(W_b + P)/ζ`` of eq 8–9 [m/s]; the adhesion ``P`` acts within
         ``adhesion_range`` of the glass.
@@ -420,9 +423,9 @@ def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, d
         1/λ and g of the gap balance on the glass in the ``accurate`` mode (Brenner's normal drag
         factor and Goren & O'Neill's wall-flow factor at δ = 0, ``Spheres._gap_rate``); unused in
         the ``paper`` mode (eq 9 as printed).
-    h_min, h_cut : float
-        The face–sphere film closes to rough contact at ``h_min`` and acts below ``h_cut`` [m]
-        (``h_cut = 0``: no film).
+    h_min, h_face, h_edge : float
+        The robot–sphere gap closes to rough contact at ``h_min``; the face film acts below ``h_face``,
+        the edge law below ``h_edge`` [m] (both 0: no lubrication).
     table : WallTable
         The ``accurate`` mode's resistance functions (:func:`wall_functions`), for lifted spheres and the
         film; unused in the ``paper`` mode.
@@ -439,9 +442,9 @@ def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, d
     cy = np.empty(npair)
     scratch = np.empty(8)
     frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
-             roughness, inv_lambda_contact, flow_push_contact, (h_min, h_cut))
+             roughness, inv_lambda_contact, flow_push_contact, (h_min, h_face, h_edge))
     flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)
-    footprint = (x0, y0, dx, dy, ab2, y1, area)
+    footprint = (x0, y0, dx, dy, ab2, y1, area, log_coef)
     work = (cx, cy, scratch)
     for b in range(batch):
         contact[b] = trial_frame(b, xy, gap, mult, pos[b], vel[b], turn[b], frame, flow, footprint, table, work)
@@ -464,8 +467,8 @@ def spheres_update(b, params, state, next_state, inputs, base, noise):
     """``Spheres.update``: one frame of trial ``b`` by :func:`trial_frame` (the heading's ``e^{iθ}`` as
     the reference forms it). No draws: the mobility multipliers are drawn at step 0."""
     (n_sub, tau, flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height, x0, y0, dx, dy, ab2, y1, area,
-     radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode, roughness,
-     inv_lambda_contact, flow_push_contact, h_min, h_cut, knots, coef, signs, near_lo, near_hi, far_lo, far_hi,
+     log_coef, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode, roughness,
+     inv_lambda_contact, flow_push_contact, h_min, h_face, h_edge, knots, coef, signs, near_lo, near_hi, far_lo, far_hi,
      cx, cy, scratch) = params
     xy, gap, mult, contact = state
     nxy, ngap, nmult, ncontact = next_state
@@ -480,9 +483,9 @@ def spheres_update(b, params, state, next_state, inputs, base, noise):
     pos = complex(position[b, 0], position[b, 1])
     vel = complex(velocity[b, 0], velocity[b, 1])
     frame = (n_sub, tau, radius, reach, box_x, box_y, sink_rate, held_rate, adhesion_range, k_contact, paper_mode,
-             roughness, inv_lambda_contact, flow_push_contact, (h_min, h_cut))
+             roughness, inv_lambda_contact, flow_push_contact, (h_min, h_face, h_edge))
     flow = (flat, gx, gy, dgx, dgy, points, forces, eps, viscosity, height)
-    footprint = (x0, y0, dx, dy, ab2, y1, area)
+    footprint = (x0, y0, dx, dy, ab2, y1, area, log_coef)
     table = (knots, coef, signs, near_lo, near_hi, far_lo, far_hi)
     ncontact[b, 0] = trial_frame(b, nxy, ngap, nmult, pos, vel, turn, frame, flow, footprint, table,
                                  (cx, cy, scratch))

@@ -241,7 +241,7 @@ class RefSpheres(NumpyForm, Spheres):
             rel = (z - p_mid[:, k, None]) * back                        # robot frame
             ux, uy, uz = self.flow.lookup_components(rel.real, rel.imag, vbx, vby)
             v = k_now * ((ux + 1j * uy) * turn)
-            if self.film_cutoff > 0:
+            if self.film_cutoff > 0 or self.edge_cutoff > 0:
                 v, closed = self._film(v, z, gap, mult, pos + vel * k * tau, vel, turn, tau)
                 contact |= closed
             z += v * tau
@@ -251,14 +251,15 @@ class RefSpheres(NumpyForm, Spheres):
         return {"xy": np.stack([z.real, z.imag], axis=-1), "gap": gap, "mobility": mult, "contact": contact}
 
     def _film(self, v, z, gap, mult, p_start, vel, turn, tau):
-        """The face–sphere squeeze film (magctl.plant.fluid.lubrication): each sphere's velocity along the
-        face normal replaced by the one that advances the film's gap exactly over the sub-step."""
+        """Robot–sphere lubrication (magctl.plant.fluid.lubrication: face film or edge law per edge): each
+        sphere's velocity along the outline's normal replaced by the one that advances the gap exactly over
+        the sub-step."""
         v = v.copy()
         closed = np.zeros(len(z), bool)
         poly, r, mu = self._footprint, self.radius, self.flow.viscosity
-        h_min, h_cut = self.contact_gap, self.film_cutoff
+        h_min, h_face, h_edge = self.contact_gap, self.film_cutoff, self.edge_cutoff
         rel = (z - p_start[:, None]) * turn.conj()
-        near = np.abs(z - p_start[:, None]) < self.reach + h_cut
+        near = np.abs(z - p_start[:, None]) < self.reach + max(h_face, h_edge)
         for b, i in zip(*np.nonzero(near), strict=True):
             x, y = rel[b, i].real, rel[b, i].imag
             t = np.clip(((x - poly.x0) * poly.dx + (y - poly.y0) * poly.dy) / poly.ab2, 0.0, 1.0)
@@ -268,17 +269,17 @@ class RefSpheres(NumpyForm, Spheres):
             if poly.contains(np.array(x), np.array(y)) or dist <= 0:
                 continue
             h = max(dist - r, h_min)
-            if h >= h_cut:
+            area, log_coef = self.film_area[e], self.edge_law[e]
+            if not ((area > 0 and h < h_face) or (log_coef > 0 and h < h_edge)):
                 continue
             n = complex((x - qx[e]) / dist, (y - qy[e]) / dist) * turn[b, 0]
             f_t, f_r, t_t, t_r, _, _ = accurate_coefficients((gap[b, i] + self.roughness) / r)
             zeta = 6 * np.pi * mu * r * abs((f_t * t_r - f_r * t_t) / t_r) / mult[b, i]
-            c = 6 * np.pi * mu * self.film_area[e]
-            zeta_p = max(zeta - c / h_cut, 1e-3 * zeta)
             un, vn = (vel[b] * n.conjugate()).real, (v[b, i] * n.conjugate()).real
-            h1 = film_gap(h, zeta / zeta_p * (vn - un) * tau, c / zeta_p)
+            h1 = film_gap(h, (vn - un) * tau, 6 * np.pi * mu * area / zeta, h_face,
+                          6 * np.pi * mu * log_coef / zeta, h_edge, h_min)
             closed[b] |= bool(h1 <= h_min and vn < un)
-            v[b, i] += (un + (max(h1, h_min) - h) / tau - vn) * n
+            v[b, i] += (un + (h1 - h) / tau - vn) * n
         return v, closed
 
     def _contacts(self, z, pos, turn):

@@ -1,4 +1,4 @@
-"""Squeeze-film lubrication between the robot's face and a sphere (docs/fluid.md §7).
+"""Lubrication between the robot and a sphere: the face film and the edge law (docs/fluid.md §5).
 
 The robot's flow map (:mod:`magctl.plant.fluid.flow`) is solved without the sphere, so it
 carries the robot's pull on a sphere only as far as the sphere samples that flow at its centre
@@ -12,16 +12,23 @@ Reynolds-equation result
 
 (:func:`film_area`; exact for the paraboloidal gap ``h + x²/2R_x + z²/2R_z``; ``A = R²`` for a
 sphere against a plane, Brenner's 1961 leading term ``λ → a/h``, and ``A = a²/4`` for two equal
-spheres, the leading term of Jeffrey & Onishi's 1984 ``X^A_11``). The robot's face is vertical in
-the footprint model and its outline curved in plan: a concave face of curvature ``κ`` (1/m,
-positive concave) gives ``1/R_x = 1/a − κ`` against a sphere of radius ``a``, ``R_z = a``.
+spheres, the leading term of Jeffrey & Onishi's 1984 ``X^A_11``). A face met at the sphere's equator
+and curved in plan with curvature ``κ`` (1/m, positive concave) gives ``1/R_x = 1/a − κ`` against a
+sphere of radius ``a``, ``R_z = a``.
 
-In the block (:mod:`magctl.plant.sphere_kernel`) the film's resistance is added to the sphere's
-resistance to translation along the glass ``ζ`` only where the robot-only flow misses it, as the
-singular part ``6πμA (1/h − 1/h_c)`` below the cut-off ``h_c`` (zero and continuous at ``h_c``),
-and the normal gap between face and sphere is advanced exactly over a sub-step with the flow and the
-robot's velocity held (:func:`film_gap`). Rough contact ends the film at ``h_min`` (the asperities of
-robot and sphere): there the sphere is pushed by contact.
+The robot is tilted (front raised), so its faces are not all vertical: where a sphere resting on the
+glass would meet a face's plane above or below that face, it meets the face's *edge* instead
+(:func:`face_heights`; the front notch's bottom edge and the rear face's top edge). There the
+three-body solution (:mod:`magctl.plant.fluid.three_body`) shows a coupling that grows like
+``ln(1/h)``, not ``1/h``: the edge law ``6πμa C ln(h_e/h)``, with ``C`` and ``h_e`` fitted to it
+(:func:`fit_edge_law`). :func:`film_laws` gives each footprint edge its law.
+
+In the block (:mod:`magctl.plant.sphere_kernel`) the law's resistance ``R(h)`` is added to the sphere's
+resistance to translation along the glass ``ζ`` only where the robot-only flow misses it: the face film
+as its singular part ``6πμA (1/h − 1/h_f)`` below the cut-off ``h_f``, the edge law below ``h_e`` (both
+zero and continuous at their cut-offs). The normal gap between robot and sphere is advanced exactly over
+a sub-step with the flow and the robot's velocity held (:func:`film_gap`). Rough contact ends either at
+``h_min`` (the asperities of robot and sphere): there the sphere is pushed by contact.
 """
 
 from __future__ import annotations
@@ -61,22 +68,105 @@ def edge_curvatures(vertices: np.ndarray) -> np.ndarray:
     return 0.5 * (at_vertex + np.roll(at_vertex, -1))
 
 
-@register_jitable
-def film_gap(h0, s, kappa):
-    """Face–sphere gap after a sub-step: the root ``h₁ > 0`` of ``(h₁ − h₀) + κ ln(h₁/h₀) = s``.
+def face_heights(geometry, radius: float) -> np.ndarray:
+    """Per footprint edge, the height above the face's bottom rim (body ζ, [m]) at which a sphere of
+    ``radius`` resting on the glass meets the plane of that edge's face.
 
-    With the film's resistance ``6πμA/h`` added to the sphere's ``ζ'`` (its resistance to translation
-    along the glass less the film's value at the cut-off), the gap obeys ``dh/dt = (ζ/ζ') w h/(h + κ)``,
-    ``κ = 6πμA/ζ'``, where ``w`` is the rate at which the flow alone would open it; ``s = (ζ/ζ') w τ``.
-    Newton's method in ``ln h₁`` (the left side is increasing and concave in it: converges from ``h₀``).
+    The face of an outline edge with outward body normal ``(n_x, n_y)`` has, once the body is tilted by
+    θ about its resting edge (front raised: ``s = +1``), the world normal ``(n_x cos θ, n_y, s n_x sin θ)``;
+    the sphere's point nearest that plane is ``a`` from its centre against the normal, at height
+    ``a (1 − s n_x sin θ)``. Between 0 and the thickness the sphere meets the face; outside, an edge."""
+    outline = geometry.outline
+    d = np.roll(outline, -1, axis=0) - outline
+    length = np.linalg.norm(d, axis=1)
+    nx = d[:, 1] / length                                     # outward x component, counter-clockwise outline
+    mid = outline + 0.5 * d
+    s = 1.0 if geometry.raised_edge == "front" else -1.0
+    contact = np.stack([mid[:, 0], mid[:, 1], np.zeros(len(mid))], axis=1)
+    rim_height = geometry.to_frame(contact)[:, 2]            # the face's bottom rim under the edge's middle
+    height = float(radius) * (1.0 - s * nx * np.sin(geometry.tilt))
+    return (height - rim_height) / np.cos(geometry.tilt)
+
+
+def film_laws(geometry, radius: float, edge_coefficient: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per footprint edge, the face film's ``A`` [m²] (:func:`film_area`) where a resting sphere meets the
+    face (:func:`face_heights` within the thickness), else 0; and ``a C`` [m] of the edge law where it meets
+    an edge, else 0."""
+    zeta = face_heights(geometry, radius)
+    on_face = (zeta >= 0.0) & (zeta <= geometry.thickness)
+    area = np.where(on_face, film_area(radius, edge_curvatures(geometry.footprint)), 0.0)
+    return area, np.where(on_face, 0.0, float(radius) * float(edge_coefficient))
+
+
+def film_resistance(h, area, log_coef, face_cutoff: float, edge_cutoff: float) -> np.ndarray:
+    """``R(h)/(6πμ)`` [m]: the face film's ``A (1/h − 1/h_f)`` below ``h_f`` plus the edge law's
+    ``aC ln(h_e/h)`` below ``h_e``, each zero beyond its cut-off."""
+    h = np.asarray(h, float)
+    face = np.where(h < face_cutoff, area * (1.0 / h - 1.0 / face_cutoff), 0.0)
+    edge = np.where(h < edge_cutoff, log_coef * np.log(edge_cutoff / np.minimum(h, edge_cutoff)), 0.0)
+    return face + edge
+
+
+def fit_edge_law(gaps, extra) -> tuple[float, float, float]:
+    """The edge law ``C ln(h_e/h)`` fitted by least squares to resistances ``extra`` (in ``6πμa``) needed at
+    ``gaps`` (in radii): ``extra = C (ln h_e − ln h)`` is linear in ``ln h``. Returns ``C``, ``h_e`` (radii)
+    and the largest residual relative to ``extra``."""
+    h, r = np.asarray(gaps, float), np.asarray(extra, float)
+    if h.shape != r.shape or h.size < 2 or np.any(h <= 0) or np.any(r <= 0):
+        raise ParameterError("fit_edge_law needs two or more positive gaps and resistances of one shape")
+    slope, intercept = np.polyfit(-np.log(h), r, 1)
+    fitted = intercept + slope * -np.log(h)
+    return float(slope), float(np.exp(intercept / slope)), float(np.max(np.abs(fitted / r - 1.0)))
+
+
+@register_jitable
+def _film_integral(h, k_face, h_face, k_edge, h_edge):
+    """``G(h) = ∫ (1 + R(s)/ζ) ds`` up to a constant: ``h + k_f (ln m_f − m_f/h_f) + k_e (m_e ln(h_e/m_e) + m_e)``,
+    ``m = min(h, cut-off)``; increasing, with slope ``1 + R(h)/ζ``."""
+    g = h
+    if k_face > 0.0:
+        m = min(h, h_face)
+        g += k_face * (np.log(m) - m / h_face)
+    if k_edge > 0.0:
+        m = min(h, h_edge)
+        g += k_edge * (m * np.log(h_edge / m) + m)
+    return g
+
+
+@register_jitable
+def film_gap(h0, s, k_face, h_face, k_edge, h_edge, h_min):
+    """Robot–sphere gap after a sub-step, at least ``h_min``: the root ``h₁`` of ``G(h₁) = G(h₀) + s``.
+
+    With the lubrication resistance ``R(h)`` (face film ``6πμA(1/h − 1/h_f)``, edge law ``6πμaC ln(h_e/h)``)
+    added to the sphere's ``ζ``, the gap obeys ``dh/dt = ζ w/(ζ + R(h))``, ``w`` the rate at which the flow
+    alone would open it; so ``G(h) = ∫(1 + R/ζ) dh`` (:func:`_film_integral`) advances by ``s = w τ``.
+    ``k_f = 6πμA/ζ``, ``k_e = 6πμaC/ζ`` [m]. Beyond both cut-offs ``G`` has slope 1 (solved directly);
+    below, Newton's method in ``ln h₁`` kept inside a shrinking bracket (bisection where it leaves it).
     """
+    target = _film_integral(h0, k_face, h_face, k_edge, h_edge) + s
+    if target <= _film_integral(h_min, k_face, h_face, k_edge, h_edge):
+        return h_min
+    top = max(h0, h_face, h_edge)
+    g_top = _film_integral(top, k_face, h_face, k_edge, h_edge)
+    if target >= g_top:
+        return top + (target - g_top)
+    lo, hi = np.log(h_min), np.log(top)
     u = np.log(h0)
-    lh0 = u
-    for _ in range(60):
-        e = np.exp(u)
-        f = e - h0 + kappa * (u - lh0) - s
-        step = f / (e + kappa)
-        u -= step
-        if abs(step) < 1e-12:
-            break
+    for _ in range(100):
+        h = np.exp(u)
+        f = _film_integral(h, k_face, h_face, k_edge, h_edge) - target
+        if f > 0.0:
+            hi = u
+        else:
+            lo = u
+        slope = 1.0
+        if k_face > 0.0 and h < h_face:
+            slope += k_face * (1.0 / h - 1.0 / h_face)
+        if k_edge > 0.0 and h < h_edge:
+            slope += k_edge * np.log(h_edge / h)
+        step = f / (h * slope)
+        if abs(step) <= 1e-15 * abs(u) or hi - lo <= 1e-15 * abs(u):     # converged to rounding
+            return np.exp(u - step)
+        nxt = u - step
+        u = nxt if lo < nxt < hi else 0.5 * (lo + hi)
     return np.exp(u)

@@ -42,6 +42,8 @@ class SphereParams:
     release_scatter: float
     contact_gap: float
     film_cutoff: float
+    edge_coefficient: float
+    edge_cutoff: float
 
 
 def sphere_params(p=None) -> SphereParams:
@@ -50,11 +52,11 @@ def sphere_params(p=None) -> SphereParams:
     s, v, c = p.sphere, p.variability, p.contact
     out = SphereParams(s.radius, s.density, s.roughness, s.adhesion_range, bool(s.adhesion), str(s.drag_mode),
                        int(s.substeps), s.contact_tolerance, v.sticky_probability, v.sticky_mobility,
-                       v.release_scatter, c.robot_gap, c.film_cutoff)
+                       v.release_scatter, c.robot_gap, c.film_cutoff, c.edge_law, c.edge_law_cutoff)
     if out.radius <= 0 or out.roughness <= 0:
         raise ParameterError(f"{p._path}: sphere radius and roughness must be positive")
-    if out.contact_gap <= 0 or out.film_cutoff <= 0:
-        raise ParameterError(f"{p._path}: contact.robot_gap and contact.film_cutoff must be positive")
+    if min(out.contact_gap, out.film_cutoff, out.edge_coefficient, out.edge_cutoff) <= 0:
+        raise ParameterError(f"{p._path}: contact.robot_gap, film_cutoff, edge_law, edge_law_cutoff must be > 0")
     if out.drag_mode not in ("paper", "accurate"):
         raise ParameterError(f"{p._path}: sphere.drag_mode must be 'paper' or 'accurate', got {out.drag_mode!r}")
     if out.substeps < 1:

@@ -1,6 +1,7 @@
-"""The face–sphere squeeze film (magctl.plant.fluid.lubrication) against exact solutions: Brenner's (1961)
+"""Robot–sphere lubrication (magctl.plant.fluid.lubrication) against exact solutions: Brenner's (1961)
 series for a sphere approaching a plane, a finite-difference solution of the Reynolds equation for a
-non-axisymmetric gap, the circle a polygon arc was drawn from, and the film's ODE integrated by scipy."""
+non-axisymmetric gap, the circle a polygon arc was drawn from, the tilted body's own faces, and the
+gap's ODE integrated by scipy."""
 
 from __future__ import annotations
 
@@ -11,9 +12,18 @@ from scipy.integrate import solve_ivp
 from scipy.sparse.linalg import spsolve
 
 from magctl.config import load_model
+from magctl.core.errors import ParameterError
 from magctl.plant.fluid.bispherical import normal_translation
-from magctl.plant.fluid.geometry import star_outline
-from magctl.plant.fluid.lubrication import edge_curvatures, film_area, film_gap
+from magctl.plant.fluid.geometry import RobotGeometry, star_outline
+from magctl.plant.fluid.lubrication import (
+    edge_curvatures,
+    face_heights,
+    film_area,
+    film_gap,
+    film_laws,
+    film_resistance,
+    fit_edge_law,
+)
 from magctl.plant.sphere import Spheres
 
 A = 105e-6
@@ -92,24 +102,73 @@ def test_edge_curvatures_recover_the_arc_radius():
     np.testing.assert_allclose(notch, 1 / rho, rtol=1e-9)
 
 
+def test_face_heights_are_where_the_sphere_meets_each_face_of_the_tilted_body():
+    """For every footprint edge, the face is built in 3-D from its corners (geometry.to_frame): the point
+    ``face_heights`` up the face from the edge's middle, with a sphere of radius a touching the face's plane
+    there from outside, has the sphere's centre at height a (resting on the glass). The front notch meets the
+    sphere below its bottom rim, the rear above its top rim, the flanks on the face."""
+    g = RobotGeometry.from_params()
+    a = 105e-6
+    heights = face_heights(g, a)
+    o = g.outline
+    for k in range(len(o)):
+        p, q = o[k], o[(k + 1) % len(o)]
+        corners = g.to_frame(np.array([[*p, 0.0], [*q, 0.0], [*p, g.thickness]]))
+        normal = np.cross(corners[1] - corners[0], corners[2] - corners[0])   # outward: counter-clockwise outline
+        normal /= np.linalg.norm(normal)
+        up = (corners[2] - corners[0]) / g.thickness
+        contact = g.to_frame(np.array([*(p + q) / 2, 0.0])) + heights[k] * up
+        centre = contact + a * normal
+        assert centre[2] == pytest.approx(a, abs=1e-12)
+        assert (centre - corners[0]) @ normal == pytest.approx(a, abs=1e-12)
+    front, rear = np.argmax(o[:, 0] + np.roll(o[:, 0], -1)), np.argmin(o[:, 0] + np.roll(o[:, 0], -1))
+    assert heights[front] < 0 < g.thickness < heights[rear]
+    area, log_coef = film_laws(g, a, 3.0)
+    assert log_coef[front] == log_coef[rear] == pytest.approx(3 * a) and area[front] == area[rear] == 0
+    flank = np.argmax(o[:, 1] + np.roll(o[:, 1], -1))
+    assert area[flank] > 0 and log_coef[flank] == 0
+
+
+def test_edge_law_fit_recovers_a_log_law_and_refuses_bad_data():
+    h = np.geomspace(0.02, 0.5, 6)
+    c, h_e, residual = fit_edge_law(h, 2.7 * np.log(0.8 / h))
+    assert (c, h_e, residual) == pytest.approx((2.7, 0.8, 0.0), abs=1e-10)
+    with pytest.raises(ParameterError, match="positive"):
+        fit_edge_law([0.1, -0.2], [1.0, 2.0])
+
+
+LAWS = [(3e-6, 105e-6, 0.0, 77e-6), (0.0, 105e-6, 250e-6, 77e-6), (1e-6, 30e-6, 100e-6, 60e-6)]
+
+
+@pytest.mark.parametrize("law", LAWS)
 @pytest.mark.parametrize("s", [-30e-6, -1e-6, 0.0, 2e-6, 80e-6])
-def test_film_gap_integrates_the_film_ode(s):
-    """film_gap is the exact sub-step of dh/dt = w h/(h + κ): against scipy's integration of that ODE."""
-    h0, kappa, tau = 0.5e-6, 60e-6, 1.0
+def test_film_gap_integrates_the_gap_ode(s, law):
+    """film_gap is the exact sub-step of dh/dt = w/(1 + R(h)/ζ) for the face film, the edge law and both, across
+    their cut-offs: against scipy's integration of that ODE, stopped at h_min where the gap closes."""
+    k_face, h_face, k_edge, h_edge = law
+    h0, tau, h_min = 2e-6, 1.0, 25e-9
     w = s / tau
-    ode = solve_ivp(lambda t, h: w * h / (h + kappa), (0, tau), [h0], rtol=1e-11, atol=1e-16)
-    assert film_gap(h0, s, kappa) == pytest.approx(ode.y[0, -1], rel=1e-7)
+    rate = lambda t, h: [w / (1 + float(film_resistance(max(h[0], 1e-12), k_face, k_edge, h_face, h_edge)))]  # noqa: E731
+    closes = lambda t, h: h[0] - h_min  # noqa: E731
+    closes.terminal = True
+    ode = solve_ivp(rate, (0, tau), [h0], rtol=1e-11, atol=1e-16, events=closes)
+    expected = h_min if ode.status == 1 else ode.y[0, -1]
+    assert film_gap(h0, s, k_face, h_face, k_edge, h_edge, h_min) == pytest.approx(expected, rel=1e-7)
 
 
-def test_film_turns_the_release_into_a_log_of_the_contact_gap():
-    """Backing away from a sphere in its notch, the film makes the sphere follow the robot further the
-    closer the contact (the ln h₀ of the film), while without it (the paper's drag mode: eq 4-5, one-way
-    flow) the release is the same for every contact gap."""
+def test_edge_law_keeps_the_release_finite_as_the_contact_gap_closes():
+    """Backing away from a sphere in its notch: with the notch's face film (6πμA/h) the sphere follows the
+    robot further the closer the contact, by the film's ln h₀; with the edge law the plant uses there
+    (6πμaC ln(h_e/h), whose integral is finite at h → 0) the contact gap hardly matters. Without either
+    (the paper's drag mode: one-way flow) the release is the same for every contact gap."""
     from magctl.plant.fluid.scenarios import release_displacement
 
-    near, far = (release_displacement(contact_gap=h)[0] for h in (0.3e-6, 10e-6))
-    assert near - far > 100e-6
-    paper = [release_displacement(contact_gap=h, drag_mode="paper")[0] for h in (0.3e-6, 10e-6)]
+    gaps = (0.3e-6, 10e-6)
+    edge = [release_displacement(contact_gap=h)[0] for h in gaps]
+    face = [release_displacement(contact_gap=h, lubrication="face")[0] for h in gaps]
+    assert face[0] - face[1] > 100e-6
+    assert abs(edge[0] - edge[1]) < 0.2 * (face[0] - face[1])
+    paper = [release_displacement(contact_gap=h, drag_mode="paper")[0] for h in gaps]
     assert paper[0] == pytest.approx(paper[1], rel=1e-12)
     block = Spheres(np.zeros((1, 2)))
     assert block.film_cutoff == pytest.approx(block.radius) and block.contact_gap == pytest.approx(25e-9)

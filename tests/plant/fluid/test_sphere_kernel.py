@@ -227,14 +227,14 @@ def test_accurate_mode_vertical_law_same_in_kernel_and_arrays():
     np.testing.assert_allclose(accurate._gap_rate(uz, gap), (g * uz - sink) / 3.0360641, rtol=1e-6)
 
 
-def test_the_face_film_acts_in_the_compared_frames():
-    """The frames compared above exercise the squeeze film: with it cut off (the block's ``film_cutoff`` 0)
-    the same frame ends elsewhere for many trials."""
+def test_the_lubrication_acts_in_the_compared_frames():
+    """The frames compared above exercise the robot–sphere lubrication: with both laws cut off (the block's
+    ``film_cutoff`` and ``edge_cutoff`` 0) the same frame ends elsewhere for many trials."""
     block = Spheres(np.zeros((1, 2)))
     state, u = _random_frame(block, 400, seed=1)
     with_film = block.update({k: v.copy() for k, v in state.items()}, u)
     dry = Spheres(np.zeros((1, 2)))
-    dry.film_cutoff = 0.0
+    dry.film_cutoff = dry.edge_cutoff = 0.0
     without = dry.update({k: v.copy() for k, v in state.items()}, u)
     moved = np.linalg.norm(with_film["xy"] - without["xy"], axis=-1).max(axis=-1)
     assert (moved > 1e-6).sum() > 20
