@@ -1,7 +1,7 @@
 """The robot, a sphere and the glass in one Stokes problem (docs/fluid.md §5, "The three-body check").
 
 The plant moves a sphere by the flow the robot makes *without* the sphere (:mod:`magctl.plant.fluid.flow`,
-eq 4) plus the face–sphere squeeze film (:mod:`magctl.plant.fluid.lubrication`). This module solves the
+eq 4) plus the robot–sphere lubrication (:mod:`magctl.plant.fluid.lubrication`). This module solves the
 problem those two pieces approximate: the robot translating along its body x axis, the sphere free of
 force and torque, both above the no-slip glass (Blake's tensor, :mod:`magctl.plant.fluid.bem`), with
 the sphere on the robot's symmetry plane in front of its notch, so the mirror ``y → −y`` halves the
@@ -23,7 +23,7 @@ import scipy.spatial
 
 from magctl.plant.fluid import bem
 from magctl.plant.fluid.geometry import RobotGeometry
-from magctl.plant.fluid.lubrication import edge_curvatures, film_area
+from magctl.plant.fluid.lubrication import edge_curvatures, film_area, film_laws, film_resistance
 from magctl.plant.fluid.wall_drag import accurate_coefficients, accurate_mobility, normal_resistance
 
 MAX_SPLITS = 14
@@ -234,19 +234,22 @@ def at_wall_gap(response: Response, geometry: RobotGeometry, radius: float, visc
 
 @dataclass(frozen=True)
 class Prediction:
-    """What the plant's sphere block predicts for the same configuration.
+    """What the plant's sphere block predicts for the same configuration (speeds over the robot's).
 
     Attributes
     ----------
     one_way : float
         ``V_x`` from the robot-only flow at the centre and the sphere's wall mobility (eq 4, accurate mode).
+    face_film : float
+        The same with the face film ``6πμA/h`` on the nearest edge, as if the sphere met a vertical face.
     with_film : float
-        The same with the face–sphere film of :mod:`magctl.plant.fluid.lubrication` at its steady rate.
+        The same with the law the plant gives that edge (:func:`magctl.plant.fluid.lubrication.film_laws`).
     gap_footprint : float
-        The film's gap: the centre's distance to the footprint outline less the radius [m].
+        The lubrication gap: the centre's distance to the footprint outline less the radius [m].
     """
 
     one_way: float
+    face_film: float
     with_film: float
     gap_footprint: float
 
@@ -277,10 +280,11 @@ def glide_resistance(gap_ratio: float) -> float:
     return float(abs((f_t * t_r - f_r * t_t) / t_r))
 
 
-def predict(geometry: RobotGeometry, centre, radius: float, flow_x: float, film_cutoff: float) -> Prediction:
+def predict(geometry: RobotGeometry, centre, radius: float, flow_x: float, contact) -> Prediction:
     """The sphere block's ``V_x`` for a sphere on the robot's axis at ``centre`` in the robot-only flow
-    ``flow_x`` (its wall gap ``z − a``): one-way (eq 4) and with the film (steady rate of
-    :func:`magctl.plant.fluid.lubrication.film_gap`: ``v = u + ζ(v₁ − u)/(ζ' + 6πμA/h)``)."""
+    ``flow_x`` (its wall gap ``z − a``): one-way (eq 4), and at the steady rate of
+    :func:`magctl.plant.fluid.lubrication.film_gap` with a resistance ``R``: ``v = 1 + ζ(v₁ − 1)/(ζ + R)``.
+    ``contact`` carries the laws' constants (:class:`magctl.plant.fluid.params.SphereParams`)."""
     centre = np.asarray(centre, float)
     gap = centre[2] - radius
     k = float(accurate_mobility(radius, gap, 0.0))
@@ -288,19 +292,19 @@ def predict(geometry: RobotGeometry, centre, radius: float, flow_x: float, film_
     footprint = geometry.footprint
     dist, edge = nearest_edge(centre[:2], footprint)
     h = dist - radius
-    area = film_area(radius, edge_curvatures(footprint))[edge]
     zeta = glide_resistance(gap / radius)
-    cutoff = film_cutoff * radius
-    if h >= cutoff:
-        return Prediction(one_way, one_way, h)
-    film = area / radius                                               # 6πμA/h over 6πμa, times h
-    zeta_p = zeta - film / cutoff
-    with_film = 1.0 + zeta * (one_way - 1.0) / (zeta_p + film / h)
-    return Prediction(one_way, float(with_film), h)
+    h_f, h_e = contact.film_cutoff * radius, contact.edge_cutoff * radius
+    area, log_coef = film_laws(geometry, radius, contact.edge_coefficient)
+    face_area = film_area(radius, edge_curvatures(footprint))[edge]
+
+    def speed(area_e, log_e):
+        r = float(film_resistance(h, area_e, log_e, h_f, h_e)) / radius
+        return 1.0 + zeta * (one_way - 1.0) / (zeta + r)
+
+    return Prediction(one_way, speed(face_area, 0.0), speed(area[edge], log_coef[edge]), h)
 
 
-def effective_film(v_three: float, v_one: float, zeta: float, h: float, h_c: float) -> tuple[float, float]:
-    """The film the three-body speed asks for, on the plant's steady relation ``1 − v = ζ(1 − v₁)/(ζ + R)``:
-    ``R`` as ``C ln(h_c/h)`` → ``C``, and as ``(A/a²)(a/h − a/h_c)`` → ``A/a²`` (``h, h_c`` in radii)."""
-    extra = zeta * ((1.0 - v_one) / (1.0 - v_three) - 1.0)
-    return extra / np.log(h_c / h), extra / (1.0 / h - 1.0 / h_c)
+def needed_resistance(v_three: float, v_one: float, zeta: float) -> float:
+    """The lubrication resistance (in ``6πμa``) the plant's steady relation ``1 − v = ζ(1 − v₁)/(ζ + R)`` needs
+    to give the three-body speed ``v_three`` from the one-way ``v_one``."""
+    return float(zeta * ((1.0 - v_one) / (1.0 - v_three) - 1.0))

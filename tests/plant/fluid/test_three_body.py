@@ -97,19 +97,27 @@ def test_sphere_mesh_lies_on_the_sphere_and_obeys_its_size_field():
     assert bem.areas(flat).sum() == pytest.approx(0.5) and np.allclose(flat[..., 2], 0.0)
 
 
-def test_the_studys_film_inverse_recovers_the_plants_film():
-    from magctl.plant.fluid.three_body import effective_film
+def test_the_studys_resistance_inverse_recovers_the_plants_laws():
+    """needed_resistance inverts predict's steady relation: from the plant's speeds it returns the resistance of
+    the law the plant gives the notch (the edge law) and of the face film, each computed from the laws' formulas."""
+    from magctl.plant.fluid.params import sphere_params
+    from magctl.plant.fluid.three_body import needed_resistance
     from magctl.plant.fluid.wall_drag import accurate_coefficients
 
     g = RobotGeometry.from_params()
-    a, eps = 105e-6, 25e-9
+    p = sphere_params()
+    a, eps = p.radius, p.roughness
     centre = np.array([notch_front(g) + 1.1 * a, 0.0, a + eps])
-    pred = predict(g, centre, a, 0.6, 1.0)
+    pred = predict(g, centre, a, 0.6, p)
     f_t, f_r, t_t, t_r, _, _ = accurate_coefficients(eps / a)
     zeta = abs((f_t * t_r - f_r * t_t) / t_r)
-    _, area_a2 = effective_film(pred.with_film, pred.one_way, zeta, pred.gap_footprint / a, 1.0)
+    h = pred.gap_footprint / a
+    edge_law = p.edge_coefficient * np.log(p.edge_cutoff / h)
     _, edge = nearest_edge(centre[:2], g.footprint)
-    assert area_a2 == pytest.approx(film_area(a, edge_curvatures(g.footprint))[edge] / a**2, rel=1e-9)
+    face = film_area(a, edge_curvatures(g.footprint))[edge] / a**2 * (1 / h - 1 / p.film_cutoff)
+    assert needed_resistance(pred.with_film, pred.one_way, zeta) == pytest.approx(edge_law, rel=1e-9)
+    assert needed_resistance(pred.face_film, pred.one_way, zeta) == pytest.approx(face, rel=1e-9)
+    assert pred.one_way < pred.with_film < pred.face_film < 1
 
 
 def test_bad_configurations_are_refused():
@@ -118,3 +126,23 @@ def test_bad_configurations_are_refused():
         solve_response(g, [3e-4, 1e-5, 1.2e-4], 105e-6, 0.019, Mesh())
     with pytest.raises(ValueError, match="overlaps"):
         solve_response(g, [0.0, 0.0, 1.2e-4], 105e-6, 0.019, Mesh())
+
+
+def test_the_plants_edge_law_is_the_fit_to_the_committed_three_body_results():
+    """models/sphere.toml's edge law (C, h_e) is fit_edge_law over the resistances the three-body study needed
+    (docs/three-body-results.md, written by `magctl study three-body`): refitted from that table here."""
+    from pathlib import Path
+
+    from magctl.plant.fluid.lubrication import fit_edge_law
+    from magctl.plant.fluid.params import sphere_params
+
+    text = (Path(__file__).parents[3] / "docs" / "three-body-results.md").read_text()
+    rows = [line.split("|")[1:-1] for line in text.splitlines() if line.startswith("| ") and line.count("|") == 10]
+    rows = [r for r in rows if r[0].strip()[0].isdigit()]
+    assert len(rows) >= 4
+    p = sphere_params()
+    gaps = np.array([float(r[0]) for r in rows]) * 1e-6 / p.radius
+    needed = np.array([float(r[7]) for r in rows])
+    c, h_e, residual = fit_edge_law(gaps, needed)
+    assert p.edge_coefficient == pytest.approx(c, rel=5e-3) and p.edge_cutoff == pytest.approx(h_e, rel=5e-3)
+    assert residual < 0.1
