@@ -5,7 +5,7 @@ The robot drives at 0.4 mm/s from 1 mm before to 1 mm past a sphere at side gap 
 simulation (bisection on the gap at which the passing robot first touches the
 sphere), the non-contact points are fitted with eq 22's form, and eq 22/23 are
 drawn beside them, with the plant's error against eq 22 at 370-650 µm (the
-one sphere every study uses: ε = 25 nm, the face–sphere film, the oil layer of
+one sphere every study uses: ε = 25 nm, the robot–sphere lubrication, the oil layer of
 ``models/fluid.toml``; no fitted sphere parameter).
 """
 

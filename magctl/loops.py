@@ -197,7 +197,7 @@ class Variability:
     sticky_probability : float
         Probability that a sphere sits on a sticky patch (§VI-B, "stuck on dirt").
     contact_gap : float, optional
-        The face–sphere gap at rough contact ``h_min`` [m] instead of ``models/sphere.toml [contact]``
+        The robot–sphere gap at rough contact ``h_min`` [m] instead of ``models/sphere.toml [contact]``
         (the in-task calibration, :mod:`magctl.studies.release_calibration`, scans it).
     """
 
@@ -218,7 +218,7 @@ class Variability:
         on = [name for name, v in (("camera noise", self.camera_noise), ("robot step variability", self.robot_steps),
                                    (f"release scatter ±{self.release_scatter:.0%}", self.release_scatter > 0),
                                    (f"sticky patches p={self.sticky_probability:g}", self.sticky_probability > 0),
-                                   (f"face-sphere contact gap {(self.contact_gap or 0) * 1e6:.3g} µm",
+                                   (f"robot-sphere contact gap {(self.contact_gap or 0) * 1e6:.3g} µm",
                                     self.contact_gap is not None))
               if v]
         return ", ".join(on) if on else "none (deterministic)"

@@ -14,7 +14,7 @@ of ``P_o``) with the servo still settling, backs ``retract`` at the travel speed
 displacement against the push direction from the farthest point it reaches after the task
 enters ``RETRACT`` (the servo's overshoot still pushes it on by contact for a few frames) to
 the frame the task measures (end of ``SETTLE``). The sphere follows the robot through the robot's
-flow and through the squeeze film between the robot's face and the sphere
+flow and through the lubrication between the robot and the sphere
 (:mod:`magctl.plant.fluid.lubrication`); the film's share grows like ``ln(h_c/h₀)`` with the gap
 ``h₀`` the face starts from, down to the rough contact ``h_min`` (``models/sphere.toml [contact]``),
 which :data:`GAP_GRID` scans. No parameter is fitted here: the plant is the one every study uses.
@@ -70,7 +70,7 @@ class InTaskRelease:
 
 def release_experiment(contact_gap: float | None, *, scatter: float = 0.0) -> Experiment:
     """The front push whose first attempt is measured: the study's plant (camera noise and
-    stick-slip variability on) with face–sphere contact gap ``contact_gap`` (``None``: the model's)."""
+    stick-slip variability on) with robot–sphere contact gap ``contact_gap`` (``None``: the model's)."""
     var = Variability(release_scatter=scatter, contact_gap=contact_gap)
     return Experiment("front", task=dict(kc=0.0, delta0=0.0), max_frames=FIRST_ATTEMPT_FRAMES, variability=var,
                       label="release in task")

@@ -3,7 +3,7 @@
 The paper bounds the side gap at 370 µm, where its simulated robot touched the sphere (§IV-D). A
 controller on another plant must take the bound from that plant: the gap below which the passing
 robot touches the sphere (:func:`magctl.plant.fluid.scenarios.contact_threshold`, on the plant's own
-flow and face film), plus the distance by which the closed loop's robot may pass closer to the sphere
+flow and robot–sphere lubrication), plus the distance by which the closed loop's robot may pass closer to the sphere
 than it was told — the servo's cross-track error.
 
 :func:`cross_track` measures that error in the closed loop: side pushes of the default controller

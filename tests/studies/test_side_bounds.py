@@ -37,10 +37,10 @@ def test_cross_track_margin_is_the_percentile_of_the_shortfalls():
     assert track["margin"] == pytest.approx(np.percentile(track["shortfall"], PERCENTILE))
 
 
-def test_the_face_film_does_not_give_the_papers_pull_in():
-    """The paper saw the sphere pulled in towards the robot below 370 µm (§IV-D). With the two-way face film the
-    sphere still ends further from the robot's line after a pass at every gap from just outside the contact
-    threshold to 370 µm (push-out): the film is not what the paper saw."""
+def test_the_lubrication_does_not_give_the_papers_pull_in():
+    """The paper saw the sphere pulled in towards the robot below 370 µm (§IV-D). With the two-way robot–sphere
+    lubrication the sphere still ends further from the robot's line after a pass at every gap from just outside
+    the contact threshold to 370 µm (push-out): the lubrication is not what the paper saw."""
     from magctl.plant.fluid.scenarios import contact_threshold
 
     gaps = np.array([contact_threshold() + 10e-6, 300e-6, 330e-6, 370e-6])
