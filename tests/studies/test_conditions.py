@@ -2,6 +2,8 @@
 
 import pytest
 
+from magctl.config import load_model
+
 from magctl.core.errors import MagctlError
 from magctl.loops import Experiment, experiment_controller
 from magctl.studies.conditions import conditioned
@@ -35,7 +37,8 @@ def test_the_conditioned_controller_is_built_with_them():
     assert task.min_gap == pytest.approx(370 * UM) and task.clearance == pytest.approx(650 * UM)
     assert type(task.model).__name__ == "ExpSideModel" and task.model.rate == pytest.approx(0.009042 / UM)
     default = experiment_controller(Experiment("side", task={"model": "exp-fit", "ks": 0.9}))
-    assert default.blocks["task"].min_gap < 300 * UM               # magctl's plant-derived bound
+    assert default.blocks["task"].min_gap == pytest.approx(load_model("push").side.min_gap)   # the plant's bound
+    assert default.blocks["task"].min_gap < 370 * UM
     paper_servo, tuned = ctrl.blocks["servo"], default.blocks["servo"]
     assert paper_servo.ki > 0 and not paper_servo.anti_windup      # models/servo.toml [paper]: the basic PI
     assert tuned.ki == 0.0

@@ -108,7 +108,9 @@ def test_lifted_spheres_over_many_frames_in_the_accurate_mode():
         ref = array_form.update(ref, u)
         comp = block.update(comp, u)
         np.testing.assert_allclose(comp["xy"], ref["xy"], rtol=0, atol=1e-15)
-        np.testing.assert_allclose(comp["gap"], ref["gap"], rtol=1e-14, atol=1e-18)
+        # the gap within 1e-17 m: it reads the flow at centres that agree to 1e-15 m, and the lubrication's
+        # Newton steps (exp and log) differ between numba's and numpy's maths by an ulp
+        np.testing.assert_allclose(comp["gap"], ref["gap"], rtol=1e-13, atol=1e-17)
         np.testing.assert_array_equal(comp["contact"], ref["contact"])
     assert (np.abs(ref["xy"] - state["xy"]) > 1e-7).any()
 
