@@ -77,16 +77,18 @@ def test_later_success_needed_closed_form():
         B.later_success_needed(0.2, 1.0)
 
 
-def test_the_identified_release_leaves_half_an_attempt_to_gain():
-    """On the identified map, cross-validated: the release-model policy beats eq 13 with K_c = 1 by 0.5 attempts
-    or more, and its later attempts succeed more often than such a gain needs — the bound's arithmetic and the
-    run agree (docs/push-control.md §7). On the plant with the face film the same test found the opposite
-    (a gain below 0.5, later success below the need): it is the plant's release that decides."""
-    r = B.cross_validated(trials=1500)
-    assert r["gain_attempts"] >= 0.5
+def test_the_identified_release_leaves_no_half_attempt_to_gain():
+    """On the identified map, cross-validated, against eq 13 with K_c = 1 at its better δ(0) (0 or the model's
+    release, whichever needs fewer attempts on the map): the release-model policy does not beat it by 0.5 attempts,
+    and its later attempts succeed less often than such a gain would need (docs/push-control.md §7)."""
+    from magctl.plant.fluid.scenarios import release_displacement
+
+    runs = [B.cross_validated(trials=1500, delta0_kc1=d0) for d0 in (0.0, float(release_displacement()[0]))]
+    r = min(runs, key=lambda run: run["kc1_mean_attempts"])
+    assert r["gain_attempts"] < 0.5
     first = max(max(f["first_success_by_push_um"].values()) for f in r["folds"].values())
     needed = B.later_success_needed(first, r["kc1_mean_attempts"] - 0.5)
-    assert all(f["policy_later_success"] > needed for f in r["folds"].values())
+    assert all(f["policy_later_success"] < needed for f in r["folds"].values())
 
 
 def test_release_policy_law_steps_the_policy():

@@ -3,7 +3,6 @@
 import pytest
 
 from magctl.config import load_model
-
 from magctl.core.errors import MagctlError
 from magctl.loops import Experiment, experiment_controller
 from magctl.studies.conditions import conditioned

@@ -248,6 +248,8 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
                 f"{beyond.CURVE}, dirt": [5, 6, 20, 30], "lin-fit, K_s=0.9, dirt": [5, 6, 22, 30],
                 f"{beyond.CURVE_FRONT}, dirt": [5, 6, 7, 9], beyond.RELEASE: [2, 3, 4, 10], beyond.KC1: [2, 2, 3, 4],
                 beyond.FRONT_SIDE: [1, 2, 2, 2]}
+    kc1_model = next(label for label in exps if label.startswith("K_c=1,") and label != beyond.KC1)
+    attempts[kc1_model] = [2, 3, 3, 4]          # slower than δ(0) = 0 here: the baseline stays beyond.KC1
     planned, greedy = beyond.PLANNED, beyond.GREEDY
     attempts |= {label: [12, 14, 16, 18] for label in beyond.assembly_experiments()}
     attempts |= {f"3 line, {planned}": [18, 20, 22, 30], f"3 line, {greedy}": [25, 30, 30, 30],
@@ -255,7 +257,7 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
                  f"2 pair, {planned}": [8, 9, 10, 11]}
     cache = studies.TrialCache()
     for label, exp in exps.items():
-        limit = 10 if label in (beyond.RELEASE, beyond.KC1, beyond.FRONT_SIDE) else 30
+        limit = 10 if label in (beyond.RELEASE, beyond.KC1, kc1_model, beyond.FRONT_SIDE) else 30
         status = [CONVERGED] * (n - 1) + [ATTEMPT_LIMIT if attempts[label][-1] == limit else CONVERGED]
         cache.store(push.trials_key(exp, n, 0), "beyond", fake_trials(status, attempts[label], limit))
     computed = studies.compute("beyond", context(tmp_path, "beyond", cache=cache, trials=n))
@@ -268,6 +270,8 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
     fc = computed.results["front_controllers"]
     assert fc[beyond.RELEASE]["mean_attempts_all"] == pytest.approx(4.75)
     assert fc[beyond.KC1]["mean_attempts_all"] == pytest.approx(2.75)
+    assert beyond.kc1_baseline(fc) == computed.results["kc1_baseline"] == beyond.KC1      # 2.75 against 3.0
+    assert computed.results["front_bound"]["kc1_delta0_um"] == 0.0
     assert beyond.front_target(computed.results)[2] is False  # 2 attempts worse, not 0.5 better
     assert fc[beyond.FRONT_SIDE]["mean_attempts_all"] == pytest.approx(1.75)
     assert beyond.front_side_target(computed.results)[2] is True   # 1.75 against 2.75: 1 attempt fewer
@@ -289,6 +293,20 @@ def test_beyond_computes_from_cached_trials_and_judges_its_targets(tmp_path):
             assert row["curve"] is not None and row["curve"] <= row["fewest"] + 5, row
     paths = beyond.draw(computed, context(tmp_path, "beyond", cache=cache, trials=n))
     assert len(paths) == 3 and all(p.read_bytes()[:8] == PNG_MAGIC for p in paths)
+
+
+def test_beyond_states_the_bound_only_where_its_numbers_hold():
+    """The release-model bound sentence: "no member gains" only when the gain is short of the target and no fold's
+    later-attempt success reaches the need; otherwise it says the bound does not rule the target out."""
+    beyond = studies.discover()["beyond"]
+    fb = {"gain_attempts": 0.14, "first_success_best": 0.55, "kc1_mean_attempts": 2.26, "later_success_needed": 0.59,
+          "conditional_release_std_um": 51.5, "eps_um": 75.0, "normal_cap": 0.855,
+          "folds": {"0→1": {"policy_later_success": 0.45}, "1→0": {"policy_later_success": 0.44}}}
+    assert "no member of the family gains" in beyond.bound_sentence(fb) and "44%–45%" in beyond.bound_sentence(fb)
+    fb |= {"gain_attempts": 0.61, "later_success_needed": 0.36}
+    assert "does not rule the target out" in beyond.bound_sentence(fb)
+    fb |= {"gain_attempts": 0.3}       # short of the target, but within the later success's reach
+    assert "does not rule the target out" in beyond.bound_sentence(fb)
 
 
 def test_cheap_studies_draw_nonempty_pngs(cheap_studies, tmp_path):
