@@ -6,19 +6,25 @@ inside the commands, so ``magctl --help`` starts without python-control, scipy o
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import pkgutil
 import sys
+from pathlib import Path
 
 import magctl
 from magctl.cli.common import Parser
-from magctl.core.errors import MagctlError
+from magctl.config import models_dir
+from magctl.core.errors import MagctlError, ParameterError
 
 
 def build_parser() -> Parser:
     parser = Parser(prog="magctl", description="Magnetic micro-robot pushing: analysis, simulation, rig control.")
     parser.add_argument("--version", action="version", version=f"magctl {magctl.__version__}")
+    parser.add_argument("--models", metavar="DIR", default=None,
+                        help="folder of parameter files to use instead of the shipped models/ (as $MAGCTL_MODELS): "
+                             "a copy of it with your rig's values, e.g. one `magctl identify` wrote")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
@@ -38,6 +44,30 @@ def _os_error(err: OSError) -> str:
     return f"{where}{err.strerror or err}"
 
 
+@contextlib.contextmanager
+def _models_folder(folder: str | None):
+    """``--models DIR``: the command reads its parameter files from ``DIR`` (``$MAGCTL_MODELS`` for the command
+    and any process it starts), restored afterwards."""
+    if folder is None:
+        yield
+        return
+    path = Path(folder)
+    if not path.is_dir():
+        raise ParameterError(f"--models {folder}: not a folder of parameter files")
+    if not any(path.glob("*.toml")):
+        raise ParameterError(f"--models {folder}: holds no parameter files (*.toml); start from a copy of "
+                             f"{models_dir()}")
+    old = os.environ.get("MAGCTL_MODELS")
+    os.environ["MAGCTL_MODELS"] = str(path.resolve())
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("MAGCTL_MODELS", None)
+        else:
+            os.environ["MAGCTL_MODELS"] = old
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``magctl``; every failure a user can cause is one line on stderr and a non-zero exit code.
 
@@ -50,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as done:  # --help, --version, or a bad argument (its one line already printed)
         return done.code if isinstance(done.code, int) else 2
     try:
-        code = args.func(args)
+        with _models_folder(args.models):
+            code = args.func(args)
         sys.stdout.flush()
     except SystemExit as done:  # a check made once the command started (parser.error): already printed
         return done.code if isinstance(done.code, int) else 2
