@@ -71,6 +71,21 @@ def nonneg_float(text: str) -> float:
     return _bounded(text, float, "a finite number >= 0", lambda v: v >= 0)
 
 
+def bounded_float(low: float, high: float, what: str):
+    """A type for a finite number in ``[low, high]``: the range that keeps the computation it feeds finite and
+    meaningful (gains, distances, scales), stated in the error (``what`` names the kind of quantity)."""
+    def parse(text: str) -> float:
+        return _bounded(text, float, f"{what} from {low:g} to {high:g}", lambda v: low <= v <= high)
+    return parse
+
+
+def bounded_int(low: int, high: int, what: str):
+    """A type for an integer in ``[low, high]``."""
+    def parse(text: str) -> int:
+        return _bounded(text, int, f"{what} from {low} to {high}", lambda v: low <= v <= high)
+    return parse
+
+
 def existing_file(text: str) -> Path:
     """A path to a file that exists (not a folder)."""
     path = Path(text)

@@ -6,8 +6,13 @@ here call :mod:`magctl.stability.iteration`.
 
 from __future__ import annotations
 
-from magctl.cli.common import add_json, emit, finite_float, positive_float
+from magctl.cli.common import add_json, bounded_float, emit
 from magctl.cli.stability_servo import register_servo
+
+GAIN = bounded_float(-1e3, 1e3, "a learning gain")
+DISTANCE_UM = bounded_float(0.0, 1e4, "a distance in µm on the slide")
+OFFSET_UM = bounded_float(-1e4, 1e4, "a distance in µm on the slide")
+SCALE = bounded_float(1e-3, 1e3, "a scale factor")
 
 
 def register(sub) -> None:
@@ -22,8 +27,8 @@ def register(sub) -> None:
 def _register_front(subparsers) -> None:
     """Add ``front --kc K [--delta0-um D] [--json]`` to the ``magctl stability`` subparsers."""
     p = subparsers.add_parser("front", help="front-push learning loop (eq 13-15): poles, verdict, convergence")
-    p.add_argument("--kc", type=finite_float, required=True, help="learning gain K_c of eq 13")
-    p.add_argument("--delta0-um", type=finite_float, default=0.0, help="initial compensation δ(0) in µm (default 0)")
+    p.add_argument("--kc", type=GAIN, required=True, help="learning gain K_c of eq 13")
+    p.add_argument("--delta0-um", type=OFFSET_UM, default=0.0, help="initial compensation δ(0) in µm (default 0)")
     p.add_argument("--model", choices=["paper", "identified"], default="paper",
                    help="release model: the paper's eq 14 0th-order plant, D_p,r ~ N(300, 75²) µm (paper), or the "
                         "release map identified from the closed loop, models/front_release.toml (identified)")
@@ -34,20 +39,20 @@ def _register_front(subparsers) -> None:
 def _register_side(subparsers) -> None:
     """Add ``side --ks K [--model lin|exp] [--ratio R] [--plant-scale S] [--plant-gap-scale G] [--json]``."""
     p = subparsers.add_parser("side", help="side-push learning loop (eq 16-20, 22-23): poles, verdicts, ranges")
-    p.add_argument("--ks", type=finite_float, required=True, help="learning gain K_s of eq 18")
+    p.add_argument("--ks", type=GAIN, required=True, help="learning gain K_s of eq 18")
     p.add_argument("--model", choices=["lin", "exp"], default="lin", help="controller model: eq 23 (lin) or 22 (exp)")
-    p.add_argument("--ratio", type=positive_float, default=None,
+    p.add_argument("--ratio", type=SCALE, default=None,
                    help="model ratio rho of the linear analyses (default: the plant scale when the model is exp "
                         "and the plant eq 22 scaled, else 1)")
-    p.add_argument("--min-gap-um", type=positive_float, default=None,
+    p.add_argument("--min-gap-um", type=DISTANCE_UM, default=None,
                    help="minimum gap bound in µm (default: models/push.toml, 370 µm)")
-    p.add_argument("--goal-um", type=positive_float, default=None,
+    p.add_argument("--goal-um", type=DISTANCE_UM, default=None,
                    help="initial goal distance in µm (default: models/push.toml, 300 µm)")
     p.add_argument("--plant", choices=["exp", "fluid"], default="exp",
                    help="actual F_act: eq 22 (exp) or the fluid model's side-push curve (fluid, a few seconds)")
-    p.add_argument("--plant-scale", type=positive_float, default=1.0,
+    p.add_argument("--plant-scale", type=SCALE, default=1.0,
                    help="multiply the plant's displacements (eq 22 scaled: a mismatched plant; default 1)")
-    p.add_argument("--plant-gap-scale", type=positive_float, default=1.0,
+    p.add_argument("--plant-gap-scale", type=SCALE, default=1.0,
                    help="stretch the plant's gap axis (a curve decaying this many times more slowly; default 1)")
     add_json(p)
     p.set_defaults(func=cmd_side)

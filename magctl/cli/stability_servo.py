@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
-from magctl.cli.common import add_json, emit, nonneg_float, nonneg_int, positive_float
+from magctl.cli.common import add_json, bounded_float, bounded_int, emit
+
+KP = bounded_float(1e-6, 1e3, "a gain in 1/s")
+KI = bounded_float(0.0, 1e4, "a gain in 1/s²")
+DELAY = bounded_int(0, 300, "a latency in frames (10 s at 30 Hz)")
+STEP_UM = bounded_float(1e-3, 1e4, "a step in µm")
 
 
 def register_servo(subparsers) -> None:
@@ -20,11 +25,11 @@ def register_servo(subparsers) -> None:
     p = subparsers.add_parser("servo", help="PI visual-servo loop: poles, margins, overshoot (linear vs simulated)")
     p.add_argument("--setting", default=None, choices=settings,
                    help="parameter set from models/servo.toml (default: its [choice] default)")
-    p.add_argument("--kp", type=positive_float, default=None, help="proportional gain, 1/s (overrides the setting)")
-    p.add_argument("--ki", type=nonneg_float, default=None, help="integral gain, 1/s² (overrides the setting)")
-    p.add_argument("--delay-frames", type=nonneg_int, default=None,
+    p.add_argument("--kp", type=KP, default=None, help="proportional gain, 1/s (overrides the setting)")
+    p.add_argument("--ki", type=KI, default=None, help="integral gain, 1/s² (overrides the setting)")
+    p.add_argument("--delay-frames", type=DELAY, default=None,
                    help="camera latency in frames (default: camera.toml)")
-    p.add_argument("--step-um", type=positive_float, default=1000.0,
+    p.add_argument("--step-um", type=STEP_UM, default=1000.0,
                    help="target step for the overshoot, µm (default 1000)")
     add_json(p)
     p.set_defaults(func=cmd_servo)
