@@ -121,6 +121,9 @@ def _parse_table(where: str, table: dict[str, Any]) -> Params:
             raise ParameterError(f"{loc}: missing 'source' (the paper with section, a datasheet, or 'assumed: why')")
         name, suffix = split_unit(key)
         value = entry["value"]
+        if isinstance(value, (str, bool)) and suffix is not None:
+            raise ParameterError(f"{loc}: value {value!r} is not a number, and the key's unit suffix _{suffix} "
+                                 "says it is one")
         if isinstance(value, (str, bool)):
             values[name] = value
             units[name] = ""
@@ -171,6 +174,17 @@ RULES: dict[str, dict[str, tuple]] = {
         "physics.release_scatter_ratio": ("number", 0.0, 1.0, False),
         "standin.*_um": ("number", _POS, 1e6, False),
         "standin.*_mm": ("number", _POS, 1e4, False),
+    },
+    "camera.toml": {
+        "camera.pixel_size_um": ("number", _POS, 1e3, True),
+        "camera.width_px": ("integer", 1, 100000, True),
+        "camera.height_px": ("integer", 1, 100000, True),
+        "camera.latency_frames": ("integer", 0, 300, True),
+        "camera.position_noise_px": ("number", 0.0, 1e3, True),
+        "camera.heading_noise_deg": ("number", 0.0, 180.0, True),
+        "camera.drop_probability_ratio": ("number", 0.0, 1.0, True),
+        "tracker.max_coast_frames": ("integer", 0, 300, False),
+        "tracker.particles_count": ("integer", 1, 10**6, False),
     },
 }
 

@@ -31,6 +31,8 @@ def test_units_converted_and_sources_kept(tmp_path):
         ('[s]\nradius = { value = 105, source = "x" }\n', r"s\.radius: numeric parameter needs a unit suffix"),
         ('[s]\nradius_um = { value = "abc", source = "x", colour = 1 }\n', r"unknown fields \['colour'\]"),
         ('[s]\nradius_um = { value = [1, "a"], source = "x" }\n', r"is not a number"),
+        ('[paper]\nkp_per_s = { value = "fast", source = "x" }\n', r"paper\.kp_per_s: value 'fast' is not a number"),
+        ('[s]\nradius_um = { value = true, source = "x" }\n', r"s\.radius_um: value True is not a number"),
         ('[s\nradius_um = 1', r"not valid TOML"),
     ],
 )
@@ -45,3 +47,17 @@ def test_missing_file_and_missing_parameter(tmp_path):
     p = load_file(write(tmp_path, '[s]\nradius_um = { value = 1, source = "x" }\n'))
     with pytest.raises(ParameterError, match=r"no parameter 'mass'"):
         _ = p.s.mass
+
+
+def test_camera_file_ranges_name_file_and_key(tmp_path):
+    """camera.toml is range-checked like rig.toml: a negative latency names the file, the key and the range."""
+    from magctl.config import models_dir
+
+    text = (models_dir() / "camera.toml").read_text()
+    bad = tmp_path / "camera.toml"
+    bad.write_text(text.replace("latency_frames = { value = 2,", "latency_frames = { value = -2,"))
+    with pytest.raises(ParameterError, match=r"camera\.toml: camera\.latency_frames = -2 is out of range"):
+        load_file(bad)
+    bad.write_text(text.replace("drop_probability_ratio = { value = 0.0,", "drop_probability_ratio = { value = 1.5,"))
+    with pytest.raises(ParameterError, match="drop_probability_ratio"):
+        load_file(bad)
