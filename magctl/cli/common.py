@@ -147,6 +147,19 @@ def output_file(text: str) -> Path:
     return path
 
 
+def rig_address(text: str) -> str:
+    """``sim`` or a ZeroMQ TCP endpoint ``tcp://HOST:PORT`` with a port from 1 to 65535 (its form only; the
+    client reaches it)."""
+    if text == "sim":
+        return text
+    host, sep, port = text.removeprefix("tcp://").rpartition(":")
+    if not text.startswith("tcp://") or not sep or not host:
+        raise argparse.ArgumentTypeError(f"must be 'sim' or tcp://HOST:PORT, got {text!r}")
+    if not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise argparse.ArgumentTypeError(f"port must be an integer from 1 to 65535, got {port!r} in {text!r}")
+    return text
+
+
 def scheduler_address(text: str) -> str:
     """``serial``, ``processes`` or a Dask address (its form only; :func:`contact_scheduler` reaches it)."""
     from magctl.sweep import SchedulerError, executor_kind

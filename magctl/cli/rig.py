@@ -16,6 +16,7 @@ from magctl.cli.common import (
     output_file,
     positive_float,
     positive_int,
+    rig_address,
     seed,
 )
 from magctl.core.errors import MagctlError
@@ -59,8 +60,8 @@ def register(sub) -> None:
     k.set_defaults(func=cmd_keys)
 
     r = rs.add_parser("run", help="run a task on a rig at 30 Hz")
-    r.add_argument("--rig", required=True, help="rig server address (tcp://HOST:PORT) or 'sim' for an in-process "
-                                                 "simulated rig")
+    r.add_argument("--rig", required=True, type=rig_address,
+                   help="rig server address (tcp://HOST:PORT) or 'sim' for an in-process simulated rig")
     r.add_argument("--task", required=True, help="task name: goto, front-push, side-push, assemble, patrol")
     r.add_argument("--target-um", type=finite_float, nargs=2, metavar=("X", "Y"), help="goto: target position in µm")
     r.add_argument("--goal-um", type=finite_float, nargs=2, metavar=("X", "Y"),

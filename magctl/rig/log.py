@@ -404,6 +404,9 @@ def read_log(path) -> RunLog:
         else:
             raise LogError(f"{path}:{i}: unknown document kind {kind!r}")
     if log.start is None:
+        if torn:
+            raise LogError(f"{path}:1: the start document is torn (the run stopped while writing its first line): "
+                           "nothing to read")
         raise LogError(f"{path}: empty run log")
     log.torn_tail = torn
     return log

@@ -319,6 +319,9 @@ def discover() -> dict[str, ModuleType]:
         if missing:
             raise MagctlError(f"study {name!r} ({path.name}) does not define {', '.join(missing)}")
         found[name] = module
+    if not found:
+        raise MagctlError(f"study folder {folder} holds no studies (modules defining NAME, compute, draw and "
+                          "summarise); point MAGCTL_STUDIES at a folder of studies, or unset it for the shipped ones")
     return dict(sorted(found.items(), key=lambda kv: (getattr(kv[1], "ORDER", 100), kv[0])))
 
 

@@ -53,7 +53,9 @@ def files(tmp_path):
     log.write_text('{"kind": "start"}\n')
     folder = tmp_path / "folder"
     folder.mkdir()
-    return {"plain": plain, "log": log, "folder": folder, "tmp": tmp_path}
+    torn = tmp_path / "torn.jsonl"
+    torn.write_text('{"doc": "start", "format": "magctl-ru')
+    return {"plain": plain, "log": log, "folder": folder, "tmp": tmp_path, "torn": torn}
 
 
 # (case id, argv with {plain}/{log}/{folder}/{tmp}/{port} placeholders, what the one line must name)
@@ -86,6 +88,11 @@ CASES = [
     ("rig-unknown-task", ["rig", "run", "--rig", "sim", "--task", "dance"], "--task"),
     ("rig-log-in-missing-folder", ["rig", "run", "--rig", "sim", "--task", "goto", "--target-um", "0", "0",
                                    "--log", "/nonexistent/run.jsonl"], "--log"),
+    ("rig-port-out-of-range", ["rig", "run", "--rig", "tcp://127.0.0.1:99999", "--task", "goto", "--target-um", "0",
+                               "0"], "--rig"),
+    ("rig-address-without-scheme", ["rig", "run", "--rig", "127.0.0.1:5555", "--task", "goto", "--target-um", "0",
+                                    "0"], "--rig"),
+    ("log-torn-start", ["log", "show", "{torn}"], "start document is torn"),
     ("bench-unknown", ["bench", "--only", "nosuch"], "--only"),
     ("seed-negative", ["study", "side-push", "--seed", "-1"], "--seed"),
     ("seed-not-an-integer", ["rig", "run", "--rig", "sim", "--task", "goto", "--target-um", "0", "0",
@@ -161,3 +168,13 @@ def test_os_errors_and_magctl_errors_are_one_line(monkeypatch, capsys):
     monkeypatch.setattr(stability, "cmd_front", two_lines)
     assert main(["stability", "front", "--kc", "1"]) == 2
     assert capsys.readouterr().err == "magctl: error: first line second line\n"
+
+
+def test_an_empty_study_folder_is_one_line(tmp_path):
+    """$MAGCTL_STUDIES pointing at a folder without studies: not an empty list and exit 0, but one line."""
+    empty = tmp_path / "studies"
+    empty.mkdir()
+    done = subprocess.run([sys.executable, "-m", "magctl", "study", "--list"], cwd=tmp_path,
+                          env=_env() | {"MAGCTL_STUDIES": str(empty)}, capture_output=True, text=True, timeout=120)
+    line = _assert_one_line(done, str(empty))
+    assert "no studies" in line and done.stdout == ""
