@@ -36,7 +36,7 @@ from magctl.core.compiled import NotCompilable
 from magctl.core.errors import MagctlError
 from magctl.rig.interface import Lifecycle, Observation, Rig, RigError
 from magctl.rig.log import RunLogWriter, descriptor_fields, limits_to_doc, models_snapshot
-from magctl.rig.tasks import Controller, Task, build_task
+from magctl.rig.tasks import Controller, Task, build_task, check_options
 
 
 @dataclass
@@ -170,6 +170,7 @@ class Runtime:
     # --- run ------------------------------------------------------------------------------------
     def run(self) -> RunReport:
         rig = self.rig
+        check_options(self.task_name, self.options)      # before any coil is activated
         if rig.state is Lifecycle.UNCONFIGURED:
             rig.configure()
         self._prepare_engine()

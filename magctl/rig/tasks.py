@@ -45,6 +45,7 @@ from magctl.core.errors import MagctlError
 from magctl.core.simulation import ENGINES
 from magctl.loops import COMMAND, OBSERVATION, controller, default_goal, sphere_count
 from magctl.rig.interface import Command, Observation
+from magctl.sensing.camera import field_of_view
 
 OBS_SIGNALS = OBSERVATION
 COMMAND_SIGNALS = COMMAND
@@ -280,10 +281,36 @@ def _logged(values: dict[str, Any], spec: dict) -> dict[str, Any]:
     return out
 
 
+def check_in_field(task: str, points: dict[str, Any]) -> None:
+    """Refuse a task whose target, goal or waypoints lie outside the camera's field of view (``models/camera.toml``):
+    the robot would be driven out of sight, or told to push a sphere where it cannot be tracked."""
+    w, h = field_of_view()
+    for name, p in points.items():
+        if p is None:
+            continue
+        p = np.atleast_2d(np.asarray(p, dtype=float))
+        out = (p[:, 0] < 0) | (p[:, 0] > w) | (p[:, 1] < 0) | (p[:, 1] > h)
+        if out.any():
+            where = ", ".join(f"({x * 1e6:.6g}, {y * 1e6:.6g})" for x, y in p[out])
+            raise TaskError(f"{task}: {name} {where} µm lies outside the camera's field of view "
+                            f"[0, {w * 1e6:.0f}] × [0, {h * 1e6:.0f}] µm")
+
+
+def check_options(task: str, options: dict) -> None:
+    """What can be checked of a task's options before the rig is activated: each option resolves, and a given
+    target, goal or origin lies inside the camera's field of view."""
+    if task not in _REGISTRY:
+        raise TaskError(f"unknown task {task!r}; available: {', '.join(available_tasks())}")
+    given = resolve_options(task, options)
+    check_in_field(task, {k: given[k] for k in ("target", "goal", "origin") if k in given})
+
+
 def _resolved(task: str, options: dict) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(controller keyword values, logged options): defaults filled in, every option checked."""
+    """(controller keyword values, logged options): defaults filled in, every option checked, and the points it
+    names inside the camera's field of view."""
     spec = task_options(task)
     given = resolve_options(task, options)
+    check_in_field(task, {k: given[k] for k in ("target", "goal", "origin") if k in given})
     values = {name: given.get(name, default) for name, (default, _unit) in spec.items()}
     if values["speed_max"] is None:
         values["speed_max"] = servo_params(values["servo"]).speed_max
@@ -327,6 +354,7 @@ def _patrol(first_obs: Observation, options: dict, params: Params) -> Task:
         origin = np.asarray(first_obs.robot_est, dtype=float)
         logged["origin_m"] = origin.tolist()
     square = origin + side * np.array([[0.0, 1.0], [-1.0, 1.0], [-1.0, 0.0], [0.0, 0.0]])
+    check_in_field("patrol", {"waypoint": square})
     return Task("patrol", _build("patrol", values, 0, waypoints=square), logged,
                 outcomes={})
 
@@ -337,6 +365,7 @@ def _push(task: str, first_obs: Observation, options: dict) -> Task:
     if "goal" in values and values["goal"] is None:
         values["goal"] = default_goal(task, first_obs.robot_est, first_obs.spheres_est)
         logged["goal_m"] = values["goal"].tolist()
+        check_in_field(task, {"default goal": values["goal"]})
     return Task(task, _build(task, values, n), logged, dict(PUSH_OUTCOMES))
 
 

@@ -46,6 +46,13 @@ def camera_params() -> Params:
     return load_model("camera")
 
 
+def field_of_view(params: Params | None = None) -> tuple[float, float]:
+    """Width and height [m] of the camera's field of view from ``models/camera.toml``: the pixel centres span
+    ``[0, (W−1)·s] × [0, (H−1)·s]`` (as :attr:`Camera.field_of_view` of a camera built from that file)."""
+    c = (params if params is not None else camera_params()).camera
+    return (int(c.width) - 1) * c.pixel_size, (int(c.height) - 1) * c.pixel_size
+
+
 # --- rendering --------------------------------------------------------------------------------
 def _box_sdf(px, py, half_l, half_w):
     qx, qy = np.abs(px) - half_l, np.abs(py) - half_w

@@ -93,6 +93,11 @@ CASES = [
     ("rig-address-without-scheme", ["rig", "run", "--rig", "127.0.0.1:5555", "--task", "goto", "--target-um", "0",
                                     "0"], "--rig"),
     ("log-torn-start", ["log", "show", "{torn}"], "start document is torn"),
+    # outside the camera's field of view: refused before the rig is activated
+    ("goto-target-off-camera", ["rig", "run", "--rig", "sim", "--task", "goto", "--target-um", "1e9", "1e9"],
+     "outside the camera's field of view"),
+    ("push-goal-off-camera", ["rig", "run", "--rig", "sim", "--task", "front-push", "--goal-um", "6000", "100"],
+     "outside the camera's field of view"),
     ("bench-unknown", ["bench", "--only", "nosuch"], "--only"),
     ("seed-negative", ["study", "side-push", "--seed", "-1"], "--seed"),
     ("seed-not-an-integer", ["rig", "run", "--rig", "sim", "--task", "goto", "--target-um", "0", "0",

@@ -175,18 +175,21 @@ def test_signals_stop_the_run_safely_and_the_server_sees_the_coils_zeroed(start_
     assert st["state"] == "inactive" and st["coils_zero"] and st["watchdog_trips"] == 0
 
 
-@pytest.mark.parametrize("task, n_spheres, options, words", [
-    ("assemble", 1, {}, "needs at least 2 tracked sphere"),
-    ("front-push", 0, {}, "needs at least 1 tracked sphere"),
-    ("front-push", 1, {"goal_um": [1.0, "x"]}, "goal_um must be two finite numbers"),
-    ("goto", 0, {"speed_max_um_s": -5}, "speed_max_um_s must be positive"),
-    ("side-push", 1, {"model": "quadratic"}, "side-push"),
+@pytest.mark.parametrize("task, n_spheres, options, words, state", [
+    ("assemble", 1, {}, "needs at least 2 tracked sphere", "inactive"),
+    ("front-push", 0, {}, "needs at least 1 tracked sphere", "inactive"),
+    ("front-push", 1, {"goal_um": [1.0, "x"]}, "goal_um must be two finite numbers", "unconfigured"),
+    ("goto", 0, {"speed_max_um_s": -5}, "speed_max_um_s must be positive", "unconfigured"),
+    ("side-push", 1, {"model": "quadratic"}, "side-push", "unconfigured"),
+    ("goto", 0, {"target_um": [1e9, 1e9]}, "outside the camera's field of view", "unconfigured"),
 ])
-def test_bad_task_options_are_named(task, n_spheres, options, words):
+def test_bad_task_options_are_named(task, n_spheres, options, words, state):
+    """A bad option is refused before the rig is configured (nothing touched); what needs the first observation
+    (the tracked spheres) after activation, with the rig deactivated again."""
     rig = SimRig(n_spheres=n_spheres)
     with pytest.raises(TaskError, match=words):
         Runtime(rig, task, options, realtime=False, quiet=True).run()
-    assert rig.state.value == "inactive"
+    assert rig.state.value == state
 
 
 def test_front_push_needs_the_learning_law_on_the_sim_rig():

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
@@ -154,16 +153,16 @@ def test_server_enforces_current_limits_whatever_the_client_sends(start_server, 
 
 def test_killing_the_server_stops_the_client_with_a_clear_error(start_server):
     srv = start_server("--lockstep", "--plant", "standin")
-    rig = RigClient(srv.address, timeout=0.3)
+    # a timeout long enough for a loaded machine to answer the set-up; after the kill the read ends on it, not
+    # in a hang
+    rig = RigClient(srv.address, timeout=2.0)
     rig.configure()
     rig.activate()
     rig.write(Command(np.array([3e-3, 0.0]), 3e-3, 50.0))
     rig.read()
     srv.kill()
-    t0 = time.monotonic()
-    with pytest.raises(RigConnectionError, match="did not answer"):
+    with pytest.raises(RigConnectionError, match="did not answer 'read' within 2000 ms"):
         rig.read()
-    assert time.monotonic() - t0 < 3.0   # the client's 0.3 s timeout, not a hang (loose: a loaded machine)
     # the client could not zero the coils itself: it says so and refuses to go on
     assert rig.state is Lifecycle.ERROR and "zeroing" in rig.last_error
     with pytest.raises(RigError):
