@@ -13,7 +13,8 @@ import numpy as np
 
 from magctl import FRAME_PERIOD_S
 from magctl.core.block import Block, StateVar, as_batch
-from magctl.core.errors import WiringError
+from magctl.core.checks import check_finite, check_positive
+from magctl.core.errors import MagctlError, WiringError
 from magctl.core.kernel import Kernel
 from magctl.core.ports import DIMENSIONLESS, Port
 
@@ -76,6 +77,8 @@ class Gain(Block):
     def __init__(self, name: str, k, *, shape=(), in_unit: str = DIMENSIONLESS, out_unit: str | None = None,
                  dt: float = FRAME_PERIOD_S):
         self.k = np.asarray(k, dtype=float)
+        if not np.all(np.isfinite(self.k)):
+            raise MagctlError(f"Gain {name!r}: k={k!r} must be finite")
         shape = tuple(shape)
         if self.k.ndim == 0:
             out_shape = shape
@@ -222,8 +225,8 @@ class PI(Block):
     def __init__(self, name: str, kp: float, ki: float, *, shape=(), limit: float | None = None,
                  norm: bool = True, saturate: bool = True, in_unit: str = DIMENSIONLESS,
                  out_unit: str = DIMENSIONLESS, dt: float = FRAME_PERIOD_S):
-        self.kp, self.ki = float(kp), float(ki)
-        self.limit = None if limit is None else float(limit)
+        self.kp, self.ki = check_finite(f"PI {name!r}: kp", kp), check_finite(f"PI {name!r}: ki", ki)
+        self.limit = None if limit is None else check_positive(f"PI {name!r}: limit", limit)
         self.norm = bool(norm) and len(tuple(shape)) > 0
         self.saturate = bool(saturate)
         super().__init__(

@@ -31,12 +31,19 @@ def block_key(path: str) -> int:
     return zlib.crc32(path.encode())
 
 
+def check_seed(seed) -> int:
+    """A root seed: a whole number in ``[0, 2**64)`` (a float only when whole), or a :class:`MagctlError`."""
+    whole = (isinstance(seed, (int, np.integer)) and not isinstance(seed, bool)) or (
+        isinstance(seed, (float, np.floating)) and np.isfinite(seed) and float(seed).is_integer())
+    if not whole or not 0 <= int(seed) < _U64:
+        raise MagctlError(f"seed {seed!r} must be an integer in [0, 2**64)")
+    return int(seed)
+
+
 def stream_keys(seed: int, trials: Sequence[int], block: int, on: bool = True) -> np.ndarray:
     """The key rows ``(k0, k1, trial, block, on)`` (``uint64``, :mod:`magctl.core.philox`) of the given
     global trials of one block's streams."""
-    seed = int(seed)
-    if seed < 0 or seed >= _U64:
-        raise MagctlError(f"seed {seed} must be an integer in [0, 2**64)")
+    seed = check_seed(seed)
     trials = np.asarray(list(trials), dtype=np.int64).reshape(-1)
     if trials.size and (trials.min() < 0 or trials.max() >= 1 << 32):
         raise MagctlError("trial indices must lie in [0, 2**32)")

@@ -21,7 +21,8 @@ import numpy as np
 
 from magctl.core.block import as_batch
 from magctl.core.diagram import Diagram
-from magctl.core.errors import NonFiniteSignalError, WiringError
+from magctl.core.errors import NonFiniteSignalError, ParameterError, WiringError
+from magctl.core.random import check_seed
 
 ENGINES = ("interpreted", "compiled", "auto")
 
@@ -177,6 +178,16 @@ def _external_values(diagram: Diagram, inputs: Mapping | None, batch: int, steps
     return values
 
 
+def _count(name: str, value, low: int) -> int:
+    """A whole number ``>= low`` (steps, trials; a float only when whole): refused with its name otherwise, never
+    truncated."""
+    whole = (isinstance(value, (int, np.integer)) and not isinstance(value, bool)) or (
+        isinstance(value, (float, np.floating)) and np.isfinite(value) and float(value).is_integer())
+    if not whole or value < low:
+        raise ParameterError(f"simulate: {name} must be a whole number >= {low}, got {value!r}")
+    return int(value)
+
+
 def simulate(
     diagram: Diagram,
     steps: int,
@@ -228,7 +239,10 @@ def simulate(
     if engine not in ENGINES:
         raise ValueError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
     sched = diagram.schedule
-    steps = int(steps)
+    steps = _count("steps", steps, 0)
+    batch = _count("batch", batch, 1)
+    if seed is not None:
+        seed = check_seed(seed)
     trials = list(range(batch)) if trials is None else list(trials)
     if len(trials) != batch:
         raise ValueError(f"got {len(trials)} trial indices for a batch of {batch}")

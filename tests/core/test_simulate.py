@@ -278,3 +278,32 @@ def test_simulate_and_diagram_step_run_the_same_schedule():
             assert np.array_equal(outs[name], res[name][:, k]), (name, k)
             assert np.array_equal(y[name], outs[name]), (name, k)
     assert st["tick"] == res.final_state["tick"] == 40
+
+
+@pytest.mark.parametrize("steps, batch, seed, words", [
+    (-5, 1, 0, "steps must be a whole number >= 0, got -5"),
+    (2.5, 1, 0, "steps must be a whole number >= 0, got 2.5"),
+    (10, 0, 0, "batch must be a whole number >= 1, got 0"),
+    (10, True, 0, "batch must be a whole number >= 1, got True"),
+    (10, 1, -1, "seed -1"),
+])
+def test_simulate_refuses_counts_it_cannot_run(steps, batch, seed, words):
+    """A negative or fractional step count, an empty batch or a negative seed: one error naming it, not a run of a
+    truncated length or a numpy IndexError."""
+    from magctl.core import MagctlError
+
+    d = Diagram("c", [Constant("c", 1.0), Gain("g", 2.0)], [("c.y", "g.u")], outputs={"y": "g.y"})
+    with pytest.raises(MagctlError, match=words.replace("(", r"\(")):
+        simulate(d, steps, batch=batch, seed=seed)
+    assert simulate(d, np.float64(4.0), batch=2)["y"].shape == (2, 4)      # a whole float is a count
+
+
+def test_core_blocks_refuse_non_finite_gains():
+    from magctl.core import PI, MagctlError
+
+    for make, words in ((lambda: PI("c", kp=np.nan, ki=1.0), "kp=nan must be finite"),
+                        (lambda: PI("c", kp=1.0, ki=np.inf), "ki=inf must be finite"),
+                        (lambda: PI("c", 1.0, 1.0, limit=-1.0), "limit=-1.0 must be positive"),
+                        (lambda: Gain("g", [1.0, np.nan]), "must be finite")):
+        with pytest.raises(MagctlError, match=words):
+            make()
