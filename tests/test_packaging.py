@@ -65,6 +65,16 @@ def test_version_is_the_newest_changelog_release_and_there_is_a_license():
     assert PYPROJECT["project"]["license"] == {"text": "MIT"}
 
 
+def test_the_package_says_it_is_typed_and_classifies_itself():
+    """PEP 561's marker sits in the package (the wheel check finds it in the wheel), and the classifiers name the
+    licence and the Python versions the project requires."""
+    assert (ROOT / "magctl" / "py.typed").is_file()
+    classifiers = PYPROJECT["project"]["classifiers"]
+    assert "Typing :: Typed" in classifiers and "License :: OSI Approved :: MIT License" in classifiers
+    low = PYPROJECT["project"]["requires-python"].removeprefix(">=")
+    assert f"Programming Language :: Python :: {low}" in classifiers
+
+
 def test_the_wheel_carries_models_and_analysis_as_package_data():
     include = PYPROJECT["tool"]["hatch"]["build"]["targets"]["wheel"]["force-include"]
     assert include == {"models": "magctl/_data/models", "analysis": "magctl/_data/analysis"}

@@ -48,6 +48,8 @@ class SimResult:
         The diagram's exported inputs as applied, each ``(B, T, *port.shape)``.
     name : str
         Name of the simulated diagram.
+    units : dict of str to str
+        Unit of each exported output and input port (``"m"``, ``"m/s"`` …).
 
     Notes
     -----
@@ -63,6 +65,7 @@ class SimResult:
     trials: list[int] = field(default_factory=list, repr=False)
     inputs: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     name: str = ""
+    units: dict[str, str] = field(default_factory=dict, repr=False)
 
     def __repr__(self) -> str:
         b = len(self.trials) if self.trials else (next(iter(self.outputs.values())).shape[0] if self.outputs else 0)
@@ -124,7 +127,9 @@ class SimResult:
         trace_labels = [f"trial {k}" for k in self.trials] if multi and self.trials else None
         return control.TimeResponseData(
             self.t, y, inputs=u, output_labels=out_labels, input_labels=in_labels or None, multi_trace=multi,
-            trace_labels=trace_labels, sysname=self.name or None, plot_inputs=u is not None)
+            trace_labels=trace_labels, trace_types=["forced"] * y.shape[1] if multi else None,
+            sysname=self.name or None, plot_inputs=u is not None,
+            issiso=y.shape[0] == 1 and (u is None or u.shape[0] == 1))
 
     def to_xarray(self, signals: bool = False):
         """The outputs (and, with ``signals=True``, every recorded signal) as an ``xarray.Dataset``.
@@ -144,8 +149,38 @@ class SimResult:
         data = {}
         for name, arr in arrays.items():
             dims = ("trial", "time", *(f"{name}_dim{d}" for d in range(arr.ndim - 2)))
-            data[name] = xr.DataArray(arr, dims=dims)
-        return xr.Dataset(data, coords={"trial": trials, "time": self.t}, attrs={"diagram": self.name})
+            # a last axis of two is a vector in the plane of the slide: label its components
+            coords = {dims[-1]: ["x", "y"]} if arr.ndim > 2 and arr.shape[-1] == 2 else None
+            attrs = {"units": self.units[name]} if name in self.units else {}
+            data[name] = xr.DataArray(arr, dims=dims, coords=coords, attrs=attrs)
+        ds = xr.Dataset(data, coords={"trial": trials, "time": self.t}, attrs={"diagram": self.name})
+        ds["time"].attrs["units"] = "s"
+        return ds
+
+    def plot(self, names=None, trial: int | None = None):
+        """The exported outputs against time: one panel per real-valued channel (``name`` or ``name[i]``, with its
+        unit), one line per trial (``trial`` to draw one row of the batch). Returns the matplotlib ``Figure``."""
+        import matplotlib.pyplot as plt
+
+        outs = {k: v for k, v in self.outputs.items() if names is None or k in names}
+        if trial is not None:
+            outs = {k: v[[int(trial)]] for k, v in outs.items()}
+        labels, y = self._channels(outs)
+        if y is None:
+            raise ValueError(f"simulation of {self.name!r} has no real-valued output to plot")
+        fig, axes = plt.subplots(len(labels), 1, sharex=True, squeeze=False, figsize=(6.4, 1.2 + 1.6 * len(labels)))
+        rows = self.trials or list(range(y.shape[1]))
+        for ax, label, data in zip(axes[:, 0], labels, y, strict=True):
+            unit = self.units.get(label.split("[")[0], "")
+            for k, trace in enumerate(data):
+                ax.plot(self.t, trace, lw=1, label=f"trial {rows[k] if trial is None else trial}")
+            ax.set_ylabel(f"{label} ({unit})" if unit and unit != "1" else label)
+            ax.grid(alpha=0.3)
+        axes[-1, 0].set_xlabel("time (s)")
+        axes[0, 0].set_title(self.name or "simulation", fontsize=10)
+        if y.shape[1] <= 8:
+            axes[0, 0].legend(fontsize=7)
+        return fig
 
     def __getitem__(self, name: str) -> np.ndarray:
         if name in self.outputs:
@@ -306,7 +341,8 @@ def _result(diagram, buffers, steps, tick0, final, trials, inputs=None) -> SimRe
     t = (tick0 + np.arange(steps)) * diagram.dt
     outputs = {name: buffers[f"{sched.leaves[i].path}.{p}"] for name, (i, p) in sched.outputs.items()}
     applied = {k: v[:, :steps] for k, v in (inputs or {}).items()}
-    return SimResult(t, buffers, outputs, final, list(trials), applied, diagram.name)
+    units = {name: p.unit for name, p in (diagram.inputs | diagram.outputs).items()}
+    return SimResult(t, buffers, outputs, final, list(trials), applied, diagram.name, units)
 
 
 def _check_finite(sched, rec_plan, k0, k1, tick0, diagram, buffers, trials, leaf_states, held):

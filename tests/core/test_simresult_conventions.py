@@ -55,11 +55,41 @@ def test_to_control_is_python_controls_axis_order_and_its_own_simulation(run):
         res.to_control(trial=3)
 
 
+def test_to_control_plots_in_python_control(run):
+    """python-control draws the converted response: one line per channel and trace, carrying the data."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    res, _ = run
+    cplt = res.to_control().plot()
+    assert cplt.lines.shape == (4, 3)      # rows: position[0], position[1], target[0], target[1]; a column a trial
+    np.testing.assert_array_equal(cplt.lines[1, 2][0].get_ydata(), res.outputs["position"][2, :, 1])
+    one = res.to_control(trial=1).plot()
+    np.testing.assert_array_equal(one.lines[0, 0][0].get_ydata(), res.outputs["position"][1, :, 0])
+
+
+def test_plot_draws_each_channel_with_its_unit(run):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    res, _ = run
+    fig = res.plot()
+    axes = fig.axes
+    assert [ax.get_ylabel() for ax in axes] == ["position[0] (m)", "position[1] (m)"]   # the flag is not drawn
+    assert axes[-1].get_xlabel() == "time (s)" and len(axes[0].lines) == 3
+    np.testing.assert_array_equal(axes[1].lines[2].get_ydata(), res.outputs["position"][2, :, 1])
+    assert len(res.plot(trial=0).axes[0].lines) == 1
+
+
 def test_to_xarray_labels_trials_time_and_port_axes(run):
     pytest.importorskip("xarray")
     res, _ = run
     ds = res.to_xarray()
     assert ds["position"].dims == ("trial", "time", "position_dim0")
+    assert list(ds["position_dim0"].values) == ["x", "y"]          # a vector in the plane of the slide
+    assert ds["position"].attrs["units"] == "m" and ds["time"].attrs["units"] == "s"
+    np.testing.assert_array_equal(ds["position"].sel(position_dim0="y", trial=2).values,
+                                  res.outputs["position"][2, :, 1])
     assert list(ds["trial"].values) == [0, 1, 2]
     np.testing.assert_array_equal(ds["time"].values, res.t)
     np.testing.assert_array_equal(ds["position"].sel(trial=1).values, res.outputs["position"][1])
