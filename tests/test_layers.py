@@ -83,6 +83,65 @@ def upward_imports(path: Path, layers: list[str], here: str | None = None) -> li
             if mod != "magctl" and layer_of(mod, layers) > mine]
 
 
+def allowed_layers() -> dict[str, set[str]]:
+    """Each layer's "what it may use" column of docs/architecture.md, read as layer names: a layer it names
+    (``plant models`` is plant), ``X and below`` (X and every layer under it), ``everything above`` /
+    ``everything`` (every layer under it); third-party names are not layers and are skipped. A layer may always
+    use itself."""
+    text = ARCHITECTURE.read_text(encoding="utf-8")
+    section = text.split("## Layers", 1)[1].split("\n## ", 1)[0]
+    rows = re.findall(r"^\|\s*(\d+)\s*\|\s*`([\w./]+)`\s*\|([^|]*)\|", section, flags=re.M)
+    layers = layer_order()
+    out = {}
+    for _, name, uses in rows:
+        me = name.rstrip("/").removesuffix(".py")
+        below = set(layers[: layers.index(me)])
+        allowed = {me}
+        for item in (part.strip() for part in uses.split(",")):
+            words = re.sub(r"\(.*?\)", "", item).split()
+            if not words:
+                continue
+            if words[0] == "everything":
+                allowed |= below
+            elif item.endswith("and below"):
+                allowed |= set(layers[: layers.index(words[0]) + 1])
+            elif words[0] in layers:
+                allowed.add(words[0])
+        out[me] = allowed
+    return out
+
+
+def forbidden_imports(path: Path, layers: list[str], allowed: dict[str, set[str]], here: str | None = None):
+    me = here or module_name(path)
+    mine = layer_of(me, layers)
+    if mine < 0 or mine >= len(layers):
+        return []
+    ok = allowed[layers[mine]]
+    return [f"{path.name}:{line} ({me}) imports {mod}" for line, mod in imports_of(path, me)
+            if mod != "magctl" and 0 <= layer_of(mod, layers) < len(layers) and layers[layer_of(mod, layers)] not in ok]
+
+
+def test_every_import_is_one_the_table_allows():
+    """The "what it may use" column, not only the order: sweep uses core only, rig uses loops and below, …"""
+    layers, allowed = layer_order(), allowed_layers()
+    found = [line for path in sorted(PACKAGE.rglob("*.py")) for line in forbidden_imports(path, layers, allowed)]
+    assert found == []
+
+
+def test_the_may_use_column_is_read_and_enforced(tmp_path):
+    """rig → stability is below rig in the order but not in its column; sweep → plant likewise; rig → loops and
+    rig → sensing (below loops) are allowed."""
+    layers, allowed = layer_order(), allowed_layers()
+    assert allowed["sweep"] == {"sweep", "core"} and allowed["cli"] == set(layers[: layers.index("cli") + 1])
+    probe = tmp_path / "probe.py"
+    probe.write_text("from magctl.loops import controller\nfrom magctl.sensing.camera import field_of_view\n"
+                     "def f():\n    from magctl.stability.iteration import front_report\n")
+    found = forbidden_imports(probe, layers, allowed, here="magctl.rig.probe")
+    assert [line.split(" imports ")[1] for line in found] == ["magctl.stability.iteration"]
+    probe.write_text("from magctl.plant.sphere import Spheres\n")
+    assert forbidden_imports(probe, layers, allowed, here="magctl.sweep") != []
+
+
 def test_no_import_runs_upward():
     layers = layer_order()
     upward = [line for path in sorted(PACKAGE.rglob("*.py")) for line in upward_imports(path, layers)]
