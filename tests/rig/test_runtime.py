@@ -147,10 +147,11 @@ def test_tracking_loss_stops_the_robot_and_ends_the_run(tmp_path):
 
 
 def test_unknown_task_is_a_clear_error():
+    """Refused before the rig is configured: nothing is touched."""
     rig = SimRig(n_spheres=0)
     with pytest.raises(TaskError, match="available: .*goto"):
         Runtime(rig, "juggle", {}, realtime=False, quiet=True).run()
-    assert rig.state.value == "inactive"
+    assert rig.state.value == "unconfigured"
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
