@@ -8,7 +8,8 @@ a side push, from the start of a trial. Speed = (batch × simulated seconds) / w
 and B = 1, to show where the time goes, and a front push at B = 1000 shows how the lockstep batch
 scales (informational, no target).
 
-``drag_modes`` runs the first attempt of the front push at the calibrated ε
+``drag_modes`` runs the first attempt of the front push at ε = 15.86 µm (an earlier plant's calibrated gap,
+kept because spheres lift near the robot there)
 (:func:`magctl.studies.release_calibration.in_task_release`) in the ``paper`` and ``accurate`` drag
 modes with the compiled sphere frame and with the array form: the accurate mode lifts spheres near the
 robot in many frames, and the loop should cost what the paper mode's does.

@@ -154,9 +154,9 @@ def test_compiled_wall_functions_equal_the_array_form():
 
 
 def test_closed_loop_release_identical_in_both_forms(monkeypatch):
-    """Eight closed-loop front pushes in the accurate drag mode at the calibrated roughness
-    (ε = 15.86 µm), where spheres lift near the robot in many frames: the kernel and the array form
-    give the same pull-back, overshoot, stop gap and retract per trial to 1e-12 m."""
+    """Eight closed-loop front pushes in the accurate drag mode with a robot–sphere contact gap of 15.86 µm
+    (in_task_release's argument), where spheres lift near the robot in more than 50 frames (asserted): the
+    kernel and the array form give the same pull-back, overshoot, stop gap and retract per trial to 1e-12 m."""
     accurate = dataclasses.replace(sphere_params(), drag_mode="accurate")
     monkeypatch.setattr(magctl.loops, "sphere_params", lambda: accurate)
     monkeypatch.setenv("MAGCTL_ENGINE", "interpreted")   # Spheres.update: the kernel, then the reference
