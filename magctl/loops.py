@@ -51,7 +51,7 @@ from magctl.plant.robot import StickSlipRobot, load_robot
 from magctl.plant.sphere import Spheres
 from magctl.plant.standin import FieldGait, KinematicRobot, StandinSpheres, StandinTracker, standin_params
 from magctl.sensing.blackout import Blackout
-from magctl.sensing.camera import Camera
+from magctl.sensing.camera import Camera, outside_view
 from magctl.sensing.tracker import Tracker
 
 COMMAND = ("b_static", "b_osc", "freq")
@@ -364,7 +364,7 @@ def _check_in_view(camera: Camera, robot: np.ndarray, spheres: np.ndarray) -> No
     """The scene must start inside the camera's field of view, or the tracker starts lost."""
     w, h = camera.field_of_view
     pts = np.vstack([robot[None], spheres])
-    out = (pts[:, 0] < 0) | (pts[:, 0] > w) | (pts[:, 1] < 0) | (pts[:, 1] > h)
+    out = outside_view(pts, (w, h))
     if out.any():
         raise WiringError(
             f"scene point(s) {np.round(pts[out] / UM, 1).tolist()} µm lie outside the camera's field of view "

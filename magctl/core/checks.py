@@ -27,3 +27,14 @@ def check_finite(name: str, value) -> float:
     if not np.isfinite(v):
         raise MagctlError(f"{name}={value!r} must be finite")
     return v
+
+
+def check_whole(name: str, value, low: int, high: int | None = None, error=MagctlError) -> int:
+    """``value`` as an int in ``[low, high)`` — an integer, or a float only when whole (counts, seeds are never
+    truncated) — or ``error`` naming ``name`` and the range."""
+    whole = (isinstance(value, (int, np.integer)) and not isinstance(value, bool)) or (
+        isinstance(value, (float, np.floating)) and bool(np.isfinite(value)) and float(value).is_integer())
+    if not whole or value < low or (high is not None and value >= high):
+        span = f">= {low}" if high is None else f"in [{low}, {high})" if high != 2**64 else f"in [{low}, 2**64)"
+        raise error(f"{name} must be a whole number {span}, got {value!r}")
+    return int(value)

@@ -15,6 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from magctl.core.checks import check_whole
 from magctl.core.errors import MagctlError
 
 _U64 = 1 << 64
@@ -33,11 +34,7 @@ def block_key(path: str) -> int:
 
 def check_seed(seed) -> int:
     """A root seed: a whole number in ``[0, 2**64)`` (a float only when whole), or a :class:`MagctlError`."""
-    whole = (isinstance(seed, (int, np.integer)) and not isinstance(seed, bool)) or (
-        isinstance(seed, (float, np.floating)) and np.isfinite(seed) and float(seed).is_integer())
-    if not whole or not 0 <= int(seed) < _U64:
-        raise MagctlError(f"seed {seed!r} must be an integer in [0, 2**64)")
-    return int(seed)
+    return check_whole("seed", seed, 0, _U64)
 
 
 def stream_keys(seed: int, trials: Sequence[int], block: int, on: bool = True) -> np.ndarray:

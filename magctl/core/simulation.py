@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magctl.core.block import as_batch
+from magctl.core.checks import check_whole
 from magctl.core.diagram import Diagram
 from magctl.core.errors import NonFiniteSignalError, ParameterError, WiringError
 from magctl.core.random import check_seed
@@ -213,16 +214,6 @@ def _external_values(diagram: Diagram, inputs: Mapping | None, batch: int, steps
     return values
 
 
-def _count(name: str, value, low: int) -> int:
-    """A whole number ``>= low`` (steps, trials; a float only when whole): refused with its name otherwise, never
-    truncated."""
-    whole = (isinstance(value, (int, np.integer)) and not isinstance(value, bool)) or (
-        isinstance(value, (float, np.floating)) and np.isfinite(value) and float(value).is_integer())
-    if not whole or value < low:
-        raise ParameterError(f"simulate: {name} must be a whole number >= {low}, got {value!r}")
-    return int(value)
-
-
 def simulate(
     diagram: Diagram,
     steps: int,
@@ -274,8 +265,8 @@ def simulate(
     if engine not in ENGINES:
         raise ValueError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
     sched = diagram.schedule
-    steps = _count("steps", steps, 0)
-    batch = _count("batch", batch, 1)
+    steps = check_whole("simulate: steps", steps, 0, error=ParameterError)
+    batch = check_whole("simulate: batch", batch, 1, error=ParameterError)
     if seed is not None:
         seed = check_seed(seed)
     trials = list(range(batch)) if trials is None else list(trials)

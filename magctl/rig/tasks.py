@@ -45,7 +45,7 @@ from magctl.core.errors import MagctlError
 from magctl.core.simulation import ENGINES
 from magctl.loops import COMMAND, OBSERVATION, controller, default_goal, sphere_count
 from magctl.rig.interface import Command, Observation
-from magctl.sensing.camera import field_of_view
+from magctl.sensing.camera import field_of_view, outside_view
 
 OBS_SIGNALS = OBSERVATION
 COMMAND_SIGNALS = COMMAND
@@ -284,12 +284,12 @@ def _logged(values: dict[str, Any], spec: dict) -> dict[str, Any]:
 def check_in_field(task: str, points: dict[str, Any]) -> None:
     """Refuse a task whose target, goal or waypoints lie outside the camera's field of view (``models/camera.toml``):
     the robot would be driven out of sight, or told to push a sphere where it cannot be tracked."""
-    w, h = field_of_view()
+    w, h = span = field_of_view()
     for name, p in points.items():
         if p is None:
             continue
         p = np.atleast_2d(np.asarray(p, dtype=float))
-        out = (p[:, 0] < 0) | (p[:, 0] > w) | (p[:, 1] < 0) | (p[:, 1] > h)
+        out = outside_view(p, span)
         if out.any():
             where = ", ".join(f"({x * 1e6:.6g}, {y * 1e6:.6g})" for x, y in p[out])
             raise TaskError(f"{task}: {name} {where} µm lies outside the camera's field of view "

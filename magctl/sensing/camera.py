@@ -46,11 +46,22 @@ def camera_params() -> Params:
     return load_model("camera")
 
 
+def view_span(width_px: int, height_px: int, pixel: float) -> tuple[float, float]:
+    """Width and height [m] of a field of view whose pixel centres span ``[0, (W−1)·s] × [0, (H−1)·s]``."""
+    return (int(width_px) - 1) * pixel, (int(height_px) - 1) * pixel
+
+
 def field_of_view(params: Params | None = None) -> tuple[float, float]:
-    """Width and height [m] of the camera's field of view from ``models/camera.toml``: the pixel centres span
-    ``[0, (W−1)·s] × [0, (H−1)·s]`` (as :attr:`Camera.field_of_view` of a camera built from that file)."""
+    """:func:`view_span` of the camera in ``models/camera.toml`` (a :class:`Camera` built from that file has the
+    same :attr:`Camera.field_of_view`)."""
     c = (params if params is not None else camera_params()).camera
-    return (int(c.width) - 1) * c.pixel_size, (int(c.height) - 1) * c.pixel_size
+    return view_span(c.width, c.height, c.pixel_size)
+
+
+def outside_view(points, span: tuple[float, float]) -> np.ndarray:
+    """Which of ``points`` ``(..., 2)`` [m] lie outside the field of view ``span`` (``(w, h)``, origin at 0)."""
+    p = np.asarray(points, dtype=float)
+    return (p[..., 0] < 0) | (p[..., 0] > span[0]) | (p[..., 1] < 0) | (p[..., 1] > span[1])
 
 
 # --- rendering --------------------------------------------------------------------------------
@@ -201,7 +212,7 @@ class Camera(Block):
     @property
     def field_of_view(self) -> tuple[float, float]:
         """Width and height of the field of view in m (pixel centres span ``[0, (W−1)·s]``)."""
-        return (self.width - 1) * self.pixel, (self.height - 1) * self.pixel
+        return view_span(self.width, self.height, self.pixel)
 
     def state_vars(self):
         L, n = self.latency, self.n_spheres

@@ -3,7 +3,7 @@
 import pytest
 
 from magctl.config import load_file
-from magctl.core import ParameterError
+from magctl.core import MagctlError, ParameterError
 
 
 def write(tmp_path, text):
@@ -61,3 +61,14 @@ def test_camera_file_ranges_name_file_and_key(tmp_path):
     bad.write_text(text.replace("drop_probability_ratio = { value = 0.0,", "drop_probability_ratio = { value = 1.5,"))
     with pytest.raises(ParameterError, match="drop_probability_ratio"):
         load_file(bad)
+
+
+def test_check_whole_takes_whole_numbers_only():
+    """The one whole-number check behind simulate's counts and the root seed: integers and whole floats in range,
+    nothing truncated."""
+    from magctl.core.checks import check_whole
+
+    assert check_whole("n", 3, 0) == 3 and check_whole("n", 4.0, 0) == 4 and check_whole("n", 2**64 - 1, 0, 2**64)
+    for bad in (2.5, -1, True, float("nan"), "3", 2**64):
+        with pytest.raises(MagctlError, match="n must be a whole number"):
+            check_whole("n", bad, 0, 2**64)
