@@ -182,9 +182,11 @@ class Spheres(Block):
         if lubrication not in ("edges", "face", "none"):
             raise ParameterError(f"lubrication must be 'edges', 'face' or 'none', got {lubrication!r}")
         self.lubrication = lubrication if self.mode == "accurate" else "none"
-        self.film_area, self.edge_law = film_laws(self.geometry, r, self.params.edge_coefficient)
-        if self.lubrication == "face":
-            self.film_area, self.edge_law = film_area(r, edge_curvatures(self.footprint)), np.zeros_like(self.edge_law)
+        if lubrication == "face":
+            self.film_area = film_area(r, edge_curvatures(self.footprint))
+            self.edge_law = np.zeros_like(self.film_area)
+        else:
+            self.film_area, self.edge_law = film_laws(self.geometry, r, self.params.edge_coefficient)
         self.contact_gap = float(contact_gap) if contact_gap is not None else self.params.contact_gap
         if self.contact_gap <= 0:
             raise ParameterError(f"contact_gap must be positive, got {self.contact_gap!r} m")

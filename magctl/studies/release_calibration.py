@@ -15,9 +15,9 @@ displacement against the push direction from the farthest point it reaches after
 enters ``RETRACT`` (the servo's overshoot still pushes it on by contact for a few frames) to
 the frame the task measures (end of ``SETTLE``). The sphere follows the robot through the robot's
 flow and through the lubrication between the robot and the sphere
-(:mod:`magctl.plant.fluid.lubrication`); the film's share grows like ``ln(h_c/h₀)`` with the gap
-``h₀`` the face starts from, down to the rough contact ``h_min`` (``models/sphere.toml [contact]``),
-which :data:`GAP_GRID` scans. No parameter is fitted here: the plant is the one every study uses.
+(:mod:`magctl.plant.fluid.lubrication`: at the notch the edge law, whose pull stays finite as the gap
+``h₀`` the robot starts from closes); ``h_min``, the rough contact (``models/sphere.toml [contact]``), is
+what :data:`GAP_GRID` scans. No parameter is fitted here: the plant is the one every study uses.
 """
 
 from __future__ import annotations
