@@ -24,6 +24,8 @@ engines; the numpy array form it is tested against is ``RefSpheres`` in ``tests/
 :meth:`Spheres.sphere_velocity` evaluates the same flow and gap balance in numpy at given sphere states
 (outside a frame).
 
+Every sphere's mobility is scaled by the mean multiplier ``mobility`` (``models/sphere.toml``
+``variability.mobility_ratio``, 1 by default; a rig's value is identified by :mod:`magctl.identify.side`).
 Optional seeded per-trial variability (off by default, ``models/sphere.toml``):
 a sphere may sit on a sticky patch that scales its mobility (§VI-B, "stuck on a
 piece of dirt"), and a lognormal scatter of the mobility spreads the release
@@ -240,12 +242,14 @@ class Spheres(Block):
         xy = np.broadcast_to(np.asarray(init, float), (batch, self.n, 2)).copy()
         if not np.all(np.isfinite(xy)):
             raise WiringError(f"block {self.name!r}: initial sphere positions must be finite")
-        mult = np.ones((batch, self.n))
         p = self.params
+        # the mean mobility multiplier (models/sphere.toml variability.mobility_ratio, 1 = the model's own);
+        # sticky patches and the mean-one lognormal scatter multiply it
+        mult = np.full((batch, self.n), float(p.mobility))
         if rng is not None and self.uses_random:
             if p.sticky_probability > 0:
                 sticky = rng.random((self.n,), at=0) < p.sticky_probability
-                mult = np.where(sticky, p.sticky_mobility, mult)
+                mult = np.where(sticky, p.sticky_mobility * mult, mult)
             if p.release_scatter > 0:
                 sig = np.sqrt(np.log1p(p.release_scatter**2))
                 mult = mult * np.exp(sig * rng.standard_normal((self.n,), at=0) - 0.5 * sig**2)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from magctl.config import load_model
@@ -44,6 +45,7 @@ class SphereParams:
     film_cutoff: float
     edge_coefficient: float
     edge_cutoff: float
+    mobility: float = 1.0
 
 
 def sphere_params(p=None) -> SphereParams:
@@ -52,7 +54,7 @@ def sphere_params(p=None) -> SphereParams:
     s, v, c = p.sphere, p.variability, p.contact
     out = SphereParams(s.radius, s.density, s.roughness, s.adhesion_range, bool(s.adhesion), str(s.drag_mode),
                        int(s.substeps), s.contact_tolerance, v.sticky_probability, v.sticky_mobility,
-                       v.release_scatter, c.robot_gap, c.film_cutoff, c.edge_law, c.edge_law_cutoff)
+                       v.release_scatter, c.robot_gap, c.film_cutoff, c.edge_law, c.edge_law_cutoff, v.mobility)
     if out.radius <= 0 or out.roughness <= 0:
         raise ParameterError(f"{p._path}: sphere radius and roughness must be positive")
     if min(out.contact_gap, out.film_cutoff, out.edge_coefficient, out.edge_cutoff) <= 0:
@@ -61,6 +63,8 @@ def sphere_params(p=None) -> SphereParams:
         raise ParameterError(f"{p._path}: sphere.drag_mode must be 'paper' or 'accurate', got {out.drag_mode!r}")
     if out.substeps < 1:
         raise ParameterError(f"{p._path}: sphere.substeps_count must be >= 1")
+    if not (math.isfinite(out.mobility) and out.mobility > 0):
+        raise ParameterError(f"{p._path}: variability.mobility_ratio must be a finite number > 0, got {out.mobility!r}")
     if not 0 <= out.sticky_probability <= 1:
         raise ParameterError(f"{p._path}: variability.sticky_probability_ratio must lie in [0, 1]")
     return out
