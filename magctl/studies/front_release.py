@@ -54,6 +54,44 @@ SCALE = 100 * UM
 """Length that scales both predictors (push length, previous release) of the neighbour search."""
 
 
+def attempt_rows(sphere, robot, attempt, phase, correction, goal, start) -> list[dict[str, float]]:
+    """The attempts of one front-push trial, from its per-frame record: one row per measured attempt with
+    ``attempt`` (1-based), ``delta`` δ(i), ``push_length`` L, ``release`` R, ``error_before``, ``error_after``,
+    ``lateral_after``, ``min_gap`` (definitions in the module docstring) and ``follow``: how far the sphere moved
+    back along ``u`` from its farthest point after ``PUSH`` to the measurement — the release as §IV-D measured it, the
+    distance the sphere follows the retreating robot (NaN when the attempt had no push).
+
+    ``sphere``, ``robot`` (T, 2), ``attempt``, ``phase``, ``correction`` (T,) are the task's frames, ``goal``
+    and ``start`` (2,) the goal and the sphere where the first attempt starts. The studies' closed-loop trials
+    (:func:`attempt_log`) and a rig's run logs (:mod:`magctl.identify.release`) both read attempts with it.
+    """
+    rows = []
+    gap = np.linalg.norm(sphere - robot, axis=-1)
+    goal = np.asarray(goal, float)
+    start = np.asarray(start, float)
+    for i, k1 in enumerate(np.flatnonzero(np.diff(attempt) > 0) + 1, start=1):   # frames where attempt i is measured
+        in_att = attempt == i - 1
+        pushing = in_att & (phase == PUSH)
+        # δ(i): the law's output while attempt i runs (its update shows only at the measurement frame)
+        k_in = np.flatnonzero(in_att)
+        delta = float(correction[k_in[-1]]) if k_in.size else float(correction[0])
+        u = (goal - start) / np.linalg.norm(goal - start)
+        e_before = float((goal - start) @ u)
+        end = sphere[k1]
+        e_after = float((goal - end) @ u)
+        off = goal - end - e_after * u
+        k_pushed = np.flatnonzero(pushing)
+        # from the sphere's farthest point along u after the push (where the retreat began: the estimate at the
+        # push's last frame lags, and one frame of retreat already moves the sphere a robot's step)
+        follow = float((sphere[k_pushed[-1]:k1 + 1] @ u).max() - end @ u) if k_pushed.size else float("nan")
+        rows.append({"attempt": i, "delta": delta, "push_length": e_before + delta, "release": e_after + delta,
+                     "error_before": e_before, "error_after": e_after,
+                     "lateral_after": float(np.linalg.norm(off)),
+                     "min_gap": float(gap[pushing].min()) if pushing.any() else np.inf, "follow": follow})
+        start = end
+    return rows
+
+
 def attempt_log(exp: Experiment, trials, seed: int, *, chunk_frames: int = 150) -> dict[str, np.ndarray]:
     """Per-attempt record of closed-loop front-push trials (metres; one entry per attempt run).
 
@@ -93,33 +131,14 @@ def attempt_log(exp: Experiment, trials, seed: int, *, chunk_frames: int = 150) 
     sphere, robot = rec[SPHERES][:, :, 0], rec[ROBOT]
     start0 = np.broadcast_to(np.asarray(g["spheres"], float)[0], (batch, 2))
     rows: dict[str, list] = {k: [] for k in ("trial", "attempt", "delta", "push_length", "release", "error_before",
-                                             "error_after", "lateral_after", "min_gap", "mobility_score")}
-    gap = np.linalg.norm(sphere - robot, axis=-1)
+                                             "error_after", "lateral_after", "min_gap", "follow",
+                                             "mobility_score")}
     for b in range(batch):
-        bumps = np.flatnonzero(np.diff(att[b]) > 0) + 1  # frames where attempt i was measured
-        start = start0[b]
-        for i, k1 in enumerate(bumps, start=1):
-            in_att = att[b] == i - 1
-            pushing = in_att & (phase[b] == PUSH)
-            # δ(i): the law's output while attempt i runs (its update shows only at the measurement frame)
-            k_in = np.flatnonzero(in_att)
-            delta = float(corr[b, k_in[-1]]) if k_in.size else float(corr[b, 0])
-            u = (goal - start) / np.linalg.norm(goal - start)
-            e_before = float((goal - start) @ u)
-            end = sphere[b, k1]
-            e_after = float((goal - end) @ u)
-            off = goal - end - e_after * u
+        for row in attempt_rows(sphere[b], robot[b], att[b], phase[b], corr[b], goal, start0[b]):
+            for k, v in row.items():
+                rows[k].append(v)
             rows["trial"].append(trials[b])
-            rows["attempt"].append(i)
-            rows["delta"].append(delta)
-            rows["push_length"].append(e_before + delta)
-            rows["release"].append(e_after + delta)
-            rows["error_before"].append(e_before)
-            rows["error_after"].append(e_after)
-            rows["lateral_after"].append(float(np.linalg.norm(off)))
-            rows["min_gap"].append(float(gap[b, pushing].min()) if pushing.any() else np.inf)
             rows["mobility_score"].append(float(score[b]))
-            start = end
     out = {k: np.asarray(v, dtype=int if k in ("trial", "attempt") else float) for k, v in rows.items()}
     out["contact"] = out["min_gap"] < contact + CONTACT_MARGIN
     out["converged"] = np.hypot(out["error_after"], out["lateral_after"]) < eps

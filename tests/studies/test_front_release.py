@@ -74,10 +74,23 @@ def test_stored_map_loads_with_its_provenance():
 
 @pytest.mark.slow
 def test_regenerating_the_map_gives_the_stored_numbers(tmp_path):
-    path = FR.write_model(tmp_path / "front_release.toml")
-    from magctl.config import models_dir
+    """Regenerated on this machine, the map matches the stored one in provenance and statistics. Not byte for byte:
+    600 chaotic closed-loop trials amplify last-bit floating-point differences between CPUs (the vector code numba
+    and numpy pick per machine) into a few attempts more or fewer (3585 against 3588 between two x86-64 machines)."""
+    from scipy.stats import ks_2samp
 
-    assert path.read_text() == (models_dir() / "front_release.toml").read_text()
+    from magctl.config import load_file, models_dir
+
+    new = load_file(FR.write_model(tmp_path / "front_release.toml"))
+    old = load_file(models_dir() / "front_release.toml")
+    assert new.provenance.controllers == old.provenance.controllers
+    assert (new.provenance.trials, new.provenance.seed) == (old.provenance.trials, old.provenance.seed)
+    assert abs(new.provenance.attempts - old.provenance.attempts) <= 0.005 * old.provenance.attempts
+    assert new.provenance.release_mean == pytest.approx(old.provenance.release_mean, abs=1e-6)
+    assert new.provenance.release_std == pytest.approx(old.provenance.release_std, abs=1e-6)
+    assert new.provenance.p_contact_later == pytest.approx(old.provenance.p_contact_later, abs=0.01)
+    assert ks_2samp(np.ravel(new.map.release), np.ravel(old.map.release)).pvalue > 0.05
+    assert ks_2samp(np.ravel(new.map.length), np.ravel(old.map.length)).pvalue > 0.05
 
 
 @pytest.mark.slow
