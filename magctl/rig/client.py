@@ -157,7 +157,15 @@ class RigClient(Rig):
     def _activate(self) -> None:
         if self.session is None:  # the last deactivate ended the session: open a new one
             self._claim()
-        self.call("activate")
+        try:
+            self.call("activate")
+        except RigNotOwner as err:
+            # our session lapsed while the controller was prepared (the coils are off then): claim the rig
+            # again, unless another client owns it now
+            if "no session owns the rig" not in str(err):
+                raise
+            self._claim()
+            self.call("activate")
 
     def _deactivate(self) -> None:
         self._release()

@@ -174,16 +174,17 @@ class Runtime:
         if rig.state is Lifecycle.UNCONFIGURED:
             rig.configure()
         self._prepare_engine()
+        # the controller is built (and compiled) from an observation read before the coils are activated: nothing
+        # slow lies between activation and the first tick, where a server's session or watchdog could expire
+        first = rig.read()
+        task: Task | None = build_task(self.task_name, first, self.options, self.params)
+        ctrl = Controller(task, seed=self.seed, engine=self.engine)
         rig.activate()
         writer = None
         old_handlers = self._install_signals()
         jitter, compute = [], []
         status, reason, ticks, overruns, final = "error", "", 0, 0, {}
-        task: Task | None = None
         try:
-            first = rig.read()
-            task = build_task(self.task_name, first, self.options, self.params)
-            ctrl = Controller(task, seed=self.seed, engine=self.engine)
             if self.log_path is not None:
                 writer = RunLogWriter(self.log_path)
                 writer.start(task=task.name, options=task.options, seed=self.seed, rig=self.rig_description,
@@ -298,6 +299,32 @@ class Runtime:
         finally:
             gc.enable()
             gc.unfreeze()
+
+
+def open_rig(address: str, *, n_spheres: int = 1, realtime: bool = True, seed: int = 0, plant: str = "physics",
+             reset: bool = False, takeover: bool = False, curve_server_key=None, curve_secret=None,
+             scheduling: str = "default scheduling") -> tuple[Rig, dict[str, Any]]:
+    """The rig ``magctl rig run --rig ADDRESS`` runs on, and its description for the run log's start document.
+
+    ``"sim"``: an in-process :class:`~magctl.rig.sim.SimRig` of ``n_spheres`` spheres (``plant``, ``seed``;
+    ``realtime`` False steps one frame per read, as fast as possible). Otherwise ``address`` is a rig server
+    (``tcp://HOST:PORT``) and the rig a :class:`~magctl.rig.client.RigClient` (``reset`` asks a simulated server
+    to restart its scene, ``takeover`` takes over another client's session, the ``curve_*`` key files connect
+    with CURVE); connecting raises :class:`RigError`. ``scheduling`` (:func:`set_realtime_priority`'s answer) goes
+    into the description. The caller closes the rig.
+    """
+    if address == "sim":
+        from magctl.rig.sim import SimRig
+
+        rig = SimRig(n_spheres=n_spheres, realtime=realtime, seed=seed, plant=plant)
+        return rig, {"kind": "SimRig", "plant": plant, "n_spheres": n_spheres, "realtime": realtime,
+                     "scheduling": scheduling}
+    from magctl.rig.client import RigClient
+
+    rig = RigClient(address, reset=reset, takeover=takeover, curve_server_key=curve_server_key,
+                    curve_secret=curve_secret)
+    return rig, {"kind": "RigClient", "address": address, "scheduling": scheduling,
+                 "security": "curve" if curve_server_key else "null"}
 
 
 def set_realtime_priority(priority: int | None) -> str:
