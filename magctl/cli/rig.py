@@ -53,6 +53,23 @@ def register(sub) -> None:
                    help="only peers at this IP address may connect (repeatable; default: any)")
     s.set_defaults(func=cmd_serve_sim)
 
+    x = rs.add_parser("experiment", help="run the identification experiment (docs/identify.md), one log per run",
+                      description="The excitation `magctl identify` needs, run on one rig in order: the open-loop "
+                                  "speed sweep (task identify), front pushes of several lengths and side passes at "
+                                  "a ladder of gaps (models/identify.toml [experiment]); each run logged like "
+                                  "`magctl rig run --log`.")
+    x.add_argument("--rig", type=rig_address, required=True,
+                   help="rig server address (tcp://HOST:PORT) or 'sim' for an in-process simulated rig")
+    x.add_argument("--out", type=output_dir, required=True, help="folder for the run logs (NN-name.jsonl)")
+    x.add_argument("--spheres", type=positive_int, default=1, help="with --rig sim: number of spheres")
+    x.add_argument("--plant", choices=("physics", "standin"), default="physics", help="with --rig sim: the plant")
+    x.add_argument("--seed", type=seed, default=0, help="root seed (integer >= 0)")
+    x.add_argument("--engine", choices=("auto", "compiled", "interpreted"), default="auto",
+                   help="controller engine of every run")
+    x.add_argument("--quiet", action="store_true")
+    add_json(x)
+    x.set_defaults(func=cmd_experiment)
+
     k = rs.add_parser("keys", help="generate CURVE key pairs for a server and a client")
     k.add_argument("--out", type=output_dir, required=True, help="folder for server.key(_secret), client.key(_secret), "
                                                             "clients/")
@@ -62,7 +79,9 @@ def register(sub) -> None:
     r = rs.add_parser("run", help="run a task on a rig at 30 Hz")
     r.add_argument("--rig", required=True, type=rig_address,
                    help="rig server address (tcp://HOST:PORT) or 'sim' for an in-process simulated rig")
-    r.add_argument("--task", required=True, help="task name: goto, front-push, side-push, assemble, patrol")
+    r.add_argument("--task", required=True,
+                   help="task name: goto, front-push, side-push, assemble, front-side-assemble, patrol, identify "
+                        "(the open-loop speed sweep for magctl identify)")
     r.add_argument("--target-um", type=finite_float, nargs=2, metavar=("X", "Y"), help="goto: target position in µm")
     r.add_argument("--goal-um", type=finite_float, nargs=2, metavar=("X", "Y"),
                    help="push tasks: goal of the sphere in µm")
@@ -207,27 +226,18 @@ def _task_options(args) -> dict:
 
 
 def cmd_run(args) -> int:
-    from magctl.rig.runtime import Runtime, set_realtime_priority
+    from magctl.rig.interface import RigError
+    from magctl.rig.runtime import Runtime, open_rig, set_realtime_priority
 
     options = _task_options(args)
     sched = set_realtime_priority(args.rt_priority)
-    if args.rig == "sim":
-        from magctl.rig.sim import SimRig
-
-        rig = SimRig(n_spheres=args.spheres, realtime=not args.fast, seed=args.seed, plant=args.plant)
-        desc = {"kind": "SimRig", "plant": args.plant, "n_spheres": args.spheres, "realtime": not args.fast,
-                "scheduling": sched}
-    else:
-        from magctl.rig.client import RigClient
-        from magctl.rig.interface import RigError
-
-        try:
-            rig = RigClient(args.rig, reset=args.reset, takeover=args.takeover,
-                            curve_server_key=args.curve_server_key, curve_secret=args.curve_secret)
-        except RigError as err:
-            raise MagctlError(f"rig run: {err}") from None
-        desc = {"kind": "RigClient", "address": args.rig, "scheduling": sched,
-                "security": "curve" if args.curve_server_key else "null"}
+    try:
+        rig, desc = open_rig(args.rig, n_spheres=args.spheres, realtime=not args.fast, seed=args.seed,
+                             plant=args.plant, reset=args.reset, takeover=args.takeover,
+                             curve_server_key=args.curve_server_key, curve_secret=args.curve_secret,
+                             scheduling=sched)
+    except RigError as err:
+        raise MagctlError(f"rig run: {err}") from None
     runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not (args.rig == "sim" and args.fast),
                       max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,
                       rig_description=desc, engine=args.engine)
@@ -254,3 +264,25 @@ def _summary(d: dict) -> str:
     if d.get("log"):
         lines.append(f"log: {d['log']}")
     return "\n".join(lines)
+
+
+def cmd_experiment(args) -> int:
+    from magctl.identify.experiment import plan, run_experiment
+
+    specs = plan()
+
+    def progress(i, n, spec, report):
+        if args.quiet or args.json:
+            return
+        if report is None:
+            print(f"[{i}/{n}] {spec.name}: {spec.task} …", flush=True)
+        else:
+            print(f"[{i}/{n}] {spec.name}: {report.exit_status} ({report.final.get('status')}), "
+                  f"{report.ticks} frames", flush=True)
+
+    logs = run_experiment(args.rig, args.out, seed=args.seed, n_spheres=args.spheres, plant=args.plant,
+                          progress=progress, specs=specs, engine=args.engine)
+    doc = {"logs": [str(p) for p in logs], "runs": [s.name for s in specs],
+           "next": f"magctl identify {args.out}/*.jsonl --out IDENTIFIED"}
+    emit(args, doc, lambda d: f"{len(d['logs'])} run logs in {args.out}\nnext: {d['next']}")
+    return 0

@@ -2,17 +2,21 @@
 controller that steps them.
 
 A task's diagram is :func:`magctl.loops.controller` itself — the diagram the studies run — built
-from the first observation (to resolve defaults such as the goal) and the user's options. Its
+from the first observation (to resolve defaults such as the goal) and the user's options; the
+open-loop ``identify`` sweep, which has no servo and no drive, is its one block
+(:class:`~magctl.control.excitation.Excitation`) alone. Its
 exported inputs are a subset of the observation's signals (``robot_est`` (2,) m, ``spheres_est``
 (N, 2) m, ``lost``) and its exported outputs include the field command (``b_static`` (2,) T,
 ``b_osc`` T, ``freq`` 1/s) and a ``status`` (:class:`~magctl.control.status.Status`).
 
 Options are the controller's: for the push tasks every parameter of ``models/push.toml`` that
 the task uses (``eps_um``, ``clearance_um``, ``kc``, ``max_attempts`` …) plus ``goal``, for
-every task ``servo`` (a setting of ``models/servo.toml``) and ``speed_max``. A length or speed is
-given with its unit in the key (``goal_um``, ``push_speed_um_s``; any unit suffix of
+every task but ``identify`` ``servo`` (a setting of ``models/servo.toml``) and ``speed_max``; for
+``identify`` (the open-loop speed sweep of :mod:`magctl.control.excitation`) its times and distances
+(``hold_s``, ``pause_s``, ``segment_s``, ``side_max_um``, ``clearance_um``; ``models/identify.toml``).
+A length, speed or time is given with its unit in the key (``goal_um``, ``push_speed_um_s``; any unit suffix of
 :data:`magctl.config.UNITS` of the right kind); an unknown key is an error. The resolved options
-(every parameter, SI, in ``_m``/``_m_s``/``_rad``-suffixed keys so that they round-trip exactly)
+(every parameter, SI, in ``_m``/``_m_s``/``_rad``/``_s``-suffixed keys so that they round-trip exactly)
 go into the run log, so that a replay rebuilds the identical controller.
 """
 
@@ -27,6 +31,7 @@ import numpy as np
 from magctl.config import UNITS, Params, load_model, split_unit
 from magctl.control.arrangement import ARRANGEMENTS
 from magctl.control.assembly_planner import PLANNERS
+from magctl.control.excitation import Excitation, ExcitationParams, inside_field
 from magctl.control.push.common import SIDE_MODELS
 from magctl.control.push.params import (
     DIRT_RESPONSES,
@@ -44,7 +49,7 @@ from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.simulation import ENGINES
 from magctl.loops import COMMAND, OBSERVATION, controller, default_goal, sphere_count
-from magctl.rig.interface import Command, Observation
+from magctl.rig.interface import Command, CommandRejected, Observation, RigLimits
 from magctl.sensing.camera import field_of_view, outside_view
 
 OBS_SIGNALS = OBSERVATION
@@ -62,6 +67,10 @@ PUSH_OUTCOMES = {Status.CONVERGED: ("done", "converged: the sphere is within ε_
                  Status.TRACKING_LOST: ("tracking-lost", "the task stopped on tracking loss"),
                  Status.SPHERE_LOST: ("failed", "sphere lost"),
                  Status.STALLED: ("failed", "a phase timed out (stalled)")}
+IDENTIFY_OUTCOMES = {Status.CONVERGED: ("done", "the sweep completed"),
+                     Status.STALLED: ("failed", "safety stop: the robot came within the clearance of a sphere or "
+                                                "within the margin of the camera field's edge; coils zeroed"),
+                     Status.TRACKING_LOST: ("tracking-lost", "tracking lost during the open-loop sweep; coils zeroed")}
 
 
 @dataclass
@@ -179,7 +188,7 @@ class Controller:
 # --- options ---------------------------------------------------------------------------------------------
 _PLANNED = "assemble (planned)"
 """The options of ``assemble`` when it plans its passes (:class:`~magctl.control.push.planned.PlannedAssemblyTask`)."""
-_SI_SUFFIX = {"m": "m", "m/s": "m_s", "rad": "rad", "1": "", "": ""}
+_SI_SUFFIX = {"m": "m", "m/s": "m_s", "rad": "rad", "s": "s", "1": "", "": ""}
 _PUSH_RECORDS = {"front-push": FrontParams, "side-push": SideParams, "assemble": AssemblyParams,
                  "front-side-assemble": AssemblyParams, _PLANNED: PlannedParams}
 """Each push task's parameter record (:mod:`magctl.control.push.params`): its fields are the task's options."""
@@ -196,6 +205,10 @@ def task_options(task: str) -> dict[str, tuple[Any, str]]:
         return {"target": (None, "m"), **common}
     if task == "patrol":
         return {"side": (1e-3, "m"), "origin": (None, "m"), **common}
+    if task == "identify":
+        defaults = ExcitationParams.resolve()
+        return {name: (getattr(defaults, name), "s" if name in ("hold", "pause", "segment") else "m")
+                for name in ExcitationParams.OPTIONS}
     spec = _PUSH_RECORDS[task].spec()
     if task in ("front-push", "side-push"):
         spec["goal"] = (None, "m")
@@ -303,6 +316,8 @@ def check_options(task: str, options: dict) -> None:
         raise TaskError(f"unknown task {task!r}; available: {', '.join(available_tasks())}")
     given = resolve_options(task, options)
     check_in_field(task, {k: given[k] for k in ("target", "goal", "origin") if k in given})
+    if task == "identify":
+        _excitation_params(options)
 
 
 def _resolved(task: str, options: dict) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -415,3 +430,55 @@ def _assemble(first_obs: Observation, options: dict, params: Params) -> Task:
 def _front_side_assemble(first_obs: Observation, options: dict, params: Params) -> Task:
     """The paper's Fig 15: front-push sphere 0 onto sphere 1 once, then side-push assembly (§V-C, eq 21)."""
     return _push("front-side-assemble", first_obs, options)
+
+
+def _excitation_params(options: dict) -> tuple[ExcitationParams, dict[str, Any]]:
+    """The ``identify`` options as the sweep's settings (the rest from ``models/identify.toml``), validated, and as
+    logged (every option, SI, unit-suffixed keys)."""
+    spec = task_options("identify")
+    given = resolve_options("identify", options)
+    try:
+        record = ExcitationParams.resolve(**given)
+    except MagctlError as err:
+        raise TaskError(str(err)) from None
+    return record, _logged({name: getattr(record, name) for name in spec}, spec)
+
+
+@register_task("identify")
+def _identify(first_obs: Observation, options: dict, params: Params) -> Task:
+    """The open-loop speed sweep for identification (:mod:`magctl.control.excitation`): squares driven over a grid
+    of field frequencies and rocking amplitudes, from where the robot is, away from the nearest sphere; ``done``
+    after the last segment, ``failed`` on a safety stop (a sphere within ``clearance``, the field's edge within
+    ``models/identify.toml`` ``field_margin_um``)."""
+    record, logged = _excitation_params(options)
+    robot = np.asarray(first_obs.robot_est, dtype=float)
+    spheres = np.asarray(first_obs.spheres_est, dtype=float).reshape(-1, 2)
+    w, h = field_of_view()
+    if not np.all(np.isfinite(robot)) or not inside_field(robot, record.field_margin, (w, h)):
+        raise TaskError(f"identify: the robot at {np.round(robot * 1e6, 1).tolist()} µm is not "
+                        f"{record.field_margin * 1e6:.0f} µm inside the camera field [0, {w * 1e6:.0f}] × "
+                        f"[0, {h * 1e6:.0f}] µm")
+    near = np.hypot(*(spheres - robot).T) < record.clearance if len(spheres) else np.zeros(0, bool)
+    if np.any(near):
+        raise TaskError(f"identify: sphere(s) {np.flatnonzero(near).tolist()} within the clearance "
+                        f"{record.clearance * 1e6:.0f} µm of the robot; move the robot away first")
+    limits = RigLimits.from_params(params)
+    for cmd in _sweep_commands(record):
+        try:
+            limits.check(cmd)
+        except CommandRejected as err:
+            raise TaskError(f"identify: the sweep's command exceeds the rig's limits: {err}") from None
+    try:
+        block = Excitation("task", n_spheres=len(spheres), params=record)
+    except MagctlError as err:
+        raise TaskError(str(err)) from None
+    diagram = Diagram("controller", [block], inputs={n: f"task.{n}" for n in block.inputs},
+                      outputs={n: f"task.{n}" for n in block.outputs})
+    return Task("identify", diagram, logged, dict(IDENTIFY_OUTCOMES))
+
+
+def _sweep_commands(record: ExcitationParams):
+    """The sweep's strongest commands, at headings every 15°: the largest ``b_osc`` at the highest frequency."""
+    b_osc, freq = max(record.amplitudes), max(record.frequencies)
+    for th in np.radians(np.arange(0.0, 360.0, 15.0)):
+        yield Command(record.static_field * np.array([np.cos(th), np.sin(th)]), b_osc, freq)

@@ -24,7 +24,7 @@ def free_port() -> int:
 class ServerProcess:
     """A ``serve-sim`` subprocess; ``address`` is its endpoint."""
 
-    def __init__(self, *extra: str, env: dict | None = None):
+    def __init__(self, *extra: str, env: dict | None = None, ready_timeout: float = 30.0):
         self.address = f"tcp://127.0.0.1:{free_port()}"
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "magctl", "rig", "serve-sim", "--bind", self.address, *extra],
@@ -33,7 +33,7 @@ class ServerProcess:
         )
         sel = selectors.DefaultSelector()
         sel.register(self.proc.stdout, selectors.EVENT_READ)
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + ready_timeout      # a physics plant solves its oil's flow before "ready"
         while time.monotonic() < deadline:
             if sel.select(timeout=0.2):
                 line = self.proc.stdout.readline()
