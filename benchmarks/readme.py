@@ -64,21 +64,23 @@ def named_files(readme: str) -> list[Path]:
 
 
 def main(argv: list[str]) -> int:
+    target = "README.md"
+    if argv[:1] == ["--into"] and len(argv) > 1:      # another page with the same markers, e.g. docs/identify.md
+        target, argv = argv[1], argv[2:]
     files = [Path(a).resolve().relative_to(ROOT) for a in argv]
     if not files:
-        print("usage: python benchmarks/readme.py RESULTS.json [RESULTS.json …]", file=sys.stderr)
+        print("usage: python benchmarks/readme.py [--into PAGE.md] RESULTS.json [RESULTS.json …]", file=sys.stderr)
         return 2
-    readme = ROOT / "README.md"
-    text = readme.read_text()
+    page = ROOT / target
+    text = page.read_text()
     if BEGIN not in text or END not in text:
-        print(f"README.md has no {BEGIN} … {END} section", file=sys.stderr)
+        print(f"{target} has no {BEGIN} … {END} section", file=sys.stderr)
         return 2
     head, rest = text.split(BEGIN, 1)
     tail = rest.split(END, 1)[1]
-    readme.write_text(head + render(files) + tail)
-    print(f"README.md: benchmark table from {', '.join(map(str, files))}", file=sys.stderr)
+    page.write_text(head + render(files) + tail)
+    print(f"{target}: benchmark table from {', '.join(map(str, files))}", file=sys.stderr)
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))

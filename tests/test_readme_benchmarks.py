@@ -3,6 +3,8 @@
 import importlib.util
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -13,16 +15,17 @@ def _readme_module():
     return mod
 
 
-def test_the_benchmark_table_is_generated_from_committed_results():
+@pytest.mark.parametrize("page", ["README.md", "docs/identify.md"])
+def test_the_benchmark_table_is_generated_from_committed_results(page):
     mod = _readme_module()
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / page).read_text()
     files = mod.named_files(text)
-    assert files, "README.md's benchmark section names no results file"
+    assert files, f"{page}'s benchmark section names no results file"
     for f in files:
-        assert (ROOT / f).is_file(), f"{f} is named by README.md but not in the repository"
+        assert (ROOT / f).is_file(), f"{f} is named by {page} but not in the repository"
     section = mod.BEGIN + text.split(mod.BEGIN, 1)[1].split(mod.END, 1)[0] + mod.END
-    assert section == mod.render(files), "README.md's benchmark table differs from its results files: " \
-                                         "run python benchmarks/readme.py " + " ".join(map(str, files))
+    assert section == mod.render(files), f"{page}'s benchmark table differs from its results files: " \
+                                         f"run python benchmarks/readme.py --into {page} " + " ".join(map(str, files))
 
 
 def test_a_changed_number_is_caught(tmp_path):
