@@ -122,6 +122,19 @@ def _curve_law():
     return curve_learning_law()
 
 
+CLEAR = {"robot_est": lambda rng, k: np.array([1.2e-3, 2.4e-3]) + 2e-5 * rng.random((BATCH, 2)),
+         "heading_est": lambda rng, k: 0.1 * rng.standard_normal(BATCH),
+         "spheres_est": lambda rng, k: np.array([[3.6e-3, 1.0e-3], [3.9e-3, 1.2e-3]]) + np.zeros((BATCH, 2, 2)),
+         "lost": lambda rng, k: rng.random(BATCH) < 0.1}
+"""Observations of a robot far from the spheres (the excitation sweep drives only there)."""
+
+
+def _short_sweep():
+    from magctl.control.excitation import ExcitationParams
+
+    return ExcitationParams.resolve(hold=0.04, pause=0.04, segment=0.1, min_segment=0.05)
+
+
 FACTORIES = {
     # core
     "Constant": lambda cls: cls("c", [1.0, 2.0], shape=(2,)),
@@ -174,6 +187,7 @@ FACTORIES = {
     "PlannedAssemblyTask": (lambda cls: cls("planned", n_spheres=2, arrangement="pair", arrive_tol=500 * UM,
                                             settle_frames=1), NEAR),
     "PassPlanner": (lambda cls: cls(_pair()), {"spheres": NEAR["spheres_est"], "robot": NEAR["robot_est"]}),
+    "Excitation": (lambda cls: cls("sweep", n_spheres=2, params=_short_sweep()), CLEAR),
 }
 
 BLOCKS = _block_classes()
