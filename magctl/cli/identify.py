@@ -28,11 +28,13 @@ def cmd_identify(args) -> int:
     from magctl.identify.report import recommend, validate, write_report
     from magctl.identify.run import identify
 
+    # the held-out logs are read with the fitted ones first: logs of another rig are refused before anything is written
+    held = load_runs([*args.logs, *args.holdout])[len(args.logs):] if args.holdout else None
     result = identify(args.logs, args.out)
     recs = validation = None
     if not args.no_report:
         recs = recommend(args.out)
-        validation = validate(result, load_runs(args.holdout), recs) if args.holdout else None
+        validation = validate(result, held, recs) if held else None
         write_report(args.out, result, recs, validation)
     doc = {"out": str(args.out), "logs": [str(p) for p in args.logs],
            "identified": {e.name: {"value": e.value, "uncertainty": e.uncertainty, "evidence": e.evidence}

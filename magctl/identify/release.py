@@ -16,12 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from magctl.config import load_model
 from magctl.identify.estimate import Estimate, NotIdentified
 from magctl.identify.phases import Run
 from magctl.studies.front_release import attempt_rows
-
-MIN_ATTEMPTS = 3
-"""Fewest logged attempts from which a mean and a scatter are reported."""
 
 
 @dataclass
@@ -80,7 +78,7 @@ class ReleaseFit:
 
 def fit_release(runs: list[Run]) -> ReleaseFit:
     """Every measured attempt of every front-push run of ``runs``; :class:`NotIdentified` below
-    :data:`MIN_ATTEMPTS`."""
+    ``models/identify.toml [release] min_attempts_count``."""
     L, R, A, prev, first, names = [], [], [], [], [], []
     for run in runs:
         if run.task != "front-push" or "goal_m" not in run.options:
@@ -102,7 +100,8 @@ def fit_release(runs: list[Run]) -> ReleaseFit:
             last = row["follow"]
         if rows:
             names.append(run.name)
-    if len(R) < MIN_ATTEMPTS:
-        raise NotIdentified(f"the front push's release needs at least {MIN_ATTEMPTS} measured front-push attempts; "
+    least = int(load_model("identify").release.min_attempts)
+    if len(R) < least:
+        raise NotIdentified(f"the front push's release needs at least {least} measured front-push attempts; "
                             f"the logs hold {len(R)}")
     return ReleaseFit(np.array(L), np.array(R), np.array(A), np.array(prev), np.array(first, bool), names)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from magctl.config import load_file
 from magctl.core.errors import MagctlError
 from magctl.identify.phases import attempts_to_converge, side_passes
 from magctl.identify.run import Identification
@@ -31,10 +32,14 @@ def _magctl_json(folder: Path, *args: str) -> dict:
     return json.loads(done.stdout)
 
 
-def recommend(folder: Path, kc: float = 1.0, ks: float = 0.9) -> dict:
+def recommend(folder: Path, kc: float | None = None, ks: float | None = None) -> dict:
     """The paper's controllers on the identified plant: the front push's stable K_c range and predicted attempts
     (δ(0) = 0 and δ(0) = the identified mean release), the side push's stable K_s ranges and verdict at ``ks``,
-    the servo's margins at the identified camera lag; and the gains to run."""
+    the servo's margins at the identified camera lag; and the gains to run. ``kc``, ``ks`` default to the
+    folder's ``push.toml`` (the paper's K_c = 1, K_s = 0.9 unless changed)."""
+    push = load_file(Path(folder) / "push.toml")
+    kc = float(push.front.kc) if kc is None else kc
+    ks = float(push.side.ks) if ks is None else ks
     front0 = _magctl_json(folder, "stability", "front", "--kc", repr(kc))
     release = front0["convergence"]["release_mean_um"] if front0.get("convergence") else 0.0
     front_model = _magctl_json(folder, "stability", "front", "--kc", repr(kc), "--delta0-um", repr(release))

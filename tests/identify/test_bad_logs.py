@@ -66,6 +66,10 @@ def test_logs_of_two_rigs_are_refused(tmp_path, goto_log):
     done = magctl("identify", str(goto_log), str(physics), "--out", str(tmp_path / "out"))
     one_line_error(done, "two different rigs", "physics.jsonl")
     assert not (tmp_path / "out" / "identified.json").exists()
+    # a held-out log of another rig is refused too, before anything is written
+    done = magctl("identify", str(goto_log), "--holdout", str(physics), "--out", str(tmp_path / "held"))
+    one_line_error(done, "two different rigs", "physics.jsonl")
+    assert not (tmp_path / "held" / "identified.json").exists()
 
 
 def test_logs_without_the_phases_say_what_was_not_identified(tmp_path, goto_log):
