@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from functools import partial
 
 from magctl.cli.common import (
     add_json,
@@ -141,6 +142,7 @@ def cmd_serve_sim(args) -> int:
     from magctl.rig.plant import build_sim_plant
     from magctl.rig.runtime import set_realtime_priority
     from magctl.rig.server import RigServer, announce
+    from magctl.rig.sim import SimPlant
 
     scene, params = _scene(args)
     n = scene.spheres.shape[0]
@@ -164,11 +166,12 @@ def cmd_serve_sim(args) -> int:
                               f"(use server.key_secret)")
         if not args.curve_clients.is_dir() or not any(args.curve_clients.glob("*.key")):
             raise MagctlError(f"serve-sim: --curve-clients {args.curve_clients}: no client public keys (*.key)")
-    server = RigServer(lambda: build_sim_plant(n, scene, params, plant=args.plant), args.bind,
-                       RigLimits.from_params(params), params.watchdog.timeout, 1.0 / params.runtime.rate,
-                       seed=args.seed, describe={"kind": f"serve-sim ({kind})", "plant": args.plant,
-                                                 "scheduling": sched, "lockstep": args.lockstep,
-                                                 **scene.to_dict()},
+    limits, period = RigLimits.from_params(params), 1.0 / params.runtime.rate
+    station = partial(SimPlant, lambda: build_sim_plant(n, scene, params, plant=args.plant), limits,
+                      params.watchdog.timeout, args.seed, period)
+    describe = {"kind": f"serve-sim ({kind})", "plant": args.plant, "scheduling": sched, "lockstep": args.lockstep,
+                **scene.to_dict()}
+    server = RigServer(station, args.bind, limits, params.watchdog.timeout, period, describe,
                        lockstep=args.lockstep, session_timeout=params.session.timeout,
                        lockstep_wall_timeout=params.watchdog.lockstep_wall_timeout,
                        curve_secret=args.curve_secret, curve_clients=args.curve_clients, allow=args.allow)

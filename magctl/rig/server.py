@@ -1,4 +1,9 @@
-"""``magctl rig serve-sim``: the simulated rig as a server speaking protocol v2 over ZeroMQ.
+"""The rig server: one station (simulated or real devices) served over ZeroMQ in protocol v2.
+
+``magctl rig serve-sim`` serves the simulated plant (:class:`~magctl.rig.sim.SimPlant`) and ``magctl rig serve
+--config lab.toml`` a station built from device adapters (:class:`~magctl.rig.station.DeviceStation`); both are
+this server, with the same protocol, sessions, CURVE, limits and coil guard. A station is anything with the
+:class:`~magctl.rig.station.Station` methods.
 
 Three independent parts, so that no byte a peer sends can keep the coils on:
 
@@ -46,7 +51,7 @@ import zmq
 from magctl import __version__
 from magctl.rig import protocol as P
 from magctl.rig.interface import CommandRejected, Lifecycle, RigLimits
-from magctl.rig.sim import PlantFactory, SimPlant
+from magctl.rig.station import Station, StationFactory
 
 # ZeroMQ drops (and disconnects) anything larger than this before we see it; between
 # MAX_MESSAGE_BYTES and this the server answers with a 'too-large' error.
@@ -110,8 +115,9 @@ class RigServer:
 
     Parameters
     ----------
-    factory : callable
-        Plant factory (see :func:`magctl.rig.plant.build_sim_plant`).
+    station : callable
+        Builds the station (called at the first ``configure`` and on ``reset``): a
+        :class:`~magctl.rig.sim.SimPlant` or a :class:`~magctl.rig.station.DeviceStation`.
     bind : str
         ZeroMQ endpoint, e.g. ``tcp://127.0.0.1:5555``.
     limits : RigLimits
@@ -134,12 +140,12 @@ class RigServer:
         Peer IP addresses allowed to connect (ZAP); all when empty.
     """
 
-    def __init__(self, factory: PlantFactory, bind: str, limits: RigLimits, watchdog: float, period: float,
-                 seed: int = 0, describe: dict | None = None, *, lockstep: bool = False,
+    def __init__(self, station: StationFactory, bind: str, limits: RigLimits, watchdog: float, period: float,
+                 describe: dict | None = None, *, name: str = "serve-sim", lockstep: bool = False,
                  session_timeout: float = 2.0, lockstep_wall_timeout: float = 2.0, curve_secret=None,
                  curve_clients=None, allow=None, log=None):
-        self.factory, self.bind, self.limits, self.watchdog, self.period = factory, bind, limits, watchdog, period
-        self.seed = seed
+        self.station_factory, self.bind, self.limits, self.watchdog = station, bind, limits, watchdog
+        self.period, self.name = period, name
         self.describe = describe or {}
         self.lockstep = lockstep
         self.session_timeout = session_timeout
@@ -150,7 +156,7 @@ class RigServer:
         self.allow = list(allow or [])
         self._log_fn = log
         self.state = Lifecycle.UNCONFIGURED
-        self.plant: SimPlant | None = None
+        self.plant: Station | None = None
         self.last_error: str | None = None
         self.activation = 0
         self.requests = self.errors = self.skipped_frames = 0
@@ -190,7 +196,7 @@ class RigServer:
         self._suppressed = 0
         self._last_log = t
         try:
-            print(f"magctl serve-sim: {message}{more}", file=sys.stderr, flush=True)
+            print(f"magctl {self.name}: {message}{more}", file=sys.stderr, flush=True)
         except Exception:  # noqa: BLE001 - a closed stderr must not stop the server
             pass
 
@@ -265,7 +271,7 @@ class RigServer:
 
     def _op_hello(self, doc, peer):
         lim = self.limits
-        return {"server": f"magctl serve-sim {__version__}", "state": self.state.value,
+        return {"server": f"magctl {self.name} {__version__}", "state": self.state.value,
                 "frame_period_s": self.period, "watchdog_s": self.watchdog,
                 "n_spheres": None if self.plant is None else self.plant.n_spheres,
                 "limits": {"b_static_max_T": lim.b_static_max, "b_osc_max_T": lim.b_osc_max,
@@ -301,9 +307,12 @@ class RigServer:
         self.owner_seen = time.monotonic()
         if self.plant is None or doc.get("reset") is True:
             # building a plant can take a while: the coils are already zero, the guard disarmed
+            old, self.plant = self.plant, None
             self.lock.release()
             try:
-                plant = SimPlant(self.factory, self.limits, self.watchdog, self.seed, self.period)
+                if old is not None:
+                    old.close()
+                plant = self.station_factory()
             finally:
                 self.lock.acquire()
             self.plant = plant
@@ -520,6 +529,8 @@ class RigServer:
                 self._zero()
                 if self.state is Lifecycle.ACTIVE:
                     self.state = Lifecycle.INACTIVE
+                if self.plant is not None:
+                    self.plant.close()
             self.guard.stop()
             sys.setswitchinterval(switch)
             for s, h in old.items():

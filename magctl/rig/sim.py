@@ -99,6 +99,10 @@ class SimPlant:
     def watchdog_deadline(self) -> float | None:
         return None if self.last_command_t is None else self.last_command_t + self.watchdog
 
+    def close(self) -> None:
+        """Coils off (a simulated plant holds no device)."""
+        self.zero()
+
     def step(self, t: float) -> Observation:
         """Advance one frame under the held command; the observation is stamped ``t``."""
         outs, self.state = self.diagram.step(self.state, self._u)
