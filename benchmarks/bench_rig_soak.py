@@ -116,8 +116,7 @@ def plant_cost(quick: bool) -> dict:
     out = {}
     for kind in ("physics", "standin"):
         # robot 1 mm behind a sphere, driving through it: flow look-ups and contact every frame
-        plant = SimPlant(lambda kind=kind: build_sim_plant(1, Scene.default(1), plant=kind), RigLimits.from_params(),
-                         0.1)
+        plant = SimPlant(lambda kind=kind: build_sim_plant(1, Scene.default(1), plant=kind), RigLimits.from_params())
         plant.apply(Command(np.array([2e-3, 0.0]), 1.45e-3, 20.0), 0.0)
         times = []
         for k in range(150 if quick else 900):  # 5 s / 30 s of plant time

@@ -269,7 +269,8 @@ class Scene:
                 "blackout_s": None if self.blackout is None else list(self.blackout)}
 
 
-def plant(scene: Scene, variability: Variability | None = None, *, kind: str = "physics") -> Diagram:
+def plant(scene: Scene, variability: Variability | None = None, *, kind: str = "physics",
+          truth: bool = False) -> Diagram:
     """Coils → robot → spheres → camera → tracker, as one diagram (the plant half of the loop).
 
     Parameters
@@ -282,6 +283,10 @@ def plant(scene: Scene, variability: Variability | None = None, *, kind: str = "
         The physical plant (coil RL dynamics and limits, stick-slip robot, Stokes flow and
         contact, camera lag and pixels, Kalman tracker) or the fast kinematic stand-in of
         :mod:`magctl.plant.standin` (empirical eq 22 and D_p,r instead of the flow).
+    truth : bool
+        Also export the true state the camera looks at — ``robot_true`` (2,) m, ``heading_true`` () rad and
+        ``spheres_true`` (N, 2) m — for the simulated camera of the hardware path
+        (:mod:`magctl.rig.devices.simulated`), which renders frames of it.
 
     Returns
     -------
@@ -292,7 +297,13 @@ def plant(scene: Scene, variability: Variability | None = None, *, kind: str = "
     if kind not in PLANTS:
         raise WiringError(f"plant {kind!r} is not one of {', '.join(PLANTS)}")
     var = Variability() if variability is None else variability
-    return (_physics_plant if kind == "physics" else _standin_plant)(scene, var)
+    diagram = (_physics_plant if kind == "physics" else _standin_plant)(scene, var)
+    if not truth:
+        return diagram
+    spheres = "spheres.spheres" if len(scene.spheres) or kind != "physics" else "spheres.y"
+    return Diagram("plant", list(diagram.blocks.values()), diagram.connections, inputs=diagram.exported_inputs,
+                   outputs={**diagram.exported_outputs, "robot_true": "robot.position", "heading_true": "robot.heading",
+                            "spheres_true": spheres})
 
 
 def _physics_plant(scene: Scene, var: Variability) -> Diagram:

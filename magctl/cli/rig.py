@@ -167,8 +167,8 @@ def cmd_serve_sim(args) -> int:
         if not args.curve_clients.is_dir() or not any(args.curve_clients.glob("*.key")):
             raise MagctlError(f"serve-sim: --curve-clients {args.curve_clients}: no client public keys (*.key)")
     limits, period = RigLimits.from_params(params), 1.0 / params.runtime.rate
-    station = partial(SimPlant, lambda: build_sim_plant(n, scene, params, plant=args.plant), limits,
-                      params.watchdog.timeout, args.seed, period)
+    station = partial(SimPlant, lambda: build_sim_plant(n, scene, params, plant=args.plant), limits, args.seed,
+                      period)
     describe = {"kind": f"serve-sim ({kind})", "plant": args.plant, "scheduling": sched, "lockstep": args.lockstep,
                 **scene.to_dict()}
     server = RigServer(station, args.bind, limits, params.watchdog.timeout, period, describe,

@@ -27,7 +27,7 @@ __all__ = ["PLANTS", "PLANT_INPUTS", "PLANT_OUTPUTS", "Scene", "build_sim_plant"
 
 
 def build_sim_plant(n_spheres: int, scene: Scene | None = None, params: Params | None = None,
-                    robot_start: Sequence[float] | None = None, plant: str = "physics") -> Diagram:
+                    robot_start: Sequence[float] | None = None, plant: str = "physics", truth: bool = False) -> Diagram:
     """The simulated rig's plant: field command in, tracker observation out.
 
     Parameters
@@ -42,6 +42,8 @@ def build_sim_plant(n_spheres: int, scene: Scene | None = None, params: Params |
         Overrides ``scene.robot``.
     plant : {"physics", "standin"}
         The physical plant blocks (default) or the fast kinematic stand-in.
+    truth : bool
+        Also export the true robot and sphere states (:func:`magctl.loops.plant`), for a simulated camera.
     """
     p = params or load_model("rig")
     scene = scene or Scene.default(n_spheres, p)
@@ -49,7 +51,7 @@ def build_sim_plant(n_spheres: int, scene: Scene | None = None, params: Params |
         raise WiringError(f"scene has {scene.spheres.shape[0]} spheres but n_spheres={n_spheres}")
     if robot_start is not None:
         scene = dataclasses.replace(scene, robot=np.asarray(robot_start, dtype=float))
-    diagram = _plant(scene, Variability.of_rig(p), kind=plant)
+    diagram = _plant(scene, Variability.of_rig(p), kind=plant, truth=truth)
     if plant == "physics" and n_spheres:
         diagram.blocks["spheres"].prepare()  # flow solve and kernel compile (~1 s, once) now, not in the first frame
     return diagram

@@ -10,7 +10,6 @@ on the monotonic clock.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -18,14 +17,16 @@ import numpy as np
 from magctl import FRAME_PERIOD_S
 from magctl.config import load_model
 from magctl.core.diagram import Diagram
-from magctl.rig.interface import Command, Lifecycle, Observation, Rig, RigError, RigLimits
+from magctl.rig.interface import Command, Observation, RigLimits
 from magctl.rig.plant import build_sim_plant, check_plant
+from magctl.rig.station import StationRig
 
 PlantFactory = Callable[[], Diagram]
 
 
 class SimPlant:
-    """A plant diagram stepped frame by frame with a held, limit-checked command and a watchdog.
+    """A plant diagram stepped frame by frame with a held, limit-checked command (a station: the watchdog is the
+    server's or the :class:`~magctl.rig.station.StationRig`'s).
 
     Parameters
     ----------
@@ -33,15 +34,12 @@ class SimPlant:
         Returns the plant diagram (see :func:`magctl.rig.plant.build_sim_plant`).
     limits : RigLimits
         Commands outside them are rejected by :meth:`apply`.
-    watchdog : float
-        Seconds without a valid command after which :meth:`check_watchdog` zeroes the coils.
     seed : int
         Seed of the plant's random streams.
     """
 
-    def __init__(self, factory: PlantFactory, limits: RigLimits, watchdog: float, seed: int = 0,
-                 period: float = FRAME_PERIOD_S):
-        self.factory, self.limits, self.watchdog, self.seed, self.period = factory, limits, watchdog, seed, period
+    def __init__(self, factory: PlantFactory, limits: RigLimits, seed: int = 0, period: float = FRAME_PERIOD_S):
+        self.factory, self.limits, self.seed, self.period = factory, limits, seed, period
         self.diagram = factory()
         check_plant(self.diagram)
         self.n_spheres = self.diagram.outputs["spheres_est"].shape[0]
@@ -53,8 +51,6 @@ class SimPlant:
         self.cmd = Command.zero()
         self.frame = 0
         self.last_command_t: float | None = None
-        self.watchdog_trips = 0
-        self.tripped_at: float | None = None
         self._u = self._inputs(self.cmd)
         outs = self.diagram.output(self.state, self._u)
         self.latest = self._observation(0.0, outs)
@@ -82,22 +78,10 @@ class SimPlant:
         return currents
 
     def zero(self) -> None:
-        """Coils off; the watchdog is disarmed until the next command."""
+        """Coils off; no command is held (a watchdog has nothing to time until the next)."""
         self.cmd = Command.zero()
         self._u = self._inputs(self.cmd)
         self.last_command_t = None
-
-    def check_watchdog(self, now: float) -> bool:
-        """Zero the coils if the last command is older than the timeout; True when it tripped now."""
-        if self.last_command_t is not None and now - self.last_command_t > self.watchdog:
-            self.tripped_at = now - self.last_command_t
-            self.zero()
-            self.watchdog_trips += 1
-            return True
-        return False
-
-    def watchdog_deadline(self) -> float | None:
-        return None if self.last_command_t is None else self.last_command_t + self.watchdog
 
     def close(self) -> None:
         """Coils off (a simulated plant holds no device)."""
@@ -113,8 +97,8 @@ class SimPlant:
         return self.latest
 
 
-class SimRig(Rig):
-    """In-process simulated rig.
+class SimRig(StationRig):
+    """In-process simulated rig: the studies' plant (:class:`SimPlant`) behind the rig interface.
 
     Parameters
     ----------
@@ -135,56 +119,8 @@ class SimRig(Rig):
     def __init__(self, factory: PlantFactory | None = None, *, n_spheres: int = 1, realtime: bool = False,
                  seed: int = 0, limits: RigLimits | None = None, params=None, plant: str = "physics"):
         params = params or load_model("rig")
-        super().__init__(limits or RigLimits.from_params(params))
-        self.factory = factory or (lambda: build_sim_plant(n_spheres, params=params, plant=plant))
-        self.realtime = realtime
-        self.seed = seed
-        self.watchdog = params.watchdog.timeout
-        self.plant: SimPlant | None = None
-
-    def _now(self) -> float:
-        if self.realtime:
-            return time.monotonic() - self._t0
-        return self.plant.frame * self.plant.period
-
-    def _configure(self) -> None:
-        self.plant = SimPlant(self.factory, self.limits, self.watchdog, self.seed)
-        self.n_spheres = self.plant.n_spheres
-        self._t0 = time.monotonic()
-
-    def _activate(self) -> None:
-        self.plant.zero()
-
-    def _advance(self) -> None:
-        p = self.plant
-        if not self.realtime:
-            self._step_frame((p.frame + 1) * p.period)
-            return
-        now = self._now()
-        while (p.frame + 1) * p.period <= now:
-            self._step_frame((p.frame + 1) * p.period)
-
-    def _step_frame(self, t: float) -> None:
-        p = self.plant
-        if p.check_watchdog(t) and self.state is Lifecycle.ACTIVE:
-            self.state = Lifecycle.INACTIVE
-            self.last_error = f"watchdog: no command for {p.tripped_at * 1e3:.0f} ms; coils zeroed"
-        p.step(t)
-
-    def _read(self) -> Observation:
-        self._advance()
-        return self.plant.latest
-
-    def _write(self, cmd: Command) -> None:
-        if self.realtime:
-            self._advance()
-        if self.state is not Lifecycle.ACTIVE:
-            raise RigError(self.last_error or "rig is not active")
-        self.plant.apply(cmd, self._now())
-
-    def _zero(self) -> None:
-        if self.plant is not None:
-            self.plant.zero()
-
-    def _close(self) -> None:
-        self.plant = None
+        limits = limits or RigLimits.from_params(params)
+        factory = factory or (lambda: build_sim_plant(n_spheres, params=params, plant=plant))
+        self.factory, self.seed = factory, seed
+        super().__init__(lambda: SimPlant(factory, limits, seed), limits=limits,
+                         realtime=realtime, watchdog=params.watchdog.timeout)

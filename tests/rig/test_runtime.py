@@ -106,11 +106,11 @@ class SlowRig(SimRig):
 def test_overruns_skip_ticks_count_them_and_never_replay(tmp_path, capsys, monkeypatch):
     """Deterministic: the runtime and the rig run on a fake clock, the stall is 1.6 frames of it."""
     import magctl.rig.runtime as runtime_mod
-    import magctl.rig.sim as sim_mod
+    import magctl.rig.station as station_mod
 
     clock = FakeClock()
     monkeypatch.setattr(runtime_mod, "time", clock)
-    monkeypatch.setattr(sim_mod, "time", clock)
+    monkeypatch.setattr(station_mod, "time", clock)
     log = tmp_path / "slow.jsonl"
     # 1.6 frames: long enough to miss tick 6, short enough for the 100 ms watchdog
     rig = SlowRig(clock, stall_ticks=[5, 10], stall=1.6 * PERIOD)
