@@ -93,6 +93,8 @@ class RigClient(Rig):
         sock.setsockopt(zmq.SNDTIMEO, ms)
         if self._curve is not None:
             sock.curve_serverkey, sock.curve_publickey, sock.curve_secretkey = self._curve
+        if self.address.startswith("tcp://["):  # an IPv6 address: ZeroMQ connects to it only with IPV6 on
+            sock.setsockopt(zmq.IPV6, 1)
         sock.connect(self.address)
         self._sock = sock
 

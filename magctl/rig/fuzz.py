@@ -39,7 +39,7 @@ from magctl.rig import protocol as P
 from magctl.rig.interface import Command, CommandRejected, RigLimits
 
 KNOWN_CODES = {P.BAD_JSON, P.TOO_LARGE, P.BAD_VERSION, P.BAD_REQUEST, P.BAD_COMMAND, P.BAD_STATE, P.NOT_OWNER,
-               P.BAD_ENVELOPE, P.INTERNAL}
+               P.BAD_ENVELOPE, P.INTERNAL, P.UNAUTHORISED, P.DEVICE_FAULT}
 WEIRD = [None, True, False, 0, -1, 1, 1.0, 1.5, -0.0, 2**63, -(2**63) - 1, 10**30, 1e308, -1e308, 5e-324, "", "1",
          "NaN", "Infinity", [], [1], [1, 2, 3], {}, {"a": 1}, [[[[]]]], "x" * 300, "\u0000", "\udcff"[:0] + "é"]
 

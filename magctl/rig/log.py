@@ -19,10 +19,22 @@ Floats are written with Python's shortest round-trip ``repr``, so logged values
 read back bit for bit; :func:`replay` relies on it to feed the logged
 observations through a freshly built controller and compare the commands
 exactly.
+
+**Parts.** A log has a size cap per file (``max_bytes``, ``models/rig.toml`` [log] ``max_mb`` by
+default): an event that would take the file ``LOG`` past it goes to ``LOG.1`` instead, then ``LOG.2``…
+Each part starts with the run's start document (same ``uid``, with ``part`` and ``first_seq``) and its
+descriptor, so it reads alone; the stop document is always written, to the current part. :func:`read_log`
+given ``LOG`` reads the parts that follow it as one run.
+
+**Write errors.** An ``OSError`` while writing (a full disk, an I/O error) raises :class:`LogWriteError`
+naming the file; it is a :class:`~magctl.rig.interface.RigError`, so the runtime ends the run as on a rig
+error — coils zeroed, exit status ``error`` — and the log ends at its last complete line, without a stop
+document.
 """
 
 from __future__ import annotations
 
+import contextvars
 import json
 import os
 import time
@@ -37,13 +49,52 @@ import numpy as np
 from magctl import __version__
 from magctl.core.errors import MagctlError
 from magctl.rig import protocol as P
-from magctl.rig.interface import CoilMap, Command, Observation, RigLimits
+from magctl.rig.interface import CoilMap, Command, Observation, RigError, RigLimits
 
 FORMAT = "magctl-runlog/1"
 
 
 class LogError(MagctlError):
     """A run log cannot be written, read, exported or replayed."""
+
+
+class LogWriteError(LogError, RigError):
+    """Writing the run log failed (disk full, I/O error, a part that exists): the run must stop.
+
+    Also a :class:`~magctl.rig.interface.RigError`, so that the runtime stops the run safely (coils zeroed,
+    exit status ``error``, the message naming the file) as it does on a rig error."""
+
+
+# the part size of writers that are not given one (see part_size_limit); None: models/rig.toml [log] max_mb
+_PART_LIMIT: contextvars.ContextVar = contextvars.ContextVar("magctl_runlog_part_limit", default=None)
+
+
+@contextmanager
+def part_size_limit(max_bytes: int | None):
+    """Within the block, a :class:`RunLogWriter` created without ``max_bytes`` uses this one (``magctl rig run
+    --log-max-mb`` sets it around the run; None keeps the default)."""
+    token = _PART_LIMIT.set(max_bytes)
+    try:
+        yield
+    finally:
+        _PART_LIMIT.reset(token)
+
+
+def default_part_bytes() -> int:
+    """The part size of models/rig.toml [log] max_mb, in bytes (MB = 10^6 bytes)."""
+    from magctl.config import load_model
+
+    mb = load_model("rig").log.max_mb
+    if not mb > 0:
+        raise LogError(f"models/rig.toml: log.max_mb_1 = {mb!r} must be > 0")
+    return int(mb * 1e6)
+
+
+def part_path(path, k: int) -> Path:
+    """File of part ``k`` of the log ``path``: the log itself for 0, else ``path`` + ``.k`` (``run.jsonl.2``),
+    so that ``*.jsonl`` matches first parts only."""
+    path = Path(path)
+    return path if k == 0 else path.with_name(f"{path.name}.{k}")
 
 
 def _dumps(doc: dict) -> str:
@@ -75,7 +126,8 @@ SCHEMA: dict = {
                            "properties": {"b_static_max_T": _NUM, "b_osc_max_T": _NUM, "freq_max_Hz": _NUM}},
                 "models_toml": {"type": "object", "additionalProperties": {"type": "string"}},
                 "period_s": {"type": "number", "exclusiveMinimum": 0}, "realtime": {"type": "boolean"},
-                "argv": {"type": "array", "items": {"type": "string"}}}}},
+                "argv": {"type": "array", "items": {"type": "string"}},
+                "part": {"type": "integer", "minimum": 0}, "first_seq": {"type": "integer", "minimum": 0}}}},
         {"if": {"properties": {"doc": {"const": "descriptor"}}}, "then": {
             "required": ["run", "fields"],
             "properties": {"run": {"type": "string"}, "fields": {"type": "object", "additionalProperties": {
@@ -141,13 +193,33 @@ class RunLogWriter:
         File to create; an existing file is an error (logs are never overwritten).
     fsync : bool
         Also ``fsync`` after every frame (survives power loss, not only process death).
+    max_bytes : int, optional
+        Size cap of one part, bytes: an event that would take the current file past it opens the next part
+        (``path.1``, ``path.2``…, each starting with the start document and the descriptor). None: the value
+        of :func:`part_size_limit` around the call, else ``models/rig.toml`` [log] ``max_mb``; 0: no cap.
+        A part always holds at least one event, and the stop document always goes to the current part.
+
+    Every write error (``OSError``: disk full, I/O error) raises :class:`LogWriteError` naming the file;
+    after one, the writer writes nothing more (the file ends at its last complete line) and :meth:`stop`
+    only closes it.
     """
 
-    def __init__(self, path, fsync: bool = False):
+    def __init__(self, path, fsync: bool = False, *, max_bytes: int | None = None):
         self.path = Path(path)
         self.fsync = fsync
+        if max_bytes is None:
+            max_bytes = _PART_LIMIT.get()
+        if max_bytes is None:
+            max_bytes = default_part_bytes()
+        if not (isinstance(max_bytes, (int, float)) and max_bytes >= 0):
+            raise LogError(f"{self.path}: the part size cap must be a number of bytes >= 0, got {max_bytes!r}")
+        self.max_bytes = int(max_bytes)
+        if self.max_bytes and part_path(self.path, 1).exists():
+            # the parts of this log would land on another log's: refuse before the run, not at the first rotation
+            raise LogError(f"{part_path(self.path, 1)} exists (a part of an earlier run log?); the run log "
+                           f"{self.path} would continue into it: choose another name or move it away")
         try:
-            self._fh = open(self.path, "x", encoding="utf-8")
+            self._fh = open(self.path, "xb")
         except FileExistsError:
             raise LogError(f"{self.path}: run log exists; logs are append-only and never overwritten") from None
         except OSError as err:
@@ -155,22 +227,80 @@ class RunLogWriter:
         self.uid = uuid.uuid4().hex
         self.n_events = 0
         self.closed = False
+        self.failed: str | None = None
+        self.part = 0
+        self.current = self.path
+        self.parts = [self.path]
+        self._part_bytes = self._part_events = 0
+        self._start_doc: dict | None = None
+        self._descriptor_doc: dict | None = None
 
-    def _write(self, doc: dict) -> None:
+    def _fail(self, path, err) -> LogWriteError:
+        why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        self.failed = (f"{path}: cannot write the run log ({why}); the run is stopped and the log ends at its "
+                       f"last complete line")
+        return LogWriteError(self.failed)
+
+    def _put(self, data: bytes) -> None:
+        if self.failed is not None:
+            raise LogWriteError(self.failed)
+        try:
+            self._fh.write(data)
+            self._fh.flush()
+            if self.fsync:
+                os.fsync(self._fh.fileno())
+        except OSError as err:
+            raise self._fail(self.current, err) from None
+        self._part_bytes += len(data)
+
+    def _next_part(self) -> None:
+        """Close the current part and open the next one with the start document and the descriptor."""
+        k = self.part + 1
+        path = part_path(self.path, k)
+        try:
+            fh = open(path, "xb")
+        except FileExistsError:
+            raise self._fail(path, "the file exists") from None
+        except OSError as err:
+            raise self._fail(path, err) from None
+        old, self._fh = self._fh, fh
+        try:
+            old.close()
+        except OSError as err:
+            raise self._fail(self.current, err) from None
+        self.part, self.current = k, path
+        self.parts.append(path)
+        self._part_bytes = self._part_events = 0
+        if self._start_doc is not None:
+            self._put(self._line({**self._start_doc, "part": k, "first_seq": self.n_events}))
+        if self._descriptor_doc is not None:
+            self._put(self._line(self._descriptor_doc))
+
+    def _line(self, doc: dict) -> bytes:
         bad = schema_error(doc)
         if bad is not None:
-            raise LogError(f"{self.path}: refusing to write an invalid {bad}")
-        self._fh.write(_dumps(doc) + "\n")
-        self._fh.flush()
-        if self.fsync:
-            os.fsync(self._fh.fileno())
+            raise LogError(f"{self.current}: refusing to write an invalid {bad}")
+        return (_dumps(doc) + "\n").encode("utf-8")
+
+    def _write(self, doc: dict) -> None:
+        data = self._line(doc)
+        event = doc.get("doc") == "event"
+        if event and self.max_bytes and self._part_events and self._part_bytes + len(data) > self.max_bytes:
+            self._next_part()
+        self._put(data)
+        if event:
+            self._part_events += 1
 
     def start(self, **fields) -> None:
-        self._write({"doc": "start", "format": FORMAT, "uid": self.uid, "time_unix": time.time(),
-                     "magctl_version": __version__, **fields})
+        doc = {"doc": "start", "format": FORMAT, "uid": self.uid, "time_unix": time.time(),
+               "magctl_version": __version__, **fields}
+        self._write(doc)
+        self._start_doc = doc
 
     def descriptor(self, fields: dict[str, dict]) -> None:
-        self._write({"doc": "descriptor", "run": self.uid, "fields": fields})
+        doc = {"doc": "descriptor", "run": self.uid, "fields": fields}
+        self._write(doc)
+        self._descriptor_doc = doc
 
     def event(self, seq: int, obs: Observation, cmd_raw: Command | None, cmd: Command | None,
               outputs: dict[str, Any], timing: dict[str, float], activation: int, error: str | None = None) -> None:
@@ -183,16 +313,27 @@ class RunLogWriter:
         self.n_events += 1
 
     def stop(self, exit_status: str, reason: str = "", **fields) -> None:
+        """Write the stop document (to the current part, whatever its size) and close; after a write error,
+        only close (the log then has no stop document, which readers report)."""
         if self.closed:
             return
-        self._write({"doc": "stop", "run": self.uid, "time_unix": time.time(), "exit_status": exit_status,
-                     "reason": reason, "n_events": self.n_events, **fields})
-        self.close()
+        try:
+            if self.failed is None:
+                self._write({"doc": "stop", "run": self.uid, "time_unix": time.time(), "exit_status": exit_status,
+                             "reason": reason, "n_events": self.n_events, **fields})
+        finally:
+            self.close()
 
     def close(self) -> None:
-        if not self.closed:
+        if self.closed:
+            return
+        self.closed = True
+        try:
             self._fh.close()
-            self.closed = True
+        except (OSError, ValueError) as err:
+            # after a write error the buffer may still hold the unwritten rest: nothing more to say
+            if self.failed is None:
+                raise self._fail(self.current, err) from None
 
 
 def descriptor_fields(n_spheres: int, outputs: dict[str, tuple]) -> dict[str, dict]:
@@ -236,10 +377,25 @@ class RunLog:
     events: list[dict] = field(default_factory=list)
     stop: dict | None = None
     torn_tail: bool = False
+    parts: list[Path] = field(default_factory=list)
+
+    def __post_init__(self):
+        if not self.parts:
+            self.parts = [self.path]
 
     @property
     def crashed(self) -> bool:
         return self.stop is None
+
+    @property
+    def part(self) -> int:
+        """Number of the first part read (0: the log's first file)."""
+        return int((self.start or {}).get("part", 0))
+
+    @property
+    def first_seq(self) -> int:
+        """``seq`` of the first event of the first part read (0 unless a later part was read alone)."""
+        return int((self.start or {}).get("first_seq", 0))
 
     @property
     def complete_to(self) -> dict | None:
@@ -256,7 +412,8 @@ class RunLog:
         c = self.complete_to
         upto = "no events" if c is None else f"complete up to event seq {c['seq']} (frame {c['frame']})"
         torn = "; a torn last line was dropped" if self.torn_tail else ""
-        return f"{self.path}: no stop document: the run crashed or is still running; {upto}{torn}"
+        where = self.path if len(self.parts) == 1 else f"{self.path} (last part {self.parts[-1].name})"
+        return f"{where}: no stop document: the run crashed or is still running; {upto}{torn}"
 
     def summary(self) -> dict[str, Any]:
         ev = self.events
@@ -269,6 +426,7 @@ class RunLog:
             "exit_status": None if self.stop is None else self.stop.get("exit_status"),
             "reason": None if self.stop is None else self.stop.get("reason"),
             "crashed": self.crashed, "torn_tail": self.torn_tail, "complete_to": self.complete_to,
+            "parts": len(self.parts),
             "note": self.crash_note(),
             "duration_s": round(ev[-1]["timing"]["scheduled_s"] - ev[0]["timing"]["scheduled_s"], 6)
             if len(ev) > 1 else 0.0,
@@ -350,8 +508,40 @@ def _no_constants(name):
 
 
 def read_log(path) -> RunLog:
-    """Read a run log; a torn last line is dropped, any other bad line is a :class:`LogError`."""
-    path = Path(path)
+    """Read a run log; a torn last line is dropped, any other bad line is a :class:`LogError`.
+
+    A log that was split in parts (``LOG``, ``LOG.1``, ``LOG.2``…, see :class:`RunLogWriter`) is read from
+    the given part to the last one as one run: each part must be the next one of the same run (its start
+    document's ``uid``, ``part`` and ``first_seq``). A later part given alone reads from its first event on.
+    """
+    log = _read_part(Path(path))
+    k = log.start.get("part", 0)
+    name = log.path.name
+    base = log.path if k == 0 else (log.path.with_name(name[: -len(f".{k}")]) if name.endswith(f".{k}") else None)
+    while log.stop is None and base is not None:
+        nxt = part_path(base, k + 1)
+        if not nxt.is_file():
+            break
+        if log.torn_tail:
+            raise LogError(f"{log.parts[-1]}: its last line is torn, yet the log goes on in {nxt}")
+        part = _read_part(nxt)
+        st = part.start
+        expected = log.first_seq + len(log.events)
+        if st.get("uid") != log.start.get("uid") or st.get("part") != k + 1:
+            raise LogError(f"{nxt}:1: not part {k + 1} of the run log {base} (run {log.start.get('uid')}): its "
+                           f"start document says run {st.get('uid')}, part {st.get('part')}")
+        if part.first_seq != expected:
+            raise LogError(f"{nxt}:1: part {k + 1} starts at event seq {part.first_seq} where {expected} was "
+                           f"expected")
+        log.events.extend(part.events)
+        log.stop, log.torn_tail = part.stop, part.torn_tail
+        log.parts.append(nxt)
+        k += 1
+    return log
+
+
+def _read_part(path: Path) -> RunLog:
+    """One file of a run log."""
     try:
         data = path.read_bytes()
     except FileNotFoundError:
@@ -391,8 +581,9 @@ def read_log(path) -> RunLog:
             raise LogError(f"{path}:{i}: {bad}")
         if log.stop is not None:
             raise LogError(f"{path}:{i}: a {kind} document after the stop document")
-        if kind == "event" and doc["seq"] != len(log.events):
-            raise LogError(f"{path}:{i}: event seq {doc['seq']} where {len(log.events)} was expected")
+        if kind == "event" and doc["seq"] != log.first_seq + len(log.events):
+            raise LogError(f"{path}:{i}: event seq {doc['seq']} where {log.first_seq + len(log.events)} was "
+                           f"expected")
         if kind == "start":
             log.start = doc
         elif kind == "descriptor":
@@ -459,15 +650,29 @@ def models_from_doc(start: dict):
     files = start.get("models_toml")
     if not isinstance(files, dict) or "rig.toml" not in files:
         raise LogError("start document has no models_toml with rig.toml; cannot rebuild the controller")
+    for name in files:
+        # a name from the log becomes a file name: a plain *.toml name only (a NUL, a path separator, a control
+        # character or a leading dot would make the OS refuse it or write elsewhere)
+        if (not isinstance(name, str) or not name.endswith(".toml") or name.startswith(".") or len(name) > 200
+                or any(c in "/\\" or ord(c) < 32 or ord(c) == 127 for c in name)):
+            raise LogError(f"start document: models_toml: bad parameter file name {P.show(name, 80)} (a plain "
+                           f"NAME.toml is expected)")
     old = os.environ.get("MAGCTL_MODELS")
     with tempfile.TemporaryDirectory() as tmp:
         for name, text in files.items():
-            if "/" in name or "\\" in name or not name.endswith(".toml"):
-                raise LogError(f"start document: bad parameter file name {name!r}")
-            (Path(tmp) / name).write_text(text, encoding="utf-8")
+            try:
+                (Path(tmp) / name).write_text(text, encoding="utf-8")
+            except (OSError, ValueError) as err:
+                raise LogError(f"start document: models_toml: cannot restore {P.show(name, 80)}: "
+                               f"{getattr(err, 'strerror', None) or err}") from None
         os.environ["MAGCTL_MODELS"] = tmp
         try:
             yield load_file(Path(tmp) / "rig.toml")
+        except MagctlError as err:
+            # a logged file that does not load: name it as the log holds it, not by the temporary folder
+            if tmp not in str(err):
+                raise
+            raise LogError("start document: " + str(err).replace(tmp + os.sep, "models_toml: ")) from None
         finally:
             if old is None:
                 os.environ.pop("MAGCTL_MODELS", None)
@@ -594,6 +799,10 @@ def replay(log_path) -> ReplayResult:
 
     log = read_log(log_path)
     st = log.start
+    if log.part:
+        first = log.path.name[: -len(f".{log.part}")] if log.path.name.endswith(f".{log.part}") else "its first part"
+        raise LogError(f"{log.path}: part {log.part} of a run log (from event seq {log.first_seq}); replay runs the "
+                       f"controller from the start of the run: give the log's first part, {first}")
     if not log.events:
         raise LogError(f"{log.path}: no events to replay" + (" (no stop document either: the run crashed "
                                                              "before its first frame)" if log.crashed else ""))
@@ -602,8 +811,11 @@ def replay(log_path) -> ReplayResult:
     except (KeyError, TypeError, ValueError, MagctlError) as err:
         raise LogError(f"{log.path}:1: start document: limits unusable ({type(err).__name__}: {err})") from None
     first = event_observation(log.events[0])
-    with models_from_doc(st) as params:
-        task = build_task(st["task"], first, st["options"], params)
+    try:
+        with models_from_doc(st) as params:
+            task = build_task(st["task"], first, st["options"], params)
+    except LogError as err:
+        raise LogError(f"{log.path}:1: {err}") from None
     ctrl = Controller(task, seed=st.get("seed", 0))
     activation = log.events[0]["activation"]
     compared = mismatches = 0

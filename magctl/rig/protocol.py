@@ -38,6 +38,9 @@ BAD_STATE = "bad-state"
 NOT_OWNER = "not-owner"
 BAD_ENVELOPE = "bad-envelope"
 INTERNAL = "internal"
+# with CURVE: a request on a connection whose client key was removed from the server's folder since it connected
+UNAUTHORISED = "unauthorised"
+DEVICE_FAULT = "device-fault"
 
 
 class ProtocolError(Exception):
