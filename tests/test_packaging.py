@@ -17,10 +17,11 @@ ROOT = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 
 # import name → distribution name, where they differ
-DIST = {"zmq": "pyzmq", "PIL": "pillow", "skfem": "scikit-fem"}
+DIST = {"zmq": "pyzmq", "PIL": "pillow", "skfem": "scikit-fem", "cv2": "opencv-python-headless",
+        "serial": "pyserial"}
 # optional imports, each behind its extra and a clear error when missing
 OPTIONAL = {"distributed": "dask", "pyarrow": "export", "h5py": "export", "xarray": "xarray",
-            "skfem": "fem", "pyamg": "fem"}
+            "skfem": "fem", "pyamg": "fem", "cv2": "hardware", "serial": "hardware", "pyvisa": "hardware"}
 
 
 def _imports(folders) -> set[str]:
@@ -75,9 +76,10 @@ def test_the_package_says_it_is_typed_and_classifies_itself():
     assert f"Programming Language :: Python :: {low}" in classifiers
 
 
-def test_the_wheel_carries_models_and_analysis_as_package_data():
+def test_the_wheel_carries_models_analysis_and_firmware_as_package_data():
     include = PYPROJECT["tool"]["hatch"]["build"]["targets"]["wheel"]["force-include"]
-    assert include == {"models": "magctl/_data/models", "analysis": "magctl/_data/analysis"}
+    assert include == {"models": "magctl/_data/models", "analysis": "magctl/_data/analysis",
+                       "firmware": "magctl/_data/firmware"}
 
 
 def test_a_checkout_reads_the_folders_at_the_top_of_the_repository(monkeypatch):

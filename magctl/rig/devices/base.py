@@ -137,9 +137,12 @@ class CoilSetpoint:
         ac = np.asarray(self.ac, dtype=float).reshape(-1)
         if dc.shape != ac.shape:
             raise CommandRejected(f"setpoint has {dc.size} static currents but {ac.size} amplitudes")
+        freq = float(self.freq)
+        if freq == 0.0:
+            ac = np.zeros_like(ac)  # a sine at 0 Hz is zero: every driver reads such a setpoint back alike
         object.__setattr__(self, "dc", dc)
         object.__setattr__(self, "ac", ac)
-        object.__setattr__(self, "freq", float(self.freq))
+        object.__setattr__(self, "freq", freq)
 
     @staticmethod
     def zero(n: int) -> CoilSetpoint:
@@ -216,7 +219,8 @@ class CoilDriver(ABC):
     name: str = "coils"
     n_channels: int = 6
     current_limit: np.ndarray
-    """(n_channels,) the device's own ratings, A; setpoints above them are refused before sending."""
+    """(n_channels,) the device's own ratings, A (final after :meth:`open`); setpoints above them are refused
+    before sending."""
     freq_max: float = 1000.0
     """Highest sine frequency the device generates, Hz."""
     deadline: float | None = None
@@ -238,7 +242,8 @@ class CoilDriver(ABC):
         """All outputs to zero (after :meth:`open`, in any state); raise :class:`DeviceError` when unconfirmed."""
 
     def readback(self) -> CoilReadback | None:
-        """The device's own report of its outputs, or None where it has none."""
+        """The device's own report of its outputs, or None where it has none. A read-back (or any heartbeat) never
+        restarts the deadline: only a setpoint does, so a host whose control loop froze cannot keep the coils on."""
         return None
 
     @abstractmethod

@@ -65,18 +65,21 @@ def check_coil_driver(make: Callable[[], CoilDriver], *, wait: Callable[[float],
     demand, closes idempotently and refuses writes once closed.
 
     With ``wait`` (a function that lets that many seconds pass on the device's clock) and a device-side deadline,
-    it also checks that the outputs are zero one deadline after the last setpoint, with no host action.
+    it also checks that the outputs still hold at 0.9 deadline and are zero (and the trip reported) just past one
+    deadline after the last setpoint, a read-back in between notwithstanding.
     ``resolution`` is the device's current resolution, A (read-back comparisons allow it).
     """
     drv = make()
     _expect(isinstance(drv, CoilDriver), f"{type(drv).__name__} is not a magctl.rig.devices.base.CoilDriver")
     n = drv.n_channels
-    limit = np.asarray(drv.current_limit, dtype=float)
-    _expect(limit.shape == (n,) and bool(np.all(limit > 0)), f"{drv.name}: current_limit must be {n} ratings > 0")
     _expect(not drv.device_deadline or (drv.deadline is not None and drv.deadline > 0),
             f"{drv.name}: a device-side deadline needs a deadline > 0 s")
     drv.open()
     try:
+        # after open: a driver may learn its ratings from the device
+        limit = np.asarray(drv.current_limit, dtype=float)
+        _expect(limit.shape == (n,) and bool(np.all(limit > 0)),
+                f"{drv.name}: current_limit must be {n} ratings > 0")
         rb = drv.readback()
         _expect(rb is None or rb.setpoint.is_zero(), f"{drv.name}: outputs are not zero after open")
         sign = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
@@ -105,7 +108,12 @@ def check_coil_driver(make: Callable[[], CoilDriver], *, wait: Callable[[float],
         _expect(rb is None or rb.setpoint.is_zero(), f"{drv.name}: outputs not zero after zero()")
         if wait is not None and drv.device_deadline:
             drv.write(good)
-            wait(drv.deadline * 1.05 + 0.01)
+            wait(drv.deadline * 0.9)
+            rb = drv.readback()
+            _expect(rb is None or (_same(rb.setpoint, good, resolution) and not rb.tripped),
+                    f"{drv.name}: outputs gone before the deadline")
+            # the read-back just sent must not have restarted the deadline
+            wait(drv.deadline * 0.15 + 0.01)
             rb = drv.readback()
             _expect(rb is None or (rb.setpoint.is_zero() and rb.tripped),
                     f"{drv.name}: outputs not zero (or trip not reported) one deadline after the last setpoint")
