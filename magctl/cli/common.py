@@ -148,13 +148,17 @@ def output_file(text: str) -> Path:
 
 
 def rig_address(text: str) -> str:
-    """``sim`` or a ZeroMQ TCP endpoint ``tcp://HOST:PORT`` with a port from 1 to 65535 (its form only; the
-    client reaches it)."""
+    """``sim``, a lab file ``*.toml`` that exists (an in-process rig of its devices) or a ZeroMQ TCP endpoint
+    ``tcp://HOST:PORT`` with a port from 1 to 65535 (its form only; the client reaches it)."""
     if text == "sim":
+        return text
+    if text.endswith(".toml"):
+        if not Path(text).is_file():
+            raise argparse.ArgumentTypeError(f"no such lab file {text!r}")
         return text
     host, sep, port = text.removeprefix("tcp://").rpartition(":")
     if not text.startswith("tcp://") or not sep or not host:
-        raise argparse.ArgumentTypeError(f"must be 'sim' or tcp://HOST:PORT, got {text!r}")
+        raise argparse.ArgumentTypeError(f"must be 'sim', a lab file (lab.toml) or tcp://HOST:PORT, got {text!r}")
     if not port.isdigit() or not 1 <= int(port) <= 65535:
         raise argparse.ArgumentTypeError(f"port must be an integer from 1 to 65535, got {port!r} in {text!r}")
     return text

@@ -27,10 +27,12 @@ from magctl.core.codegen import JIT, fingerprint, is_record, kernel_name, param_
 from magctl.core.diagram import EXTERNAL, Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.kernel import (
+    EventRequest,
     Kernel,
     compiled_vars,
     event_index,
     handle_events,
+    merge_event,
     pack_state,
     port_width,
     stream_keys_of,
@@ -348,9 +350,9 @@ class CompiledDiagram:
             leaves.append(unpack_state(lf.block, arrays, state["leaves"][i], self.vars[i]))
         return leaves
 
-    def handle_events(self, buf: dict, state: dict, batch: int, i: int, rows: np.ndarray) -> None:
-        """Leaf ``i``'s Python event handler for the trials ``rows``, on the compiled buffers: their state
-        rows and the inputs the leaf saw in the tick that raised the flag (still in the output buffers)."""
+    def _event_arrays(self, buf: dict, batch: int, i: int, rows: np.ndarray) -> tuple[list, dict]:
+        """Leaf ``i``'s state arrays (views of the buffers) and the inputs of the trials ``rows`` in the last tick
+        (copies: still in the output buffers until the next tick)."""
         lf = self.schedule.leaves[i]
 
         def rows_of(group_bufs, slot):
@@ -363,7 +365,27 @@ class CompiledDiagram:
             slot = self.ext_slots[q] if j == EXTERNAL else self.out_slots[j][q]
             src = rows_of(buf["X"] if j == EXTERNAL else buf["O"], slot)
             inputs[port] = src[rows].reshape((rows.size, *lf.block.inputs[port].shape))
+        return arrays, inputs
+
+    def handle_events(self, buf: dict, state: dict, batch: int, i: int, rows: np.ndarray) -> None:
+        """Leaf ``i``'s Python event handler for the trials ``rows``, on the compiled buffers: their state
+        rows and the inputs the leaf saw in the tick that raised the flag (still in the output buffers)."""
+        lf = self.schedule.leaves[i]
+        arrays, inputs = self._event_arrays(buf, batch, i, rows)
         handle_events(lf.block, arrays, inputs, rows, state["leaves"][i], self.events[i], self.vars[i])
+
+    def event_request(self, buf: dict, state: dict, batch: int, i: int, rows: np.ndarray, tick: int) -> EventRequest:
+        """What leaf ``i``'s handler needs for the trials ``rows`` (copies of their state and inputs), to run later
+        or elsewhere (:class:`~magctl.core.kernel.EventRequest`)."""
+        lf = self.schedule.leaves[i]
+        arrays, inputs = self._event_arrays(buf, batch, i, rows)
+        sub = unpack_state(lf.block, [a[rows] for a in arrays], state["leaves"][i], self.vars[i])
+        return EventRequest(lf.block, rows.copy(), sub, inputs, tick)
+
+    def merge_event(self, buf: dict, batch: int, i: int, request: EventRequest, result: dict) -> None:
+        """Leaf ``i``'s event result merged into the compiled buffers (:func:`~magctl.core.kernel.merge_event`)."""
+        arrays = self._event_arrays(buf, batch, i, request.rows)[0]
+        merge_event(request.block, arrays, request.rows, request.state, result, self.events[i], self.vars[i])
 
     def outputs_of(self, buf: dict, batch: int, i: int) -> dict[str, np.ndarray]:
         lf = self.schedule.leaves[i]
@@ -426,6 +448,13 @@ class Stepper:
     ``step(u)`` takes the diagram inputs (``(B, *shape)`` or one trial's value) and returns the
     exported outputs as views of the engine's buffers: valid until the next step (copy what is kept).
     ``state`` gives the diagram state as the interpreted engine holds it.
+
+    Python events are handled at the end of the tick that raised them, as in :meth:`CompiledDiagram.run`,
+    unless :attr:`defer` is set: then the stepper calls ``defer(request)`` with an
+    :class:`~magctl.core.kernel.EventRequest` for the trials whose flag rose in the tick and leaves the flags up
+    (the events are pending: a trial's flag stays up, and is not requested again, until its result is
+    applied); :meth:`apply_event` merges a result in before any later tick. The rig runs its planners this
+    way, off the tick (docs/rig.md "Planning off the frame").
     """
 
     def __init__(self, compiled: CompiledDiagram, state: dict, batch: int):
@@ -449,6 +478,9 @@ class Stepper:
                      for name, (i, p) in sched.outputs.items()}
         self._flags = [(i, self._buf["S"][s.group][b * s.offset:b * (s.offset + 1)])
                        for i, s in ((i, compiled.state_slots[i][v]) for i, v in compiled.events.items())]
+        self.defer = None
+        """None, or the callable given each :class:`~magctl.core.kernel.EventRequest` instead of handling it."""
+        self._pending = {i: np.zeros(b, dtype=bool) for i in compiled.events}
 
     def step(self, u: dict | None = None) -> dict[str, np.ndarray]:
         """One tick with the diagram inputs ``u`` (each ``(B, *shape)`` or one trial's value)."""
@@ -468,8 +500,24 @@ class Stepper:
         self._tick += 1
         for i, flags in self._flags:      # events of every trial at this tick, handled before the next one
             if flags.any():
-                self.compiled.handle_events(self._buf, self._like, self.batch, i, np.flatnonzero(flags))
+                if self.defer is None:
+                    self.compiled.handle_events(self._buf, self._like, self.batch, i, np.flatnonzero(flags))
+                    continue
+                pending = self._pending[i]
+                rows = np.flatnonzero(flags & ~pending)
+                if rows.size:
+                    pending[rows] = True
+                    self.defer(self.compiled.event_request(self._buf, self._like, self.batch, i, rows,
+                                                           self._tick - 1))
         return dict(self._out)
+
+    def apply_event(self, request: EventRequest, result: dict) -> None:
+        """Merge a deferred event's result (``request.run()``) into the state before the next tick: the elements
+        the handler changed take its values, the rest keep what the ticks since the request gave them
+        (:func:`~magctl.core.kernel.merge_event`); the flag is cleared and the rows may raise it again."""
+        i = next(i for i in self._pending if self.compiled.schedule.leaves[i].block is request.block)
+        self.compiled.merge_event(self._buf, self.batch, i, request, result)
+        self._pending[i][request.rows] = False
 
     @property
     def state(self) -> dict:

@@ -171,3 +171,60 @@ def handle_events(block: Block, arrays: Sequence[np.ndarray], inputs: dict, rows
         raise MagctlError(f"block {block.name!r}: handle_event left its event flag set")
     for arr, value in zip(arrays, packed, strict=True):
         arr[rows] = value
+
+
+@dataclass
+class EventRequest:
+    """A Python event taken off the tick that raised it (:attr:`Kernel.event`; docs/core.md "Python events").
+
+    A stepper whose ``defer`` hook is set (:class:`~magctl.core.compiled.Stepper`,
+    :class:`~magctl.core.kernel_driver.KernelDriver`) does not call ``handle_event`` at the end of the tick:
+    it hands the hook what the call needs — the flagged trials' state after that tick and their inputs in it,
+    both copies — and leaves the flag up, so the event is pending and the kernel sees its flag at the start of
+    the next ticks. :meth:`run` (any thread) gives the handler's result; the stepper's ``apply_event`` merges it
+    (:func:`merge_event`) when the caller decides.
+
+    Attributes
+    ----------
+    block : Block
+        The block whose kernel raised the flag.
+    rows : ndarray of int
+        The flagged trials (batch rows).
+    state, inputs : dict
+        Their state after the tick that raised the flag and their inputs in that tick (the rows only).
+    tick : int
+        The tick that raised the flag: the compiled stepper's count of steps before it (the first step is 0); the
+        kernel driver, which counts no steps, leaves it to its caller (the rig's controller sets its own count).
+    """
+
+    block: Block
+    rows: np.ndarray
+    state: dict
+    inputs: dict
+    tick: int = 0
+
+    def run(self) -> dict:
+        """``block.handle_event(state, inputs)``: the rows' state with the flag cleared."""
+        return self.block.handle_event(self.state, self.inputs)
+
+
+def merge_event(block: Block, arrays: Sequence[np.ndarray], rows: np.ndarray, before: dict, after: dict, flag: int,
+                variables=None) -> None:
+    """Write an event's result into the kernel state ``arrays`` (``(B, n)`` each, updated in place) at the
+    trials ``rows``, ticks after the one that raised the flag: every element the handler changed (``after``
+    against ``before``, the state it was given) takes the handler's value; every other element keeps the value
+    the ticks in between gave it. Applied at once (no tick in between), this is what :func:`handle_events`
+    writes."""
+    variables = compiled_vars(block) if variables is None else variables
+    old = pack_state(block, before, len(rows), variables)
+    new = pack_state(block, after, len(rows), variables)
+    if new[flag].any():
+        raise MagctlError(f"block {block.name!r}: handle_event left its event flag set")
+    for arr, o, n in zip(arrays, old, new, strict=True):
+        changed = o != n
+        if n.dtype.kind == "f":
+            changed &= ~(np.isnan(o) & np.isnan(n))
+        if changed.any():
+            current = arr[rows]
+            current[changed] = n[changed]
+            arr[rows] = current

@@ -20,10 +20,12 @@ import numpy as np
 
 from magctl.core import codegen
 from magctl.core.kernel import (
+    EventRequest,
     Kernel,
     compiled_vars,
     event_index,
     handle_events,
+    merge_event,
     pack_state,
     port_width,
     stream_keys_of,
@@ -72,6 +74,11 @@ class KernelDriver:
         self._out_ports = [(name, port, port_width(port)) for name, port in block.outputs.items()]
         self.flag = event_index(block, kernel, self.vars)
         self._loops: dict[str, object] = {}
+        self.defer = None
+        """None: the block's Python event is handled at the end of the tick that raised it. Otherwise the callable
+        given an :class:`~magctl.core.kernel.EventRequest` instead (as :attr:`magctl.core.compiled.Stepper.defer`;
+        the rig's controller sets it on its own blocks); the flag stays up until :meth:`apply_event`."""
+        self._pending = np.zeros(0, dtype=bool)
 
     def _run(self, form: str, fn):
         loop = self._loops.get(form)
@@ -118,11 +125,36 @@ class KernelDriver:
         """The block's Python part for the trials whose kernel raised the event flag in ``nxt``."""
         if self.flag < 0:
             return
-        rows = np.flatnonzero(nxt[self.flag][:, 0])
+        flags = nxt[self.flag][:, 0]
+        if self.defer is not None:
+            if self._pending.shape != flags.shape:
+                self._pending = np.zeros(flags.shape, dtype=bool)
+            rows = np.flatnonzero(flags & ~self._pending)
+        else:
+            rows = np.flatnonzero(flags)
         if rows.size:
             inputs = {name: arr[rows].reshape((rows.size, *port.shape))
                       for (name, port), arr in zip(self.block.inputs.items(), ins, strict=True)}
-            handle_events(self.block, nxt, inputs, rows, state, self.flag, self.vars)
+            if self.defer is None:
+                handle_events(self.block, nxt, inputs, rows, state, self.flag, self.vars)
+                return
+            self._pending[rows] = True
+            sub = unpack_state(self.block, [a[rows] for a in nxt], state, self.vars)
+            self.defer(EventRequest(self.block, rows, sub, inputs))
+
+    def forget_events(self) -> None:
+        """Drop the pending events (a controller's reset: their results will not be applied)."""
+        self._pending = np.zeros(0, dtype=bool)
+
+    def apply_event(self, state, request: EventRequest, result: dict):
+        """``state`` (the block's, after the ticks since the request) with a deferred event's result merged in
+        (:func:`~magctl.core.kernel.merge_event`); a new dict, ``state`` is not modified."""
+        batch = self._batch(state, {})
+        arrays = pack_state(self.block, state, batch, self.vars)
+        merge_event(self.block, arrays, request.rows, request.state, result, self.flag, self.vars)
+        if self._pending.shape == (batch,):
+            self._pending[request.rows] = False
+        return unpack_state(self.block, arrays, state, self.vars)
 
     # --- the three forms -------------------------------------------------------------------------
     def step(self, state, u):

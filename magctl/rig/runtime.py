@@ -16,6 +16,17 @@ zeroed (rig deactivated) and the log gets its stop document.
 The run stops when the task reports ``done`` or ``failed``, when tracking has
 been lost for ``lost_timeout`` (the task's tracking guard has already stopped
 the robot), on a rig error, or after ``max_ticks`` / ``duration``.
+
+**Planning off the frame** (docs/rig.md). A block's Python event — the planned assembly's plan, IPOPT and the
+wavefront path, 10-50 ms — does not run inside the tick that raises it: the controller hands it over
+(:class:`~magctl.core.kernel.EventRequest`) and a worker thread runs it while the ticks go on, the task holding
+the robot (speed cap 0: no oscillating field) as long as its plan is pending. The result is merged before a later
+tick's controller step: in simulated time (``realtime=False``, a ``SimRig``/lab rig in lock-step, a ``--lockstep``
+server) before the very next tick, waiting for the worker if need be, so a run is a function of its seed and
+equals a study's frames; in real time before the first tick that finds it ready. The log's events say at which
+frame each plan was requested and applied (``outputs.event_requested``, ``outputs.event_applied``,
+``outputs.event_pending``) and the stop document lists them; ``slow_steps`` counts the ticks whose controller step
+took longer than the period.
 """
 
 from __future__ import annotations
@@ -25,6 +36,7 @@ import signal
 import sys
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -52,18 +64,55 @@ class RunReport:
     final: dict[str, Any] = field(default_factory=dict)
     log_path: str | None = None
     task_options: dict[str, Any] = field(default_factory=dict)
+    slow_steps: int = 0
+    """Ticks whose controller step took longer than the period."""
+    events: list[dict[str, Any]] = field(default_factory=list)
+    """The events run off the frame (the plans): ``requested`` and ``applied`` tick (log ``seq``; None: never
+    applied), ``worker_s`` (None: not finished)."""
 
     def stats(self) -> dict[str, Any]:
         def pct(a, q):
             return float(np.percentile(a, q)) if len(a) else None
 
+        waits = [e["applied"] - e["requested"] for e in self.events if e["applied"] is not None]
+        worker = [e["worker_s"] for e in self.events if e["worker_s"] is not None]
         return {
             "exit_status": self.exit_status, "reason": self.reason, "ticks": self.ticks, "overruns": self.overruns,
             "jitter_p50_ms": _ms(pct(self.jitter, 50)), "jitter_p99_ms": _ms(pct(self.jitter, 99)),
             "jitter_max_ms": _ms(float(self.jitter.max()) if len(self.jitter) else None),
             "compute_p50_ms": _ms(pct(self.compute, 50)), "compute_p99_ms": _ms(pct(self.compute, 99)),
+            "compute_max_ms": _ms(float(self.compute.max()) if len(self.compute) else None),
+            "slow_steps": self.slow_steps,
+            **({"events": len(self.events), "event_frames_max": max(waits, default=None),
+                "event_worker_max_ms": _ms(max(worker, default=None))} if self.events else {}),
             "log": self.log_path, "options": self.task_options, **self.final,
         }
+
+
+@dataclass
+class _Pending:
+    """An event handed to the worker: the request, the tick that raised it, the worker's future."""
+
+    request: Any
+    requested: int
+    future: Future
+    applied: int | None = None
+
+
+def _run_timed(request) -> tuple[dict, float]:
+    t0 = time.perf_counter()
+    result = request.run()
+    return result, time.perf_counter() - t0
+
+
+def simulated_time(rig: Rig) -> bool:
+    """Whether ``rig`` advances one frame per read — a :class:`~magctl.rig.station.StationRig` (``SimRig``, a lab
+    rig of simulated devices) with ``realtime=False``, or a client of a ``--lockstep`` server — so that a run on it
+    is a function of its seed."""
+    if getattr(rig, "realtime", True) is False:
+        return True
+    info = getattr(rig, "server_info", None)
+    return bool(isinstance(info, dict) and info.get("lockstep"))
 
 
 def _ms(x):
@@ -90,13 +139,18 @@ class Runtime:
         Stop after this many ticks / seconds.
     params_path : path, optional
         Rig parameter file (``models/rig.toml`` by default); its text goes into the log.
+    off_frame : bool
+        Run the task's Python events (its planner) on a worker thread, off the tick (default); False runs them
+        inside the tick that raises them, as a study does (``benchmarks/bench_planning_off_frame.py`` compares).
     """
 
     def __init__(self, rig: Rig, task: str, options: dict | None = None, *, log_path=None, realtime: bool = True,
                  max_ticks: int | None = None, duration: float | None = None, seed: int = 0, params_path=None,
-                 quiet: bool = False, rig_description: dict | None = None, engine: str = "auto"):
+                 quiet: bool = False, rig_description: dict | None = None, engine: str = "auto",
+                 off_frame: bool = True):
         self.rig, self.task_name, self.options = rig, task, dict(options or {})
         self.engine = engine
+        self.off_frame = bool(off_frame)
         self.log_path = None if log_path is None else Path(log_path)
         self.realtime, self.max_ticks, self.duration, self.seed = realtime, max_ticks, duration, seed
         self.params_path = Path(params_path) if params_path else models_dir() / "rig.toml"
@@ -110,7 +164,9 @@ class Runtime:
         self.progress_every = max(1, int(round(rt.rate)))
         self.rig_description = rig_description or {"kind": type(rig).__name__}
         self._stop_reason: str | None = None
-        self.ticks = self.overruns = 0
+        self.ticks = self.overruns = self.slow_steps = 0
+        self.lockstep = not realtime
+        self._events: list[_Pending] = []
 
     # --- signals --------------------------------------------------------------------------------
     def request_stop(self, reason: str = "stop requested") -> None:
@@ -178,7 +234,13 @@ class Runtime:
         # slow lies between activation and the first tick, where a server's session or watchdog could expire
         first = rig.read()
         task: Task | None = build_task(self.task_name, first, self.options, self.params)
-        ctrl = Controller(task, seed=self.seed, engine=self.engine)
+        ctrl = Controller(task, seed=self.seed, engine=self.engine, defer_events=self.off_frame)
+        # the worker's result is merged at a fixed tick when the rig's frames follow the reads (deterministic)
+        self.lockstep = not self.realtime or simulated_time(rig)
+        self._events = []
+        self.slow_steps = 0
+        worker = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="magctl-plan")
+                  if ctrl.defer_events and ctrl.has_events else None)
         rig.activate()
         writer = None
         old_handlers = self._install_signals()
@@ -193,8 +255,14 @@ class Runtime:
                              argv=sys.argv)
                 outs = {n: (p.shape, p.unit) for n, p in task.diagram.outputs.items()
                         if n not in ("b_static", "b_osc", "freq")}
-                writer.descriptor(descriptor_fields(rig.n_spheres, outs))
-            status, reason, ticks, overruns, final = self._loop(ctrl, writer, jitter, compute)
+                fields = descriptor_fields(rig.n_spheres, outs)
+                if worker is not None:
+                    fields |= {"outputs.event_requested": {"shape": [], "unit": "1"},
+                               "outputs.event_applied": {"shape": [], "unit": "1"},
+                               "outputs.event_pending": {"shape": [], "unit": "bool"},
+                               "timing.events_s": {"shape": [], "unit": "s"}}
+                writer.descriptor(fields)
+            status, reason, ticks, overruns, final = self._loop(ctrl, writer, jitter, compute, worker)
         except KeyboardInterrupt:
             status, reason, ticks, overruns = "aborted", "interrupted (Ctrl-C)", self.ticks, self.overruns
         except RigError as err:
@@ -208,14 +276,37 @@ class Runtime:
                 status = "error"
             for s, h in old_handlers.items():
                 signal.signal(s, h)
+            if worker is not None:   # a plan still running finishes on its own; its result is not applied
+                worker.shutdown(wait=False, cancel_futures=True)
+            events = [{"requested": p.requested, "applied": p.applied,
+                       "worker_s": p.future.result()[1] if p.future.done() and not p.future.cancelled()
+                       and p.future.exception() is None else None} for p in self._events]
             if writer is not None:
-                writer.stop(status, reason, ticks=ticks, overruns=overruns)
+                writer.stop(status, reason, ticks=ticks, overruns=overruns, slow_steps=self.slow_steps,
+                            **({"events": events} if worker is not None else {}))
         return RunReport(status, reason, ticks, overruns, np.asarray(jitter), np.asarray(compute), final,
                          None if self.log_path is None else str(self.log_path),
-                         {} if task is None else task.options)
+                         {} if task is None else task.options, self.slow_steps, events)
 
-    def _loop(self, ctrl: Controller, writer, jitter: list, compute: list):
+    def _apply_events(self, ctrl: Controller, pending: list[_Pending], tick: int) -> int:
+        """Merge the worker's results before tick ``tick``'s controller step: in lock-step every pending one (the
+        request came from an earlier tick; wait for the worker), in real time those that are ready. Returns the
+        requesting tick of the last one applied, −1 for none."""
+        applied = -1
+        for p in list(pending):
+            if not (self.lockstep or p.future.done()):
+                continue
+            result, _seconds = p.future.result()   # an exception of the handler ends the run as in the tick
+            ctrl.apply(p.request, result)
+            p.applied = tick
+            pending.remove(p)
+            applied = p.requested
+        return applied
+
+    def _loop(self, ctrl: Controller, writer, jitter: list, compute: list, worker: ThreadPoolExecutor | None = None):
         rig, period, task = self.rig, self.period, ctrl.task
+        pending: list[_Pending] = []
+        slow_steps = 0
         clock = time.perf_counter if not self.realtime else time.monotonic
         activation = rig.activation
         lost_since = None
@@ -250,23 +341,38 @@ class Runtime:
                     return "error", f"rig left 'active': {rig.last_error}", ticks, overruns, final
                 if rig.activation != activation:
                     ctrl.reset()
+                    pending.clear()      # plans of the last activation: never applied
                     activation = rig.activation
+                applied = self._apply_events(ctrl, pending, ticks) if pending else -1
+                held = bool(pending)     # this step runs with a plan pending: the task holds the robot
+                t_events = clock()
                 cmd_raw, outs = ctrl.step(obs)
+                requested = 0
+                if worker is not None:
+                    for req in ctrl.take_requests():
+                        p = _Pending(req, ticks, worker.submit(_run_timed, req))
+                        pending.append(p)
+                        self._events.append(p)
+                        requested += 1
                 cmd = rig.limits.clip(cmd_raw)
                 t_comp = clock()
                 rig.write(cmd)
                 t_write = clock()
                 j = start - sched if self.realtime else 0.0
                 jitter.append(j)
-                compute.append(t_comp - t_read)
+                compute.append(t_comp - t_events)
+                if t_comp - t_events > period:
+                    slow_steps += 1
+                    self.slow_steps = slow_steps
                 st = int(outs["status"][0])
                 out_doc = {n: _scalar(v) for n, v in outs.items() if n not in ("b_static", "b_osc", "freq")}
+                timing = {"scheduled_s": sched - t0, "start_s": start - t0, "jitter_s": j, "read_s": t_read - start,
+                          "compute_s": t_comp - t_events, "write_s": t_write - t_comp, "skipped": pending_skips}
+                if worker is not None:
+                    out_doc |= {"event_requested": requested, "event_applied": applied, "event_pending": held}
+                    timing["events_s"] = t_events - t_read
                 if writer is not None:
-                    writer.event(ticks, obs, cmd_raw, cmd, out_doc,
-                                 {"scheduled_s": sched - t0, "start_s": start - t0, "jitter_s": j,
-                                  "read_s": t_read - start, "compute_s": t_comp - t_read, "write_s": t_write - t_comp,
-                                  "skipped": pending_skips},
-                                 activation)
+                    writer.event(ticks, obs, cmd_raw, cmd, out_doc, timing, activation)
                 pending_skips = 0
                 ticks += 1
                 self.ticks = ticks
@@ -307,12 +413,22 @@ def open_rig(address: str, *, n_spheres: int = 1, realtime: bool = True, seed: i
     """The rig ``magctl rig run --rig ADDRESS`` runs on, and its description for the run log's start document.
 
     ``"sim"``: an in-process :class:`~magctl.rig.sim.SimRig` of ``n_spheres`` spheres (``plant``, ``seed``;
-    ``realtime`` False steps one frame per read, as fast as possible). Otherwise ``address`` is a rig server
+    ``realtime`` False steps one frame per read, as fast as possible). A lab file (``*.toml``,
+    :mod:`magctl.rig.lab`): a :class:`~magctl.rig.station.StationRig` of its devices, in-process (``realtime``
+    False needs its simulated devices: lock-step). Otherwise ``address`` is a rig server
     (``tcp://HOST:PORT``) and the rig a :class:`~magctl.rig.client.RigClient` (``reset`` asks a simulated server
     to restart its scene, ``takeover`` takes over another client's session, the ``curve_*`` key files connect
     with CURVE); connecting raises :class:`RigError`. ``scheduling`` (:func:`set_realtime_priority`'s answer) goes
     into the description. The caller closes the rig.
     """
+    if address.endswith(".toml"):
+        from magctl.rig.lab import build_station, load_lab
+        from magctl.rig.station import StationRig
+
+        cfg = load_lab(address)
+        rig = StationRig(lambda: build_station(cfg, lockstep=not realtime), limits=cfg.limits, watchdog=cfg.watchdog,
+                         realtime=realtime, period=cfg.period)
+        return rig, {**cfg.describe(), "realtime": realtime, "scheduling": scheduling}
     if address == "sim":
         from magctl.rig.sim import SimRig
 

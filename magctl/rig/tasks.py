@@ -142,9 +142,16 @@ class Controller:
     restores the initial state (the runtime calls it on every activation). With ``engine``
     ``"compiled"`` or ``"auto"`` a diagram whose blocks all have kernels runs as one compiled call
     per frame (:meth:`magctl.core.compiled.CompiledDiagram.stepper`), with the same commands.
+
+    A block's Python event (its planner: docs/core.md "Python events") runs at the end of the frame that
+    raised it, as in a study — unless ``defer_events``: then the frame only records an
+    :class:`~magctl.core.kernel.EventRequest` (:meth:`take_requests`), the block's flag stays up and its frames
+    hold the robot, and the caller runs ``request.run()`` where it likes (the runtime: on a worker thread) and
+    merges the result with :meth:`apply` before a later frame (docs/rig.md "Planning off the frame").
+    :attr:`frames` counts the steps since the last reset; ``request.tick`` is the frame that raised it.
     """
 
-    def __init__(self, task: Task, seed: int = 0, engine: str = "auto"):
+    def __init__(self, task: Task, seed: int = 0, engine: str = "auto", *, defer_events: bool = False):
         if engine not in ENGINES:
             raise TaskError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
         self.task, self.seed, self.engine = task, seed, engine
@@ -157,7 +164,20 @@ class Controller:
             except NotCompilable:
                 if engine == "compiled":
                     raise
+        self.defer_events = bool(defer_events)
+        leaves = self.diagram.schedule.leaves
+        # the leaves whose kernel raises a Python event, by block
+        self._event_leaves = {id(lf.block): i for i, lf in enumerate(leaves)
+                              if lf.block.kernel_driver() is not None and lf.block.kernel_driver().flag >= 0}
+        self._requests: list = []
+        self._outstanding: dict[int, object] = {}
+        self.frames = 0
         self.reset()
+
+    @property
+    def has_events(self) -> bool:
+        """Whether some block of the task raises a Python event (the planned assembly's plan)."""
+        return bool(self._event_leaves)
 
     @property
     def compiled(self) -> bool:
@@ -168,6 +188,47 @@ class Controller:
         state = self.diagram.initial_state(1, seed=self.seed)
         self._stepper = None if self._compiled is None else self._compiled.stepper(state, 1)
         self._state = state
+        self.frames = 0
+        self._requests = []
+        self._outstanding = {}   # a reset drops the pending events: their results are never applied
+        defer = self._defer if self.defer_events else None
+        if self._stepper is not None:
+            self._stepper.defer = defer
+        for i in self._event_leaves.values():
+            driver = self.diagram.schedule.leaves[i].block.kernel_driver()
+            driver.forget_events()
+            driver.defer = defer if self._stepper is None else None
+
+    def _defer(self, request) -> None:
+        request.tick = self.frames
+        self._requests.append(request)
+        self._outstanding[id(request)] = request
+
+    @property
+    def pending(self) -> list:
+        """The deferred events whose results are not applied yet (their blocks' frames hold the robot)."""
+        return list(self._outstanding.values())
+
+    def take_requests(self) -> list:
+        """The events the frames since the last call raised, to run off the frame (``defer_events``); each is
+        pending until :meth:`apply` merges its result."""
+        out, self._requests = self._requests, []
+        return out
+
+    def apply(self, request, result: dict) -> None:
+        """Merge a deferred event's result (``request.run()``) into the controller's state, before the next
+        frame: what the handler changed takes its values, the rest keeps what the frames since the request gave
+        it (:func:`magctl.core.kernel.merge_event`). A request from before the last :meth:`reset` is refused."""
+        if self._outstanding.pop(id(request), None) is not request:
+            raise TaskError("apply: this event is not pending on the controller (applied already, or raised before "
+                            "a reset)")
+        if self._stepper is not None:
+            self._stepper.apply_event(request, result)
+            return
+        i = self._event_leaves[id(request.block)]
+        leaves = list(self._state["leaves"])
+        leaves[i] = request.block.kernel_driver().apply_event(leaves[i], request, result)
+        self._state = {**self._state, "leaves": leaves}
 
     @property
     def state(self) -> dict:
@@ -181,6 +242,7 @@ class Controller:
         else:
             signals = obs.controller_inputs()
             outs, self._state = self.diagram.step(self._state, {n: signals[n] for n in self._inputs})
+        self.frames += 1
         cmd = Command(np.array(outs["b_static"][0], dtype=float), float(outs["b_osc"][0]), float(outs["freq"][0]))
         return cmd, outs
 
@@ -193,9 +255,9 @@ _PUSH_RECORDS = {"front-push": FrontParams, "side-push": SideParams, "assemble":
                  "front-side-assemble": AssemblyParams, _PLANNED: PlannedParams}
 """Each push task's parameter record (:mod:`magctl.control.push.params`): its fields are the task's options."""
 _OPTIONAL = {"front-push": {}, "side-push": {"fixed_gap": "m"},
-             "assemble": {"fixed_gap": "m", "n_spheres": "1", "arrangement": "", "planner": ""},
+             "assemble": {"fixed_gap": "m", "n_spheres": "1", "arrangement": "", "planner": "", "plan_frames": "1"},
              "front-side-assemble": {"fixed_gap": "m", "front_attempts": "1"},
-             _PLANNED: {"n_spheres": "1", "arrangement": "", "planner": ""}}
+             _PLANNED: {"n_spheres": "1", "arrangement": "", "planner": "", "plan_frames": "1"}}
 
 
 def task_options(task: str) -> dict[str, tuple[Any, str]]:
@@ -408,8 +470,11 @@ def _assemble(first_obs: Observation, options: dict, params: Params) -> Task:
     if n != have:
         raise TaskError(f"assemble: option n_spheres={n} but the rig tracks {have} sphere(s)")
     if n <= 2 and not given.keys() & {"planner", "arrangement"}:
+        if "plan_frames" in given:
+            raise TaskError("assemble: option plan_frames applies to the planned assembly only (3-4 spheres, or a "
+                            "pair with a planner or arrangement option)")
         values, logged = _resolved("assemble", {k: v for k, v in options.items() if split_unit(k)[0] != "n_spheres"})
-        values = {k: v for k, v in values.items() if k not in ("n_spheres", "arrangement", "planner")}
+        values = {k: v for k, v in values.items() if k not in ("n_spheres", "arrangement", "planner", "plan_frames")}
         return Task("assemble", _build("assemble", values, n), logged, dict(PUSH_OUTCOMES))
     planned = task_options(_PLANNED)
     foreign = sorted(set(given) - set(planned))

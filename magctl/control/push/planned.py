@@ -11,11 +11,16 @@ One attempt, per trial:
    (:meth:`~magctl.control.arrangement.Arrangement.assembled`, eq 21 on every contact) ends the task,
    otherwise the planner learns from the pass and plans the next.
 
-The frames are compiled (:func:`magctl.control.push.kernels.planned_step`); the plan is the block's Python event
-(:meth:`PlannedAssemblyTask.handle_event`, docs/core.md "Python events"): the frame that needs a pass raises
-``plan_due``, the planner runs at the end of that frame for those trials only, and the pass and its path apply
-from the next frame on, as on a rig, where the plan takes part of a 33 ms frame
-(``benchmarks/bench_assembly_planner.py``).
+The frames are compiled (:func:`magctl.control.push.planned_kernel.planned_frame`); the plan
+is the block's Python event (:meth:`PlannedAssemblyTask.handle_event`, docs/core.md "Python events"): the frame
+that needs a pass raises ``plan_due``, the planner runs at the end of that frame for those trials only, and the pass
+and its path apply from ``plan_frames`` frames after it on (1: the next frame); the robot is held in between.
+
+On a rig the planner runs off the tick (docs/rig.md "Planning off the frame"): the flag stays up while a worker
+plans, and every frame that starts with it up holds the robot — speed cap 0 (no oscillating field), the target
+kept, the rest of the state as it was — until the result is merged; a frame in the ``plan_frames`` wait holds the
+same way. So a study, a lock-step rig run and a real-time run whose plan was ready within ``plan_frames`` frames
+make the same frames (``benchmarks/bench_planning_off_frame.py`` times the plan).
 
 A trial for which the planner finds no pass that keeps its bounds ends ``STALLED``.
 """
@@ -42,6 +47,8 @@ MAX_WAYPOINTS = 24
 """Waypoints kept for one repositioning path (the wavefront path after shortening has a handful)."""
 WAYPOINT_TOL = 50e-6
 """The robot counts as past an intermediate waypoint within 50 µm (the pass start needs ``arrive_tol``)."""
+PLAN_FRAMES = 1
+"""Frames from the frame that requests a plan to the first that uses it (``plan_frames``): 1, the next frame."""
 
 
 class PlannedAssemblyTask(PushTask, Block):
@@ -63,6 +70,10 @@ class PlannedAssemblyTask(PushTask, Block):
         ``max_attempts`` (passes before the task gives up, ``[plan] max_passes``), ``clearance`` (the
         repositioning keep-out, ``[plan]``), ``pass_speed`` (``[side]``) and the shared ``arrive_tol``,
         ``travel_speed``, ``settle_frames``, ``max_lost_frames``, ``phase_timeout_frames``, ``workspace``.
+    plan_frames : int, optional
+        Frames from the frame that requests a plan to the first frame that uses it (default :data:`PLAN_FRAMES`,
+        1: the next one); the robot is held in between. The planning budget of a rig that plans off the tick
+        (docs/rig.md "Planning off the frame"): a plan ready in time gives the rig the frames of a study.
 
     Ports: inputs as every push task; outputs as every push task plus ``gap`` (m), the smallest distance of
     the pass from a sphere, measured when it is planned; ``correction`` is the planner's predicted RMS bond
@@ -74,11 +85,16 @@ class PlannedAssemblyTask(PushTask, Block):
     PARAMS = PlannedParams
 
     def __init__(self, name: str = "planned_assembly", *, n_spheres: int = 3, arrangement: str | None = None,
-                 planner: str = "optimal", params: PlannedParams | None = None, **overrides):
+                 planner: str = "optimal", params: PlannedParams | None = None, plan_frames: int | None = None,
+                 **overrides):
         n_spheres = int(n_spheres)
         what = f"assembly {name!r}"
         if not 2 <= n_spheres <= 4:
             raise MagctlError(f"{what}: n_spheres={n_spheres} must be 2, 3 or 4")
+        plan_frames = PLAN_FRAMES if plan_frames is None else plan_frames
+        if isinstance(plan_frames, bool) or int(plan_frames) != plan_frames or plan_frames < 1:
+            raise MagctlError(f"{what}: plan_frames={plan_frames!r} must be a whole number of frames >= 1")
+        self.plan_frames = int(plan_frames)
         self._check_common(what, params, overrides, goal=(0.0, 0.0), n_spheres=n_spheres, sphere=0)
         self.target = make_arrangement(arrangement or ("pair" if n_spheres == 2 else "line"), n_spheres,
                                        eps_as=self.eps_as)
@@ -99,34 +115,38 @@ class PlannedAssemblyTask(PushTask, Block):
                 StateVar("start", (2,), symbol="a", description="start of the pass, m"),
                 StateVar("end", (2,), symbol="b", description="end of the pass, m"),
                 StateVar("gap", (), description="closest approach of the pass to a sphere, m"),
-                StateVar("plan_due", (), "bool", description="the next pass is to be planned (the Python event)"))
+                StateVar("plan_due", (), "bool", description="the next pass is to be planned (the Python event)"),
+                StateVar("plan_wait", (), "int64", description="frames the robot is still held for the plan"))
 
     def initial_state(self, batch, rng=None):
         st = self._common_state(batch)
         st |= {"waypoints": np.full((batch, MAX_WAYPOINTS, 2), np.nan),
                "n_waypoints": np.zeros(batch, dtype=np.int64), "waypoint": np.zeros(batch, dtype=np.int64),
                "start": np.full((batch, 2), np.nan), "end": np.full((batch, 2), np.nan),
-               "gap": np.full(batch, np.nan), "plan_due": np.zeros(batch, dtype=bool)}
+               "gap": np.full(batch, np.nan), "plan_due": np.zeros(batch, dtype=bool),
+               "plan_wait": np.zeros(batch, dtype=np.int64)}
         return st
 
     def kernel(self):
-        """The compiled frame (:func:`magctl.control.push.kernels.planned_step`); the plan is its Python event."""
-        from magctl.control.push import kernels as k
+        """The compiled frame (:func:`~magctl.control.push.planned_kernel.planned_frame`); the plan is its Python
+        event."""
+        from magctl.control.push.planned_kernel import planned_frame
         from magctl.core.kernel import Kernel
 
         x0, y0, x1, y1 = self.bounds
         pad = self.workspace
         area = np.array([x0 - pad, y0 - pad, x1 + pad, y1 + pad])
         shape = np.array([self.target.eps_as, np.cos(self.target.bend / 2)])
-        return Kernel(step=k.planned_step, event="plan_due",
+        return Kernel(step=planned_frame, event="plan_due",
                       params=(self.params.packed(), area, self.target.bonds, self.target.contact.copy(), shape,
-                              WAYPOINT_TOL))
+                              WAYPOINT_TOL, self.plan_frames))
 
     def handle_event(self, state, u):
         """Plan the next pass (the :class:`~magctl.control.assembly_planner.PassPlanner` block: IPOPT on the pass
         map, or the greedy baseline) and the wavefront path to its start, for the trials whose frame raised
         ``plan_due``; a trial with no feasible pass ends ``STALLED``. Runs after the frame that ended the last
-        pass (or the first frame), on that frame's measurements."""
+        pass (or the first frame), on that frame's measurements — or, on a rig, in a worker while the frames go
+        on holding the robot (docs/rig.md "Planning off the frame")."""
         r = np.asarray(u["robot_est"], dtype=float)
         spheres = np.asarray(u["spheres_est"], dtype=float)
         new = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in state.items()}
