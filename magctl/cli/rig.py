@@ -20,6 +20,7 @@ from magctl.cli.common import (
     rig_address,
     seed,
 )
+from magctl.cli.rig_calibrate import add_parsers as add_calibrate_parsers
 from magctl.core.errors import MagctlError
 
 
@@ -27,9 +28,12 @@ def register(sub) -> None:
     p = sub.add_parser("rig", help="simulated rig server and the 30 Hz rig runtime")
     rs = p.add_subparsers(dest="rig_command", metavar="RIG_COMMAND")
     rs.required = True
+    add_calibrate_parsers(rs)
 
     s = rs.add_parser("serve-sim", help="serve a simulated rig (protocol v2, docs/rig-protocol.md)")
-    s.add_argument("--bind", default="tcp://127.0.0.1:5555", help="ZeroMQ endpoint (default tcp://127.0.0.1:5555)")
+    s.add_argument("--bind", default="tcp://127.0.0.1:5555",
+                   help="ZeroMQ endpoint (default tcp://127.0.0.1:5555); an address beyond loopback needs CURVE or "
+                        "--insecure")
     s.add_argument("--spheres", type=nonneg_int, default=1, help="number of spheres in the scene (default 1)")
     s.add_argument("--plant", choices=("physics", "standin"), default="physics",
                    help="physics: the plant blocks (coils, stick-slip robot, Stokes-flow spheres, camera, Kalman "
@@ -41,18 +45,21 @@ def register(sub) -> None:
     s.add_argument("--blackout-s", type=nonneg_float, nargs=2, metavar=("T0", "T1"), default=None,
                    help="force tracking loss during [T0, T1) s (to exercise loss handling)")
     s.add_argument("--seed", type=seed, default=0, help="root seed (integer >= 0)")
-    s.add_argument("--rt-priority", type=positive_int, default=None, metavar="P",
-                   help="run under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
-    s.add_argument("--lockstep", action="store_true",
-                   help="step one plant frame per 'read' (simulated time, deterministic) instead of at 30 Hz")
-    s.add_argument("--curve-secret", type=existing_file, default=None, metavar="FILE",
-                   help="server secret key (server.key_secret from 'magctl rig keys'): CURVE encryption and "
-                        "client authentication; needs --curve-clients")
-    s.add_argument("--curve-clients", type=existing_dir, default=None, metavar="DIR",
-                   help="folder of the public keys (*.key) of the clients allowed to connect")
-    s.add_argument("--allow", action="append", default=[], metavar="IP",
-                   help="only peers at this IP address may connect (repeatable; default: any)")
+    _server_options(s)
     s.set_defaults(func=cmd_serve_sim)
+
+    c = rs.add_parser("serve", help="serve a lab rig built from the devices a lab file names (docs/bring-up.md)",
+                      description="The rig server of a lab: the camera, tracker and coil driver of --config "
+                                  "(lab.toml), behind the same protocol, sessions, limits and watchdog as serve-sim.")
+    c.add_argument("--config", type=existing_file, required=True, metavar="LAB.toml",
+                   help="the lab file (examples/lab-sim.toml runs the simulated devices)")
+    c.add_argument("--bind", default="tcp://127.0.0.1:5555",
+                   help="ZeroMQ endpoint (default tcp://127.0.0.1:5555); an address beyond loopback needs CURVE or "
+                        "--insecure")
+    c.add_argument("--dry-run", action="store_true",
+                   help="check and log every command but keep the coils at zero (a first run with the coils off)")
+    _server_options(c)
+    c.set_defaults(func=cmd_serve)
 
     x = rs.add_parser("experiment", help="run the identification experiment (docs/identify.md), one log per run",
                       description="The excitation `magctl identify` needs, run on one rig in order: the open-loop "
@@ -67,6 +74,9 @@ def register(sub) -> None:
     x.add_argument("--seed", type=seed, default=0, help="root seed (integer >= 0)")
     x.add_argument("--engine", choices=("auto", "compiled", "interpreted"), default="auto",
                    help="controller engine of every run")
+    x.add_argument("--log-max-mb", type=positive_float, default=None, metavar="N",
+                   help="largest part of each run log in MB (10^6 bytes), as for rig run (default models/rig.toml "
+                        "[log] max_mb)")
     x.add_argument("--quiet", action="store_true")
     add_json(x)
     x.set_defaults(func=cmd_experiment)
@@ -79,7 +89,8 @@ def register(sub) -> None:
 
     r = rs.add_parser("run", help="run a task on a rig at 30 Hz")
     r.add_argument("--rig", required=True, type=rig_address,
-                   help="rig server address (tcp://HOST:PORT) or 'sim' for an in-process simulated rig")
+                   help="rig server address (tcp://HOST:PORT), 'sim' for an in-process simulated rig, or a lab file "
+                        "(lab.toml) for an in-process rig of its devices")
     r.add_argument("--task", required=True,
                    help="task name: goto, front-push, side-push, assemble, front-side-assemble, patrol, identify "
                         "(the open-loop speed sweep for magctl identify)")
@@ -90,10 +101,14 @@ def register(sub) -> None:
     r.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="task option, e.g. push_speed_um_s=1000, ks=0.9, model=exp, servo=default (repeatable)")
     r.add_argument("--log", type=output_file, default=None, help="run log to create (JSON lines)")
+    r.add_argument("--log-max-mb", type=positive_float, default=None, metavar="N",
+                   help="largest part of the run log in MB (10^6 bytes): past it the log goes on in LOG.1, "
+                        "LOG.2… (magctl log reads them all from LOG; default models/rig.toml [log] max_mb)")
     r.add_argument("--duration", type=positive_float, default=None, help="stop after this many seconds (> 0)")
     r.add_argument("--max-ticks", type=positive_int, default=None, help="stop after this many ticks (>= 1)")
     r.add_argument("--spheres", type=nonneg_int, default=1, help="with --rig sim: number of spheres")
-    r.add_argument("--fast", action="store_true", help="with --rig sim: run ticks back to back, not at 30 Hz")
+    r.add_argument("--fast", action="store_true",
+                   help="with --rig sim or a simulated lab file: ticks back to back in simulated time, not at 30 Hz")
     r.add_argument("--plant", choices=("physics", "standin"), default="physics",
                    help="with --rig sim: the plant blocks (default) or the fast kinematic stand-in")
     r.add_argument("--rt-priority", type=positive_int, default=None, metavar="P",
@@ -137,11 +152,83 @@ def _scene(args):
     return scene, params
 
 
+def _server_options(p) -> None:
+    """The options every rig server takes: scheduling, lock-step, security."""
+    p.add_argument("--rt-priority", type=positive_int, default=None, metavar="P",
+                   help="run under SCHED_FIFO priority P (Linux, needs CAP_SYS_NICE)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="step one frame per 'read' (simulated time, deterministic) instead of at 30 Hz")
+    p.add_argument("--curve-secret", type=existing_file, default=None, metavar="FILE",
+                   help="server secret key (server.key_secret from 'magctl rig keys'): CURVE encryption and "
+                        "client authentication; needs --curve-clients")
+    p.add_argument("--curve-clients", type=existing_dir, default=None, metavar="DIR",
+                   help="folder of the public keys (*.key) of the clients allowed to connect")
+    p.add_argument("--allow", action="append", default=[], metavar="ADDR",
+                   help="only peers at this IP address, in this network (10.1.0.0/16) or at this host name "
+                        "(resolved at start; localhost) may connect (repeatable; default: any)")
+    p.add_argument("--insecure", action="store_true",
+                   help="allow --bind beyond loopback without CURVE (session tokens and commands travel in clear)")
+
+
+def _check_curve(args, who: str) -> None:
+    if (args.curve_secret is None) != (args.curve_clients is None):
+        raise MagctlError(f"{who}: --curve-secret and --curve-clients go together")
+    if args.curve_secret is None:
+        return
+    from magctl.rig.server import load_keypair
+
+    try:
+        _, secret = load_keypair(args.curve_secret)
+    except (OSError, ValueError) as err:
+        raise MagctlError(f"{who}: --curve-secret: {err}") from None
+    if secret is None:
+        raise MagctlError(f"{who}: --curve-secret {args.curve_secret}: no secret key in it (use server.key_secret)")
+    if not args.curve_clients.is_dir() or not any(args.curve_clients.glob("*.key")):
+        raise MagctlError(f"{who}: --curve-clients {args.curve_clients}: no client public keys (*.key)")
+
+
+def _serve(args, who: str, station, limits, period: float, describe: dict, params) -> int:
+    """Build the one rig server around ``station`` and serve until SIGTERM/SIGINT."""
+    import zmq
+
+    from magctl.rig.server import RigServer, announce
+
+    try:
+        server = RigServer(station, args.bind, limits, params.watchdog.timeout, period, describe, name=who,
+                           lockstep=args.lockstep, session_timeout=params.session.timeout,
+                           lockstep_wall_timeout=params.watchdog.lockstep_wall_timeout,
+                           curve_secret=args.curve_secret, curve_clients=args.curve_clients, allow=args.allow,
+                           insecure=args.insecure, takeover_interval=params.session.takeover_interval)
+    except MagctlError as err:  # a bind beyond loopback without CURVE, an --allow entry that does not resolve
+        raise MagctlError(f"{who}: {err}") from None
+    try:
+        return server.serve(ready=announce)
+    except zmq.ZMQError as err:  # only binding raises: the serve loop catches everything else
+        raise MagctlError(f"cannot serve on {args.bind}: {err}") from None
+
+
+def cmd_serve(args) -> int:
+    from magctl.config import load_model
+    from magctl.rig.lab import build_station, load_lab
+    from magctl.rig.runtime import set_realtime_priority
+
+    cfg = load_lab(args.config)
+    if args.lockstep and not cfg.simulated:
+        raise MagctlError(f"rig serve: {args.config}: --lockstep (simulated time) needs the simulated devices")
+    _check_curve(args, "rig serve")
+    sched = set_realtime_priority(args.rt_priority)
+    # the devices are opened once here, so that a missing one is an error before serving; the server reopens
+    # them on every configure with reset
+    build_station(cfg, lockstep=args.lockstep).close()
+    station = partial(build_station, cfg, lockstep=args.lockstep, dry_run=args.dry_run)
+    describe = {**cfg.describe(), "scheduling": sched, "lockstep": args.lockstep, "dry_run": args.dry_run}
+    return _serve(args, "rig serve", station, cfg.limits, cfg.period, describe, load_model("rig"))
+
+
 def cmd_serve_sim(args) -> int:
     from magctl.rig.interface import RigLimits
     from magctl.rig.plant import build_sim_plant
     from magctl.rig.runtime import set_realtime_priority
-    from magctl.rig.server import RigServer, announce
     from magctl.rig.sim import SimPlant
 
     scene, params = _scene(args)
@@ -152,35 +239,13 @@ def cmd_serve_sim(args) -> int:
         build_sim_plant(n, scene, params, plant=args.plant)  # a bad scene is an error before serving
     except MagctlError as err:
         raise MagctlError(f"serve-sim: {err}") from None
-    if (args.curve_secret is None) != (args.curve_clients is None):
-        raise MagctlError("serve-sim: --curve-secret and --curve-clients go together")
-    if args.curve_secret is not None:
-        from magctl.rig.server import load_keypair
-
-        try:
-            _, secret = load_keypair(args.curve_secret)
-        except (OSError, ValueError) as err:
-            raise MagctlError(f"serve-sim: --curve-secret: {err}") from None
-        if secret is None:
-            raise MagctlError(f"serve-sim: --curve-secret {args.curve_secret}: no secret key in it "
-                              f"(use server.key_secret)")
-        if not args.curve_clients.is_dir() or not any(args.curve_clients.glob("*.key")):
-            raise MagctlError(f"serve-sim: --curve-clients {args.curve_clients}: no client public keys (*.key)")
+    _check_curve(args, "serve-sim")
     limits, period = RigLimits.from_params(params), 1.0 / params.runtime.rate
     station = partial(SimPlant, lambda: build_sim_plant(n, scene, params, plant=args.plant), limits, args.seed,
                       period)
     describe = {"kind": f"serve-sim ({kind})", "plant": args.plant, "scheduling": sched, "lockstep": args.lockstep,
                 **scene.to_dict()}
-    server = RigServer(station, args.bind, limits, params.watchdog.timeout, period, describe,
-                       lockstep=args.lockstep, session_timeout=params.session.timeout,
-                       lockstep_wall_timeout=params.watchdog.lockstep_wall_timeout,
-                       curve_secret=args.curve_secret, curve_clients=args.curve_clients, allow=args.allow)
-    import zmq
-
-    try:
-        return server.serve(ready=announce)
-    except zmq.ZMQError as err:  # only binding raises: the serve loop catches everything else
-        raise MagctlError(f"cannot serve on {args.bind}: {err}") from None
+    return _serve(args, "serve-sim", station, limits, period, describe, params)
 
 
 def cmd_keys(args) -> int:
@@ -241,10 +306,13 @@ def cmd_run(args) -> int:
                              scheduling=sched)
     except RigError as err:
         raise MagctlError(f"rig run: {err}") from None
-    runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not (args.rig == "sim" and args.fast),
-                      max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,
-                      rig_description=desc, engine=args.engine)
+    in_process = args.rig == "sim" or args.rig.endswith(".toml")
     try:
+        runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not (in_process and args.fast),
+                          max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,
+                          rig_description=desc, engine=args.engine,
+                          # MB = 10^6 bytes; None: the run's rig.toml [log] max_mb
+                          log_max_bytes=None if args.log_max_mb is None else int(round(args.log_max_mb * 1e6)))
         report = runtime.run()
     finally:
         rig.close()
@@ -284,7 +352,8 @@ def cmd_experiment(args) -> int:
                   f"{report.ticks} frames", flush=True)
 
     logs = run_experiment(args.rig, args.out, seed=args.seed, n_spheres=args.spheres, plant=args.plant,
-                          progress=progress, specs=specs, engine=args.engine)
+                          progress=progress, specs=specs, engine=args.engine,
+                          log_max_bytes=None if args.log_max_mb is None else int(round(args.log_max_mb * 1e6)))
     doc = {"logs": [str(p) for p in logs], "runs": [s.name for s in specs],
            "next": f"magctl identify {args.out}/*.jsonl --out IDENTIFIED"}
     emit(args, doc, lambda d: f"{len(d['logs'])} run logs in {args.out}\nnext: {d['next']}")

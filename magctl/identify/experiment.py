@@ -154,7 +154,7 @@ Progress = Callable[[int, int, RunSpec, "RunReport | None"], None]
 
 def run_experiment(rig: str, out_dir: Path, seed: int = 0, n_spheres: int = 1, plant: str = "physics",
                    progress: Progress | None = None, *, specs: Sequence[RunSpec] | None = None,
-                   engine: str = "auto", quiet: bool = True) -> list[Path]:
+                   engine: str = "auto", quiet: bool = True, log_max_bytes: int | None = None) -> list[Path]:
     """Run the experiment's runs in order on one rig; returns the logs written.
 
     Parameters
@@ -176,6 +176,9 @@ def run_experiment(rig: str, out_dir: Path, seed: int = 0, n_spheres: int = 1, p
         Controller engine of every run (``magctl rig run --engine``).
     quiet : bool
         Silence the runtime's warnings on stderr.
+    log_max_bytes : int, optional
+        Size cap of one file of each run log (``Runtime(log_max_bytes=…)``; ``magctl rig run --log-max-mb``): past
+        it a log goes on in ``NN-name.jsonl.1``… Default ``models/rig.toml`` [log] ``max_mb``; 0: no cap.
 
     Raises
     ------
@@ -220,7 +223,8 @@ def run_experiment(rig: str, out_dir: Path, seed: int = 0, n_spheres: int = 1, p
             try:
                 options = spec.resolved(np.asarray(spheres, dtype=float) * 1e-6)
                 report = Runtime(handle, spec.task, options, log_path=path, realtime=realtime, seed=seed,
-                                 quiet=quiet, rig_description=desc, engine=engine).run()
+                                 quiet=quiet, rig_description=desc, engine=engine,
+                                 log_max_bytes=log_max_bytes).run()
             except MagctlError as err:
                 raise ExperimentError(f"{path.name}: {spec.task}: {err}") from None
             spheres = report.final.get("spheres_um", spheres)

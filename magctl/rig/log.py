@@ -18,7 +18,8 @@ shape or a one-line :class:`LogError` naming the file, the line and the field.
 Floats are written with Python's shortest round-trip ``repr``, so logged values
 read back bit for bit; :func:`replay` relies on it to feed the logged
 observations through a freshly built controller and compare the commands
-exactly.
+exactly. A run that planned off the frame is replayed with its plans merged at the ticks its events say
+(``outputs.event_applied``), so a real-time run, whose plans came back late, replays exactly too.
 
 **Parts.** A log has a size cap per file (``max_bytes``, ``models/rig.toml`` [log] ``max_mb`` by
 default): an event that would take the file ``LOG`` past it goes to ``LOG.1`` instead, then ``LOG.2``…
@@ -27,14 +28,13 @@ descriptor, so it reads alone; the stop document is always written, to the curre
 given ``LOG`` reads the parts that follow it as one run.
 
 **Write errors.** An ``OSError`` while writing (a full disk, an I/O error) raises :class:`LogWriteError`
-naming the file; it is a :class:`~magctl.rig.interface.RigError`, so the runtime ends the run as on a rig
-error — coils zeroed, exit status ``error`` — and the log ends at its last complete line, without a stop
-document.
+naming the file (also a :class:`~magctl.rig.interface.RigError`); the runtime catches :class:`LogError` and
+ends the run as on a rig error — coils zeroed, exit status ``error``, the reason naming the file — and the log
+ends at its last complete line, without a stop document.
 """
 
 from __future__ import annotations
 
-import contextvars
 import json
 import os
 import time
@@ -63,21 +63,6 @@ class LogWriteError(LogError, RigError):
 
     Also a :class:`~magctl.rig.interface.RigError`, so that the runtime stops the run safely (coils zeroed,
     exit status ``error``, the message naming the file) as it does on a rig error."""
-
-
-# the part size of writers that are not given one (see part_size_limit); None: models/rig.toml [log] max_mb
-_PART_LIMIT: contextvars.ContextVar = contextvars.ContextVar("magctl_runlog_part_limit", default=None)
-
-
-@contextmanager
-def part_size_limit(max_bytes: int | None):
-    """Within the block, a :class:`RunLogWriter` created without ``max_bytes`` uses this one (``magctl rig run
-    --log-max-mb`` sets it around the run; None keeps the default)."""
-    token = _PART_LIMIT.set(max_bytes)
-    try:
-        yield
-    finally:
-        _PART_LIMIT.reset(token)
 
 
 def default_part_bytes() -> int:
@@ -195,8 +180,9 @@ class RunLogWriter:
         Also ``fsync`` after every frame (survives power loss, not only process death).
     max_bytes : int, optional
         Size cap of one part, bytes: an event that would take the current file past it opens the next part
-        (``path.1``, ``path.2``…, each starting with the start document and the descriptor). None: the value
-        of :func:`part_size_limit` around the call, else ``models/rig.toml`` [log] ``max_mb``; 0: no cap.
+        (``path.1``, ``path.2``…, each starting with the start document and the descriptor). None:
+        ``models/rig.toml`` [log] ``max_mb`` (the runtime passes its run's own: ``Runtime(log_max_bytes=…)``);
+        0: no cap.
         A part always holds at least one event, and the stop document always goes to the current part.
 
     Every write error (``OSError``: disk full, I/O error) raises :class:`LogWriteError` naming the file;
@@ -207,8 +193,6 @@ class RunLogWriter:
     def __init__(self, path, fsync: bool = False, *, max_bytes: int | None = None):
         self.path = Path(path)
         self.fsync = fsync
-        if max_bytes is None:
-            max_bytes = _PART_LIMIT.get()
         if max_bytes is None:
             max_bytes = default_part_bytes()
         if not (isinstance(max_bytes, (int, float)) and max_bytes >= 0):
@@ -772,7 +756,10 @@ def export(log_path, out_path) -> Path:
 # --- replay ------------------------------------------------------------------------------------------
 @dataclass
 class ReplayResult:
-    """Outcome of :func:`replay`: commands compared, mismatches (with the first one), identical flag."""
+    """Outcome of :func:`replay`: commands compared, mismatches (with the first one), identical flag.
+
+    ``merged`` counts the plans (deferred events) merged at the tick the log says (0 for a run that planned
+    inside the tick)."""
 
     events: int
     compared: int
@@ -781,10 +768,27 @@ class ReplayResult:
     crashed: bool = False
     complete_to: dict | None = None
     note: str | None = None
+    merged: int = 0
 
     @property
     def identical(self) -> bool:
         return self.mismatches == 0 and self.compared > 0
+
+
+def deferred_events(log: RunLog) -> bool:
+    """Whether the run planned off the frame: its events say when each plan was requested and applied
+    (``outputs.event_applied``; docs/rig.md "Planning off the frame")."""
+    fields = (log.descriptor or {}).get("fields", {})
+    return "outputs.event_applied" in fields or any("event_applied" in e["outputs"] for e in log.events)
+
+
+def _logged_tick(value) -> int | None:
+    """A logged ``event_applied`` as a tick (−1: none), None when it is not a whole number >= −1."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    if isinstance(value, float) and not value.is_integer():
+        return None
+    return int(value) if value >= -1 else None
 
 
 def replay(log_path) -> ReplayResult:
@@ -794,6 +798,14 @@ def replay(log_path) -> ReplayResult:
     seed, and the text of every parameter file the run used) and reset at every change of ``activation``, as the
     runtime did; both the raw controller command and the clipped command sent
     to the rig are compared with ``==`` on the float64 values.
+
+    A run that planned off the frame (its events carry ``outputs.event_applied``) is replayed with the runtime's
+    machinery, ``Controller(defer_events=True)``: each plan a step requests is run (here, in the replaying
+    thread) and merged before the step of the event whose ``event_applied`` names the requesting tick — the
+    tick where the run merged it, however late — so a real-time run replays bit for bit as a lock-step one does.
+    The log's ``event_applied``, ``event_pending`` and ``event_requested`` are checked against the replay too: a
+    value the replay cannot follow (no plan of that tick pending, not a tick) is a mismatch at that event, and the
+    replay goes on. A run without these fields replays with the on-frame controller, as a study steps it.
     """
     from magctl.rig.tasks import Controller, build_task
 
@@ -816,14 +828,44 @@ def replay(log_path) -> ReplayResult:
             task = build_task(st["task"], first, st["options"], params)
     except LogError as err:
         raise LogError(f"{log.path}:1: {err}") from None
-    ctrl = Controller(task, seed=st.get("seed", 0))
+    deferred = deferred_events(log)
+    ctrl = Controller(task, seed=st.get("seed", 0), defer_events=deferred)
     activation = log.events[0]["activation"]
-    compared = mismatches = 0
+    compared = mismatches = merged = 0
     first_bad = None
+    pending: list[tuple[int, Any]] = []   # (seq of the requesting event, request): requested, not merged yet
+
+    def differ(seq: int, key: str, logged, mine) -> None:
+        nonlocal mismatches, first_bad
+        mismatches += 1
+        if first_bad is None:
+            first_bad = {"seq": seq, "field": key, "logged": logged, "replayed": mine}
+
     for e in log.events:
+        seq, outs = e["seq"], e["outputs"]
         if e["activation"] != activation:
             ctrl.reset()
+            pending.clear()   # the runtime drops the plans of the last activation too
             activation = e["activation"]
+        if deferred:
+            # merge what the run merged before this step: the plans requested up to the logged tick, in order
+            # (one worker runs them in order, so an earlier plan is never merged after a later one)
+            logged = outs.get("event_applied")
+            tick = _logged_tick(logged)
+            due = [] if tick is None else [p for p in pending if p[0] <= tick]
+            if tick is None or (tick >= 0 and (not due or due[-1][0] != tick)):
+                differ(seq, "outputs.event_applied", logged, due[-1][0] if due else -1)
+            for requested, req in due:
+                try:
+                    result = req.run()
+                except Exception as err:  # noqa: BLE001 - the planner's own failure, named in one line
+                    raise LogError(f"{log.path}: event seq {seq}: the plan requested at seq {requested} fails on "
+                                   f"replay ({type(err).__name__}: {P.show(str(err), 120)})") from None
+                ctrl.apply(req, result)
+                merged += 1
+            pending = pending[len(due):]   # the due ones are the oldest
+            if "event_pending" in outs and outs["event_pending"] != bool(pending):
+                differ(seq, "outputs.event_pending", outs["event_pending"], bool(pending))
         if e.get("cmd_raw") is None:
             continue
         raw, _ = ctrl.step(event_observation(e))
@@ -834,8 +876,11 @@ def replay(log_path) -> ReplayResult:
             compared += 1
             mine = P.command_to_wire(cmd)
             if mine != e[key]:
-                mismatches += 1
-                if first_bad is None:
-                    first_bad = {"seq": e["seq"], "field": key, "logged": e[key], "replayed": mine}
+                differ(seq, key, e[key], mine)
+        if deferred:
+            new = ctrl.take_requests()
+            pending += [(seq, req) for req in new]
+            if outs.get("event_requested") != len(new):
+                differ(seq, "outputs.event_requested", outs.get("event_requested"), len(new))
     return ReplayResult(len(log.events), compared, mismatches, first_bad, log.crashed, log.complete_to,
-                        log.crash_note())
+                        log.crash_note(), merged)

@@ -13,6 +13,13 @@ stderr at most once a second. Garbage collection is frozen and disabled during
 the loop. SIGTERM and Ctrl-C stop the loop; whatever the exit, the coils are
 zeroed (rig deactivated) and the log gets its stop document.
 
+The run log (:class:`~magctl.rig.log.RunLogWriter`) is created before the coils are activated and capped at
+``log_max_bytes`` a file (default: the run's rig.toml ``[log] max_mb``), going on in ``LOG.1``, ``LOG.2``…
+(:attr:`RunReport.log_parts`). A log that cannot be written (:class:`~magctl.rig.log.LogError`; a
+``LogWriteError`` names the file) ends the run as a rig error does: coils zeroed, exit status ``error``, its
+message the reason; a stop document that cannot be written turns the exit status into ``error`` and says so in
+the reason.
+
 The run stops when the task reports ``done`` or ``failed``, when tracking has
 been lost for ``lost_timeout`` (the task's tracking guard has already stopped
 the robot), on a rig error, or after ``max_ticks`` / ``duration``.
@@ -47,7 +54,14 @@ from magctl.config import load_file, models_dir
 from magctl.core.compiled import NotCompilable
 from magctl.core.errors import MagctlError
 from magctl.rig.interface import Lifecycle, Observation, Rig, RigError
-from magctl.rig.log import RunLogWriter, descriptor_fields, limits_to_doc, models_snapshot
+from magctl.rig.log import (
+    LogError,
+    RunLogWriter,
+    default_part_bytes,
+    descriptor_fields,
+    limits_to_doc,
+    models_snapshot,
+)
 from magctl.rig.tasks import Controller, Task, build_task, check_options
 
 
@@ -69,6 +83,8 @@ class RunReport:
     events: list[dict[str, Any]] = field(default_factory=list)
     """The events run off the frame (the plans): ``requested`` and ``applied`` tick (log ``seq``; None: never
     applied), ``worker_s`` (None: not finished)."""
+    log_parts: list[str] = field(default_factory=list)
+    """Every file of the run log, in order: ``LOG``, then ``LOG.1``, ``LOG.2``… past the size cap."""
 
     def stats(self) -> dict[str, Any]:
         def pct(a, q):
@@ -85,7 +101,7 @@ class RunReport:
             "slow_steps": self.slow_steps,
             **({"events": len(self.events), "event_frames_max": max(waits, default=None),
                 "event_worker_max_ms": _ms(max(worker, default=None))} if self.events else {}),
-            "log": self.log_path, "options": self.task_options, **self.final,
+            "log": self.log_path, "log_parts": self.log_parts, "options": self.task_options, **self.final,
         }
 
 
@@ -142,12 +158,16 @@ class Runtime:
     off_frame : bool
         Run the task's Python events (its planner) on a worker thread, off the tick (default); False runs them
         inside the tick that raises them, as a study does (``benchmarks/bench_planning_off_frame.py`` compares).
+    log_max_bytes : int, optional
+        Size cap of one file of the run log, bytes (``RunLogWriter(max_bytes=…)``: past it the log goes on in
+        ``LOG.1``, ``LOG.2``…; 0: no cap). Default: ``[log] max_mb`` of the run's rig parameter file
+        (``params_path``), MB = 10⁶ bytes.
     """
 
     def __init__(self, rig: Rig, task: str, options: dict | None = None, *, log_path=None, realtime: bool = True,
                  max_ticks: int | None = None, duration: float | None = None, seed: int = 0, params_path=None,
                  quiet: bool = False, rig_description: dict | None = None, engine: str = "auto",
-                 off_frame: bool = True):
+                 off_frame: bool = True, log_max_bytes: int | None = None):
         self.rig, self.task_name, self.options = rig, task, dict(options or {})
         self.engine = engine
         self.off_frame = bool(off_frame)
@@ -167,6 +187,23 @@ class Runtime:
         self.ticks = self.overruns = self.slow_steps = 0
         self.lockstep = not realtime
         self._events: list[_Pending] = []
+        self.log_max_bytes = None if self.log_path is None else self._log_cap(log_max_bytes)
+
+    def _log_cap(self, given) -> int:
+        """The run log's part size cap in bytes: ``given``, else the run's rig.toml ``[log] max_mb`` (else
+        ``models/rig.toml``'s, for a parameter file without a [log] table)."""
+        if given is not None:
+            if isinstance(given, bool) or not isinstance(given, (int, float)) or not 0 <= given < float("inf"):
+                raise LogError(f"{self.log_path}: the log size cap must be a number of bytes >= 0 (0: no cap), "
+                               f"got {given!r}")
+            return int(given)
+        table = self.params.get("log")
+        if table is None or "max_mb" not in table:
+            return default_part_bytes()
+        mb = table.max_mb
+        if isinstance(mb, bool) or not isinstance(mb, (int, float)) or not 0 < mb < float("inf"):
+            raise LogError(f"{self.params_path}: log.max_mb_1 = {mb!r} must be > 0")
+        return int(round(mb * 1e6))
 
     # --- signals --------------------------------------------------------------------------------
     def request_stop(self, reason: str = "stop requested") -> None:
@@ -241,14 +278,20 @@ class Runtime:
         self.slow_steps = 0
         worker = (ThreadPoolExecutor(max_workers=1, thread_name_prefix="magctl-plan")
                   if ctrl.defer_events and ctrl.has_events else None)
-        rig.activate()
-        writer = None
+        # the log file is created before the coils are live: one that cannot be (it exists, a part of it exists, its
+        # folder is not writable) is a LogError before anything moves
+        writer = None if self.log_path is None else RunLogWriter(self.log_path, max_bytes=self.log_max_bytes)
+        try:
+            rig.activate()
+        except BaseException:
+            if writer is not None:
+                _drop_unwritten(writer)
+            raise
         old_handlers = self._install_signals()
         jitter, compute = [], []
         status, reason, ticks, overruns, final = "error", "", 0, 0, {}
         try:
-            if self.log_path is not None:
-                writer = RunLogWriter(self.log_path)
+            if writer is not None:
                 writer.start(task=task.name, options=task.options, seed=self.seed, rig=self.rig_description,
                              limits=limits_to_doc(rig.limits), models_toml=self._models_snapshot(),
                              params_file=str(self.params_path), period_s=self.period, realtime=self.realtime,
@@ -265,6 +308,9 @@ class Runtime:
             status, reason, ticks, overruns, final = self._loop(ctrl, writer, jitter, compute, worker)
         except KeyboardInterrupt:
             status, reason, ticks, overruns = "aborted", "interrupted (Ctrl-C)", self.ticks, self.overruns
+        except LogError as err:
+            # the writer's own error (a LogWriteError names the file: disk full, I/O error): stop as on a rig error
+            status, reason, ticks, overruns = "error", _one_line(err), self.ticks, self.overruns
         except RigError as err:
             status, reason, ticks, overruns = "error", str(err), self.ticks, self.overruns
         finally:
@@ -282,11 +328,17 @@ class Runtime:
                        "worker_s": p.future.result()[1] if p.future.done() and not p.future.cancelled()
                        and p.future.exception() is None else None} for p in self._events]
             if writer is not None:
-                writer.stop(status, reason, ticks=ticks, overruns=overruns, slow_steps=self.slow_steps,
-                            **({"events": events} if worker is not None else {}))
+                try:
+                    writer.stop(status, reason, ticks=ticks, overruns=overruns, slow_steps=self.slow_steps,
+                                **({"events": events} if worker is not None else {}))
+                except LogError as err:
+                    # the run is over (coils zeroed); its log lacks the stop document, which readers report
+                    note = f"the log's stop document was not written: {_one_line(err)}"
+                    status, reason = "error", f"{reason}; {note}" if reason else note
         return RunReport(status, reason, ticks, overruns, np.asarray(jitter), np.asarray(compute), final,
                          None if self.log_path is None else str(self.log_path),
-                         {} if task is None else task.options, self.slow_steps, events)
+                         {} if task is None else task.options, self.slow_steps, events,
+                         [] if writer is None else [str(p) for p in writer.parts])
 
     def _apply_events(self, ctrl: Controller, pending: list[_Pending], tick: int) -> int:
         """Merge the worker's results before tick ``tick``'s controller step: in lock-step every pending one (the
@@ -458,6 +510,21 @@ def set_realtime_priority(priority: int | None) -> str:
     except (AttributeError, OSError) as err:
         return f"SCHED_FIFO {priority} refused ({err}); default scheduling"
     return f"SCHED_FIFO {priority}"
+
+
+def _one_line(err: Exception) -> str:
+    """An error's message on one line (a reason of the run report and of the stop document)."""
+    return " ".join(str(err).split()) or type(err).__name__
+
+
+def _drop_unwritten(writer: RunLogWriter) -> None:
+    """Close a run log nothing was written to (the run did not start) and remove its empty file."""
+    try:
+        writer.close()
+        if writer.path.stat().st_size == 0:
+            writer.path.unlink()
+    except (LogError, OSError):
+        pass
 
 
 def _scalar(v):

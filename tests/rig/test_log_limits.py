@@ -18,7 +18,6 @@ from magctl.rig.log import (
     RunLogWriter,
     default_part_bytes,
     part_path,
-    part_size_limit,
     read_log,
     replay,
 )
@@ -105,8 +104,7 @@ def test_the_part_size_defaults_to_models_rig_toml_and_a_stale_part_is_refused(t
     w = RunLogWriter(tmp_path / "a.jsonl")
     assert w.max_bytes == default_part_bytes()
     w.close()
-    with part_size_limit(12345):
-        w = RunLogWriter(tmp_path / "b.jsonl")
+    w = RunLogWriter(tmp_path / "b.jsonl", max_bytes=12345)
     assert w.max_bytes == 12345
     w.close()
     (tmp_path / "c.jsonl.1").write_text("")
@@ -219,3 +217,154 @@ def test_a_nul_in_a_logged_path_that_replay_does_not_use_is_harmless(small_log, 
     assert replay(odd).identical
     assert main(["log", "show", str(odd)]) == 0
     capsys.readouterr()
+
+
+# --- the runtime's cap and its log errors ------------------------------------------------------------------
+GOTO = {"target_um": [4000.0, 1800.0]}   # far: no arrival within the runs below
+
+
+def _params_with_max_mb(tmp_path: Path, mb) -> Path:
+    """A copy of models/rig.toml whose [log] max_mb is ``mb``."""
+    from magctl.config import models_dir
+
+    text = (models_dir() / "rig.toml").read_text()
+    old = "max_mb_1 = { value = 100.0,"
+    assert old in text
+    path = tmp_path / "rig.toml"
+    path.write_text(text.replace(old, f"max_mb_1 = {{ value = {mb},"))
+    return path
+
+
+def test_the_runtime_caps_its_log_at_its_rig_toml_and_reports_every_part(tmp_path):
+    def runtime(name, **kw):
+        return Runtime(SimRig(n_spheres=0, realtime=False, plant="standin"), "goto", GOTO, log_path=tmp_path / name,
+                       realtime=False, max_ticks=40, quiet=True, **kw)
+
+    assert runtime("default.jsonl").log_max_bytes == default_part_bytes()
+    params = _params_with_max_mb(tmp_path, 0.235)   # the start document is ≈ 0.22 MB: ≈ 15 events a part
+    rt = runtime("run.jsonl", params_path=params)
+    assert rt.log_max_bytes == 235_000
+    report = rt.run()
+    back = read_log(tmp_path / "run.jsonl")
+    assert report.exit_status == "stopped" and len(back.events) == report.ticks == 40
+    assert len(back.parts) >= 2 and report.log_parts == [str(p) for p in back.parts]
+    assert report.stats()["log_parts"] == report.log_parts and report.stats()["log"] == report.log_parts[0]
+    assert all(p.stat().st_size <= 235_000 for p in back.parts[:-1])
+    # given, the cap wins over the file; 0 is no cap
+    report = runtime("one.jsonl", params_path=params, log_max_bytes=0).run()
+    assert report.log_parts == [str(tmp_path / "one.jsonl")] and not part_path(tmp_path / "one.jsonl", 1).exists()
+    assert Runtime(SimRig(n_spheres=0), "goto", GOTO).log_max_bytes is None   # no log, no cap
+
+
+@pytest.mark.parametrize("given, mb, words", [(-1, None, "must be a number of bytes >= 0"),
+                                              (True, None, "must be a number of bytes >= 0"),
+                                              (None, 0, r"rig.toml: log.max_mb_1 = 0.0 must be > 0")])
+def test_a_bad_cap_is_refused_before_the_rig_is_touched(tmp_path, given, mb, words):
+    params = None if mb is None else _params_with_max_mb(tmp_path, mb)
+    rig = SimRig(n_spheres=0, realtime=False, plant="standin")
+    with pytest.raises(LogError, match=words):
+        Runtime(rig, "goto", GOTO, log_path=tmp_path / "x.jsonl", realtime=False, log_max_bytes=given,
+                params_path=params)
+    assert rig.state is Lifecycle.UNCONFIGURED and not (tmp_path / "x.jsonl").exists()
+
+
+def test_a_log_that_cannot_be_created_is_refused_before_the_coils_are_live(tmp_path):
+    log = tmp_path / "taken.jsonl"
+    log.write_text("an earlier run\n")
+    rig = SimRig(n_spheres=0, realtime=False, plant="standin")
+    with pytest.raises(LogError, match="never overwritten"):
+        Runtime(rig, "goto", GOTO, log_path=log, realtime=False, max_ticks=5, quiet=True).run()
+    assert rig.activation == 0 and log.read_text() == "an earlier run\n"
+    # an activation that fails leaves no empty log behind
+    rig = SimRig(n_spheres=0, realtime=False, plant="standin")
+
+    def refuse():
+        raise RigError("activation refused")
+
+    rig.activate = refuse
+    with pytest.raises(RigError, match="activation refused"):
+        Runtime(rig, "goto", GOTO, log_path=tmp_path / "never.jsonl", realtime=False, max_ticks=5, quiet=True).run()
+    assert not (tmp_path / "never.jsonl").exists()
+
+
+def test_a_log_error_that_is_not_a_write_error_ends_the_run_safely(tmp_path, monkeypatch):
+    real_event = RunLogWriter.event
+
+    def event(self, seq, *args, **kw):
+        if seq == 3:
+            raise LogError(f"{self.current}: refusing to write an invalid event document, outputs.x: bad")
+        return real_event(self, seq, *args, **kw)
+
+    monkeypatch.setattr(RunLogWriter, "event", event)
+    log = tmp_path / "bad.jsonl"
+    rig = SimRig(n_spheres=0, realtime=False, plant="standin")
+    report = Runtime(rig, "goto", GOTO, log_path=log, realtime=False, max_ticks=20, quiet=True).run()
+    assert report.exit_status == "error" and report.reason.startswith(f"{log}: refusing to write")
+    assert report.ticks == 3 and rig.state is Lifecycle.INACTIVE and rig.plant.cmd.is_zero()
+    back = read_log(log)   # its stop document says why
+    assert len(back.events) == 3 and back.stop["exit_status"] == "error" and str(log) in back.stop["reason"]
+
+
+def _full_at_stop(monkeypatch):
+    """A disk that fills just as the stop document is written."""
+    _filling_disk(monkeypatch, 10**9)
+    real_stop = RunLogWriter.stop
+
+    def stop(self, *args, **kw):
+        self._fh.room = 0
+        return real_stop(self, *args, **kw)
+
+    monkeypatch.setattr(RunLogWriter, "stop", stop)
+
+
+def test_a_stop_document_that_cannot_be_written_ends_the_run_with_a_one_line_reason(tmp_path, monkeypatch, capsys):
+    _full_at_stop(monkeypatch)
+    log = tmp_path / "nostop.jsonl"
+    rig = SimRig(n_spheres=0, realtime=False, plant="standin")
+    report = Runtime(rig, "goto", GOTO, log_path=log, realtime=False, max_ticks=10, quiet=True).run()
+    assert report.exit_status == "error" and report.ticks == 10 and "\n" not in report.reason
+    assert report.reason.startswith("max ticks (10) reached; the log's stop document was not written: "
+                                    f"{log}: cannot write the run log (No space left on device)")
+    assert rig.state is Lifecycle.INACTIVE and rig.plant.cmd.is_zero()
+    back = read_log(log)
+    assert back.crashed and len(back.events) == 10
+    # through the command line: exit 1, the reason on the exit line, no traceback
+    cli_log = tmp_path / "cli.jsonl"
+    code = main(["rig", "run", "--rig", "sim", "--fast", "--plant", "standin", "--task", "goto", "--target-um",
+                 "4000", "1800", "--max-ticks", "5", "--log", str(cli_log)])
+    out, err = capsys.readouterr()
+    assert code == 1 and "Traceback" not in err
+    assert (f"exit: error — max ticks (5) reached; the log's stop document was not written: {cli_log}: cannot "
+            f"write the run log") in out
+
+
+def test_rig_run_json_lists_the_log_parts(tmp_path, capsys):
+    log = tmp_path / "run.jsonl"
+    code = main(["rig", "run", "--rig", "sim", "--fast", "--plant", "standin", "--task", "goto", "--target-um",
+                 "4000", "1800", "--max-ticks", "40", "--log", str(log), "--log-max-mb", "0.235", "--quiet",
+                 "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    parts = read_log(log).parts
+    assert code == 0 and len(parts) >= 2 and doc["log_parts"] == [str(p) for p in parts] and doc["log"] == str(log)
+
+
+def test_the_experiment_caps_its_logs_too(tmp_path, monkeypatch, capsys):
+    from magctl.identify import experiment
+    from magctl.identify.experiment import RunSpec, run_experiment
+
+    spec = RunSpec("goto", "goto", {"target_um": [1100.0, 1800.0]})   # 100 µm from the default scene's robot
+    (path,) = run_experiment("sim", tmp_path / "x", plant="standin", specs=[spec], log_max_bytes=223_500)
+    back = read_log(path)
+    assert len(back.parts) >= 2 and back.stop["exit_status"] == "done"
+    # magctl rig experiment --log-max-mb reaches it in bytes
+    seen = {}
+
+    def fake(*args, **kw):
+        seen.update(kw)
+        return []
+
+    monkeypatch.setattr(experiment, "run_experiment", fake)
+    assert main(["rig", "experiment", "--rig", "sim", "--out", str(tmp_path / "y"), "--log-max-mb", "0.5",
+                 "--json"]) == 0
+    capsys.readouterr()
+    assert seen["log_max_bytes"] == 500_000
