@@ -18,6 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
+from magctl.rig.devices.base import CoilSetpoint, DeviceError, setpoint_of
 from magctl.rig.interface import Command, Lifecycle, Observation, Rig, RigError, RigLimits
 
 
@@ -58,18 +59,20 @@ class DeviceStation:
     :meth:`step` returns the newest observation (lost when it is older than ``stale_frames`` frames). In lock-step
     (simulated devices only) :meth:`step` grabs and tracks synchronously, one frame per call.
 
+    With ``dry_run`` every command is checked and converted but the coils get zero: the camera, tracker and
+    controller can be watched on the rig with the coils off.
+
     A camera that delivers nothing for ``camera_timeout`` s, or a coil driver that fails, raises
     :class:`~magctl.rig.devices.base.DeviceError` from :meth:`step` / :meth:`apply` / :meth:`zero`; the server then
     zeroes the coils and deactivates with the error as its reason.
     """
 
     def __init__(self, camera, coils, tracker, limits, *, lockstep: bool = False, period: float = 1 / 30,
-                 camera_timeout: float = 1.0, stale_frames: int = 3, closers=()):
-        from magctl.rig.devices.base import CoilSetpoint
-
+                 camera_timeout: float = 1.0, stale_frames: int = 3, dry_run: bool = False, closers=()):
         self.camera, self.coils, self.tracker, self.limits = camera, coils, tracker, limits
         self.lockstep, self.period, self.camera_timeout = lockstep, float(period), float(camera_timeout)
-        self.stale_frames = int(stale_frames)
+        self.stale_frames, self.dry_run = int(stale_frames), dry_run
+        self._misses = 0
         self._closers = list(closers)
         self.n_spheres = tracker.n_spheres
         self.frame = 0
@@ -105,8 +108,6 @@ class DeviceStation:
         return obs
 
     def _grabber(self) -> None:
-        from magctl.rig.devices.base import DeviceError
-
         while not self._stop.is_set():
             try:
                 obs = self._take(min(self.camera_timeout, 0.25))
@@ -123,13 +124,17 @@ class DeviceStation:
 
     def step(self, t: float) -> Observation:
         """This frame's observation stamped ``t`` (the camera's own time and number are in the log's counters)."""
-        from magctl.rig.devices.base import DeviceError
-
         self.frame += 1
         if self.lockstep:
             obs = self._take(self.camera_timeout)
             if obs is None:
+                self._misses += 1
+                if self._misses * self.period > self.camera_timeout:
+                    raise DeviceError(self.camera.name, f"no frame for {self._misses} frames (camera_timeout "
+                                                        f"{self.camera_timeout:g} s); coils zeroed")
                 obs = self.tracker.lost_frame()
+            else:
+                self._misses = 0
             self._latest = obs
             age_frames = 0
         else:
@@ -149,17 +154,16 @@ class DeviceStation:
 
     # --- coils ----------------------------------------------------------------------------------------
     def apply(self, cmd: Command, now: float) -> np.ndarray:
-        from magctl.rig.devices.base import setpoint_of
-
         currents = self.limits.check(cmd)
         setpoint = setpoint_of(cmd, self.limits.coils)
+        # a dry run checks and logs every command but keeps the outputs at zero (the board still gets its frames)
+        if self.dry_run:
+            setpoint = CoilSetpoint.zero(self.coils.n_channels)
         self.coils.write(setpoint)
         self.cmd, self.setpoint, self.last_command_t = cmd, setpoint, now
         return currents
 
     def zero(self) -> None:
-        from magctl.rig.devices.base import CoilSetpoint
-
         self.cmd, self.last_command_t = Command.zero(), None
         self.setpoint = CoilSetpoint.zero(self.coils.n_channels)
         if not self._closed:

@@ -11,23 +11,30 @@ strength along its contour::
 
 normalised by ``s_ref``, the score of the true pose on a clean frame. Weights
 are ``w ∝ exp((s − max s)/τ)``; the estimate is the weighted mean (circular
-mean for the heading). Particles are resampled with
-:func:`filterpy.monte_carlo.systematic_resample` when the effective number
-``1/Σw²`` falls below half. The gradient is computed only in a window around
+mean for the heading). Particles are resampled systematically when the
+effective number ``1/Σw²`` falls below half (the algorithm of
+:func:`filterpy.monte_carlo.systematic_resample`, its random offset drawn from
+the tracker's own seeded stream rather than NumPy's global one, so that a seeded
+tracker is reproducible). The gradient is computed only in a window around
 each particle cloud. An object whose estimate scores below
 ``edge_threshold`` is not detected this frame; its particles then diffuse
-further each missed frame to re-acquire it.
+further each missed frame to re-acquire it. A frame without an image
+(``valid`` false: dropped) is not a miss of that kind: it only advances the
+motion model by one frame of the ordinary diffusion. The robot's outline is
+symmetric under a half turn but for its notch, so each frame the half-turned
+estimate, slid along its axis, is scored too and kept (the cloud moved with it)
+when it scores higher: a cloud that settled on a turned pose would never
+diffuse back.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from filterpy.monte_carlo import systematic_resample
 from scipy import ndimage
 
 from magctl.config import Params
 from magctl.core.errors import MagctlError
-from magctl.sensing.camera import render_frame
+from magctl.sensing.camera import render_frame, robot_sdf
 
 
 class DetectionError(MagctlError):
@@ -68,6 +75,21 @@ def robot_contour(length: float, width: float, notch: float, spacing: float) -> 
     return np.asarray(pts, dtype=float), np.asarray(nrm, dtype=float)
 
 
+def systematic_resample(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Indices of a systematic resample of ``weights`` (summing to 1): ``N`` positions ``(u + k)/N`` with one
+    offset ``u ~ U[0, 1)`` drawn from ``rng``, each mapped to the first particle whose cumulative weight exceeds it
+    (as :func:`filterpy.monte_carlo.systematic_resample`, which draws ``u`` from NumPy's global generator)."""
+    n = len(weights)
+    positions = (rng.random() + np.arange(n)) / n
+    return np.minimum(np.searchsorted(np.cumsum(weights), positions, side="right"), n - 1)
+
+
+MIN_SEEN = 0.2
+"""Smallest fraction of an object's contour in view for its pose to be scored."""
+OCCLUSION_MARGIN_PX = 2.0
+"""Contour points within this distance of the robot's outline are hidden (the blurred edge of the darker robot)."""
+
+
 class _ObjectFilter:
     """One object's particles ``(P, 3)``: x, y (pixels) and heading (rad)."""
 
@@ -82,7 +104,10 @@ class _ObjectFilter:
         self.estimate = np.zeros(3)
         self.velocity = np.zeros(2)
         self.missed = 0
+        self.searched = 0  # valid frames without a detection: they, not frames without an image, widen the search
         self.s_ref = 1.0
+        self.occluder = None
+        """``occluder(px, py) -> bool array``: contour points hidden behind another object (not scored)."""
 
     def reset(self, x, y, heading, spread_px=1.0):
         self.particles[:, 0] = x + spread_px * self.rng.standard_normal(self.n)
@@ -110,11 +135,42 @@ class _ObjectFilter:
         coords = np.stack([(py - i0).ravel(), (px - j0).ravel()])
         sx = ndimage.map_coordinates(gx, coords, order=1, mode="constant", cval=0.0).reshape(px.shape)
         sy = ndimage.map_coordinates(gy, coords, order=1, mode="constant", cval=0.0).reshape(px.shape)
-        return (sx * nx + sy * ny).mean(axis=1) / self.s_ref
+        edge = sx * nx + sy * ny
+        if self.occluder is None:
+            return edge.mean(axis=1) / self.s_ref
+        # a sphere against the robot: only the arc in view is scored; a pose hidden to less than a fifth scores 0
+        seen = ~self.occluder(px, py)
+        if seen.all():
+            return edge.mean(axis=1) / self.s_ref
+        n_seen = seen.sum(axis=1)
+        score = (edge * seen).sum(axis=1) / np.maximum(n_seen, 1) / self.s_ref
+        return np.where(n_seen >= MIN_SEEN * px.shape[1], score, 0.0)
+
+    def _turn_check(self, image, new, score):
+        """Score the estimate ``new`` half-turned and slid along its axis by up to half the outline's reach; if one
+        of those poses scores higher than ``new``, move ``new`` and the whole cloud there. Returns the estimate's
+        score.
+
+        The outline is symmetric under a half turn but for the notch: a cloud that settled on a turned pose (one
+        that matched the part of the robot in view as it entered the frame) sits in a local maximum of the score
+        that particle diffusion does not leave."""
+        c, s = np.cos(new[2]), np.sin(new[2])
+        slide = np.arange(-np.floor(self.reach / 2), np.floor(self.reach / 2) + 1, 2.0)
+        poses = np.stack([new[0] + slide * c, new[1] + slide * s, np.full(slide.size, new[2] + np.pi)], axis=1)
+        turned = self.scores(image, poses)
+        k = int(np.argmax(turned))
+        if turned[k] <= score:
+            return score
+        self.particles[:, 0] += poses[k, 0] - new[0]
+        self.particles[:, 1] += poses[k, 1] - new[1]
+        self.particles[:, 2] += np.pi
+        new[:2] = poses[k, :2]
+        new[2] = np.arctan2(np.sin(poses[k, 2]), np.cos(poses[k, 2]))
+        return float(turned[k])
 
     def step(self, image, valid, threshold):
         """Predict, weight on ``image`` (if valid), estimate, resample; returns the estimate's score."""
-        spread = min(1.0 + self.missed, 10.0)
+        spread = min(1.0 + self.searched, 10.0)
         self.particles[:, :2] += self.velocity + spread * self.sigma_px * self.rng.standard_normal((self.n, 2))
         if self.oriented:
             self.particles[:, 2] += spread * self.sigma_heading * self.rng.standard_normal(self.n)
@@ -130,16 +186,19 @@ class _ObjectFilter:
         new[:2] = w @ self.particles[:, :2]
         new[2] = np.arctan2(w @ np.sin(self.particles[:, 2]), w @ np.cos(self.particles[:, 2]))
         score = float(self.scores(image, new[None])[0])
+        if self.oriented:
+            score = self._turn_check(image, new, score)
         if score >= threshold:
             self.velocity = 0.5 * self.velocity + 0.5 * (new[:2] - self.estimate[:2]) if self.missed == 0 \
                 else np.zeros(2)
             self.estimate = new
-            self.missed = 0
+            self.missed = self.searched = 0
         else:
             self.missed += 1
+            self.searched += 1
             self.velocity = np.zeros(2)
         if 1.0 / np.sum(w * w) < self.n / 2:
-            idx = systematic_resample(w)
+            idx = systematic_resample(w, self.rng)
             self.particles = self.particles[idx]
             self.weights = np.full(self.n, 1.0 / self.n)
         return score
@@ -210,6 +269,10 @@ class ImageTracker:
         if n == 0:
             raise DetectionError("no robot-dark blob in the first frame")
         sizes = ndimage.sum_labels(very_dark, lab, np.arange(1, n + 1))
+        robot_area = r.robot_length * r.robot_width / self.pixel**2
+        if sizes.max() < 0.25 * robot_area:  # a speck has no axis (its covariance is NaN): it is not the robot
+            raise DetectionError(f"the largest robot-dark blob in the first frame has {int(sizes.max())} pixels, "
+                                 f"under a quarter of the robot's {robot_area:.0f}")
         robot_lab = 1 + int(np.argmax(sizes))
         ii, jj = np.nonzero(lab == robot_lab)
         cy, cx = ii.mean(), jj.mean()
@@ -234,16 +297,27 @@ class ImageTracker:
         found.sort()
         self._start(best[:2], float(best[2]), np.asarray(found).reshape(-1, 2))
 
+    def _robot_occluder(self):
+        """Which pixel points the robot (at this frame's estimate) hides: inside its outline or on its blurred edge.
+        A sphere pushed into the robot's notch is half hidden; its visible arc is what its filter scores."""
+        r, s = self.render, self.pixel
+        x, y, heading = self.robot.estimate
+        dims = (r.robot_length / s, r.robot_width / s, r.robot_notch_radius / s)
+        centre = np.array([x, y])
+        return lambda px, py: robot_sdf(px, py, centre, heading, *dims) < OCCLUSION_MARGIN_PX
+
     def step(self, image: np.ndarray, valid: bool):
-        """Track one frame. Returns ``(position m, heading, velocity m/s, spheres m, all found)``."""
+        """Track one frame: the robot first, then the spheres with the part the robot hides left out. Returns
+        ``(position m, heading, velocity m/s, spheres m, all found)``."""
         if not self.started:
             if not valid:
                 return np.zeros(2), 0.0, np.zeros(2), np.zeros((self.n_spheres, 2)), False
             self.detect(image)
-        found = True
-        for f in [self.robot, *self.spheres]:
-            score = f.step(image, valid, self.threshold)
-            found &= bool(valid and score >= self.threshold)
+        found = bool(valid and self.robot.step(image, valid, self.threshold) >= self.threshold)
+        occluder = self._robot_occluder()
+        for f in self.spheres:
+            f.occluder = occluder
+            found &= bool(valid and f.step(image, valid, self.threshold) >= self.threshold)
         s = self.pixel
         pos = self.robot.estimate[:2] * s
         vel = self.robot.velocity * s / self.dt
