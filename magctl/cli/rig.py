@@ -108,7 +108,8 @@ def register(sub) -> None:
     r.add_argument("--max-ticks", type=positive_int, default=None, help="stop after this many ticks (>= 1)")
     r.add_argument("--spheres", type=nonneg_int, default=1, help="with --rig sim: number of spheres")
     r.add_argument("--fast", action="store_true",
-                   help="with --rig sim or a simulated lab file: ticks back to back in simulated time, not at 30 Hz")
+                   help="ticks back to back in simulated time, not at 30 Hz: with --rig sim, a simulated lab file or a "
+                        "--lockstep server")
     r.add_argument("--plant", choices=("physics", "standin"), default="physics",
                    help="with --rig sim: the plant blocks (default) or the fast kinematic stand-in")
     r.add_argument("--rt-priority", type=positive_int, default=None, metavar="P",
@@ -306,9 +307,8 @@ def cmd_run(args) -> int:
                              scheduling=sched)
     except RigError as err:
         raise MagctlError(f"rig run: {err}") from None
-    in_process = args.rig == "sim" or args.rig.endswith(".toml")
     try:
-        runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not (in_process and args.fast),
+        runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not args.fast,
                           max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,
                           rig_description=desc, engine=args.engine,
                           # MB = 10^6 bytes; None: the run's rig.toml [log] max_mb

@@ -266,6 +266,9 @@ class Runtime:
         check_options(self.task_name, self.options)      # before any coil is activated
         if rig.state is Lifecycle.UNCONFIGURED:
             rig.configure()
+        if not self.realtime and getattr(rig, "server_info", None) is not None and not simulated_time(rig):
+            # back-to-back ticks against a server on the wall clock would step the controller on repeated frames
+            raise RigError("ticks back to back (--fast) need a --lockstep server; this server runs in real time")
         self._prepare_engine()
         # the controller is built (and compiled) from an observation read before the coils are activated: nothing
         # slow lies between activation and the first tick, where a server's session or watchdog could expire

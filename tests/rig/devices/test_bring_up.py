@@ -1,0 +1,95 @@
+"""Every ``magctl`` command of docs/bring-up.md, run in order against the simulated lab as a user would type them.
+
+A ``magctl rig serve`` line starts the server in the background (on a free port: the page's port is replaced in
+the lines that follow); every other line runs to completion and must exit 0. The only lines not run are the
+install and the board's build and upload, which need a board (the firmware's C is compiled and tested on this
+computer by ``test_firmware_deadline.py``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import selectors
+import shlex
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[3]
+PAGE = ROOT / "docs" / "bring-up.md"
+NOT_RUN = ("pip install", "mkdir -p build/magcoil", "cp firmware/magcoil/", "arduino-cli ")
+
+
+def _commands() -> list[str]:
+    blocks = re.findall(r"```sh\n(.*?)```", PAGE.read_text(), flags=re.S)
+    lines = [line.split("  #")[0].strip() for block in blocks for line in block.splitlines()]
+    return [line for line in lines if line and not line.startswith(("[", "#")) and "=" not in line.split()[0]]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start(argv: list[str], cwd: Path) -> subprocess.Popen:
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=cwd,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        if sel.select(timeout=0.2) and json.loads(proc.stdout.readline()).get("ready"):
+            return proc
+        if proc.poll() is not None:
+            break
+    proc.kill()
+    raise AssertionError(f"{' '.join(argv)} did not start: {proc.stderr.read().decode()}")
+
+
+def test_the_page_has_the_commands_we_run():
+    commands = _commands()
+    assert [c for c in commands if not c.startswith("magctl ")] and all(
+        c.startswith(NOT_RUN) for c in commands if not c.startswith("magctl ")), commands
+    assert sum(c.startswith("magctl rig serve") for c in commands) == 3
+    assert any(c.startswith("magctl rig calibrate camera") for c in commands)
+    assert any(c.startswith("magctl rig calibrate coils") for c in commands)
+
+
+def test_every_magctl_command_of_the_page_runs(tmp_path):
+    (tmp_path / "examples").symlink_to(ROOT / "examples")
+    servers: list[subprocess.Popen] = []
+    ports: dict[str, str] = {}
+    try:
+        for line in _commands():
+            if not line.startswith("magctl "):
+                continue
+            for page_port, port in ports.items():
+                line = line.replace(page_port, port)
+            argv = [sys.executable, "-m", "magctl", *shlex.split(line)[1:]]
+            if line.startswith("magctl rig serve"):
+                page_port = re.search(r"127\.0\.0\.1:(\d+)", line).group(0)
+                port = f"127.0.0.1:{_free_port()}"
+                ports[page_port] = port
+                argv = [a.replace(page_port, port) for a in argv]
+                servers.append(_start(argv, tmp_path))
+                continue
+            done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=600,
+                                  stdin=subprocess.DEVNULL)
+            assert done.returncode == 0, f"{line}\n{done.stderr}"
+    finally:
+        for proc in servers:
+            if proc.poll() is None:
+                proc.terminate()
+                proc.wait(timeout=20)
+    assert (tmp_path / "calibration.toml").is_file() and (tmp_path / "coils-calibration.toml").is_file()
+    assert (tmp_path / "dry.jsonl").is_file()
+    # the first closed-loop push (section 6) converged
+    from magctl.rig.log import read_log
+
+    push = read_log(tmp_path / "push.jsonl")
+    assert push.stop["exit_status"] == "done" and push.summary()["final_outputs"]["status"] == "converged"
