@@ -14,10 +14,8 @@ while a push runs).
 
 from __future__ import annotations
 
-import json
 import os
 import platform
-import selectors
 import socket
 import subprocess
 import sys
@@ -38,19 +36,10 @@ def _free_port() -> int:
 
 
 def _start_server(address: str) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "magctl", "rig", "serve", "--config", str(LAB), "--bind", address],
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=ROOT,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    sel = selectors.DefaultSelector()
-    sel.register(proc.stdout, selectors.EVENT_READ)
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        if sel.select(timeout=0.2) and json.loads(proc.stdout.readline()).get("ready"):
-            return proc
-        if proc.poll() is not None:
-            break
-    proc.kill()
-    raise RuntimeError("magctl rig serve --config examples/lab-sim.toml did not start")
+    from magctl.rig.server import start_server
+
+    return start_server([sys.executable, "-m", "magctl", "rig", "serve", "--config", str(LAB), "--bind", address],
+                        cwd=ROOT, timeout=120)
 
 
 def _push(address: str, log: Path, budget: float) -> dict:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import selectors
 import socket
 import subprocess
 import sys
@@ -40,20 +39,11 @@ def _free_port() -> int:
 
 
 def _start_server(address: str, priority: int | None) -> subprocess.Popen:
+    from magctl.rig.server import start_server
+
     extra = ["--rt-priority", str(priority)] if priority else []
-    proc = subprocess.Popen([sys.executable, "-m", "magctl", "rig", "serve-sim", "--bind", address, *SCENE, *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=ROOT,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    sel = selectors.DefaultSelector()
-    sel.register(proc.stdout, selectors.EVENT_READ)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        if sel.select(timeout=0.2) and json.loads(proc.stdout.readline()).get("ready"):
-            return proc
-        if proc.poll() is not None:
-            break
-    proc.kill()
-    raise RuntimeError("serve-sim did not start")
+    return start_server([sys.executable, "-m", "magctl", "rig", "serve-sim", "--bind", address, *SCENE, *extra],
+                        cwd=ROOT)
 
 
 def run(quick: bool = False) -> dict:

@@ -262,22 +262,29 @@ def models_dir() -> Path:
     return data_dir("models")
 
 
-def load_file(path: str | os.PathLike) -> Params:
-    """Load and validate one TOML parameter file."""
+def read_toml(path: str | os.PathLike, what: str = "parameter file", error=ParameterError) -> dict:
+    """The TOML document at ``path``; a missing, unreadable or malformed file raises ``error`` in one line naming
+    the file (``what`` says which kind of file was expected)."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+            return tomllib.load(fh)
     except FileNotFoundError:
-        raise ParameterError(f"{path}: parameter file not found") from None
+        raise error(f"{path}: {what} not found") from None
     except tomllib.TOMLDecodeError as err:
-        raise ParameterError(f"{path}: not valid TOML: {err}") from None
+        raise error(f"{path}: not valid TOML: {err}") from None
     except UnicodeDecodeError as err:
-        raise ParameterError(f"{path}: not UTF-8 text (byte {err.start})") from None
+        raise error(f"{path}: not UTF-8 text (byte {err.start})") from None
     except IsADirectoryError:
-        raise ParameterError(f"{path}: is a directory, not a parameter file") from None
+        raise error(f"{path}: is a directory, not a {what}") from None
     except OSError as err:
-        raise ParameterError(f"{path}: cannot read: {err.strerror or err}") from None
+        raise error(f"{path}: cannot read: {err.strerror or err}") from None
+
+
+def load_file(path: str | os.PathLike) -> Params:
+    """Load and validate one TOML parameter file."""
+    path = Path(path)
+    data = read_toml(path)
     params = _parse_table(str(path), data)
     check_rules(path, data)
     return params

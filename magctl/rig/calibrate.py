@@ -50,7 +50,6 @@ from __future__ import annotations
 import json
 import math
 import queue
-import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,6 +57,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage, optimize, special
 
+from magctl.config import read_toml
 from magctl.core.errors import MagctlError
 
 SETTLE_TAUS = 12.0
@@ -969,14 +969,7 @@ def load_coil_calibration(path, names: Sequence[str]) -> tuple[np.ndarray, np.nd
     order of ``names``; a coil the file does not name keeps gain 1 and angle 0. Errors name the file, coil and
     key (:class:`CalibrationError`)."""
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise CalibrationError(f"{path}: no such coil calibration file") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise CalibrationError(f"{path}: cannot read it ({err})") from None
-    except tomllib.TOMLDecodeError as err:
-        raise CalibrationError(f"{path}: not valid TOML ({err})") from None
+    doc = read_toml(path, "coil calibration file", CalibrationError)
     table = doc.get("coil")
     if not isinstance(table, dict) or not table:
         raise CalibrationError(f"{path}: no [coil.<name>] tables (write it with magctl rig calibrate coils)")

@@ -22,14 +22,13 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import tomllib
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from magctl.config import load_model
+from magctl.config import load_model, read_toml
 from magctl.core.errors import MagctlError
 from magctl.rig.devices.base import Camera, CoilDriver, CoilSetpoint, DeviceError
 from magctl.rig.interface import CoilMap, RigLimits
@@ -167,14 +166,7 @@ def _calibrated_coils(path: Path, value, limits: RigLimits) -> RigLimits:
 def load_lab(path) -> LabConfig:
     """Read and check a lab file; every error is one line naming the file, table and key."""
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise LabConfigError(f"{path}: no such lab file") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise LabConfigError(f"{path}: cannot read it ({err})") from None
-    except tomllib.TOMLDecodeError as err:
-        raise LabConfigError(f"{path}: not valid TOML ({err})") from None
+    doc = read_toml(path, "lab file", LabConfigError)
     unknown = sorted(set(doc) - set(TABLES))
     if unknown:
         raise LabConfigError(f"{path}: unknown table [{unknown[0]}] (known: {', '.join(TABLES)})")

@@ -959,6 +959,35 @@ def generate_keys(folder) -> dict[str, str]:
             "client_public": str(client_pub), "clients_folder": str(clients)}
 
 
+def start_server(argv: list[str], *, cwd=None, env: dict | None = None, timeout: float = 60.0):
+    """Start a rig server process (``argv``: a ``magctl rig serve…`` command line) and wait for its
+    :func:`announce` line; returns the running :class:`subprocess.Popen` (stdout and stderr piped). A process that
+    exits, or says nothing within ``timeout`` s, is killed and raises :class:`RuntimeError` with its stderr."""
+    import os
+    import selectors
+    import subprocess
+
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=cwd,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})})
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if sel.select(timeout=0.2):
+            line = proc.stdout.readline()
+            try:
+                if line and json.loads(line).get("ready"):
+                    return proc
+            except ValueError:
+                pass
+        if proc.poll() is not None:
+            break
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait(timeout=10)
+    raise RuntimeError(f"{' '.join(map(str, argv))} did not start: {proc.stderr.read().decode(errors='replace')}")
+
+
 def announce(endpoint: str) -> None:
     """The line a parent process waits for: the server is bound and serving."""
     print(json.dumps({"ready": True, "endpoint": endpoint}), flush=True)

@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import json
-import os
-import selectors
 import signal
 import socket
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+from magctl.rig.server import start_server
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -26,24 +23,9 @@ class ServerProcess:
 
     def __init__(self, *extra: str, env: dict | None = None, ready_timeout: float = 30.0):
         self.address = f"tcp://127.0.0.1:{free_port()}"
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "magctl", "rig", "serve-sim", "--bind", self.address, *extra],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT,
-            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
-        )
-        sel = selectors.DefaultSelector()
-        sel.register(self.proc.stdout, selectors.EVENT_READ)
-        deadline = time.monotonic() + ready_timeout      # a physics plant solves its oil's flow before "ready"
-        while time.monotonic() < deadline:
-            if sel.select(timeout=0.2):
-                line = self.proc.stdout.readline()
-                if line and json.loads(line).get("ready"):
-                    return
-            if self.proc.poll() is not None:
-                break
-        err = self.proc.stderr.read().decode() if self.proc.poll() is not None else ""
-        self.kill()
-        raise RuntimeError(f"serve-sim did not start: {err}")
+        # a physics plant solves its oil's flow before "ready"
+        self.proc = start_server([sys.executable, "-m", "magctl", "rig", "serve-sim", "--bind", self.address, *extra],
+                                 cwd=ROOT, env=env, timeout=ready_timeout)
 
     def kill(self, sig=signal.SIGKILL) -> None:
         if self.proc.poll() is None:
@@ -53,3 +35,23 @@ class ServerProcess:
 
 def magctl_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "magctl", *args]
+
+
+class FakeClock:
+    """Monotonic time that advances only when slept on (and by 1 µs per reading, so spins end): a real-time loop
+    on it runs its ticks back to back, on schedule (the tests patch a module's ``time`` with it)."""
+
+    def __init__(self):
+        self.t = 1000.0
+
+    def monotonic(self):
+        self.t += 1e-6
+        return self.t
+
+    perf_counter = monotonic
+
+    def sleep(self, dt):
+        self.t += max(0.0, dt)
+
+    def time(self):
+        return self.t

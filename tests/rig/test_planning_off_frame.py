@@ -12,6 +12,7 @@ import threading
 
 import numpy as np
 import pytest
+from rig_helpers import FakeClock
 
 from magctl.control.phases import SidePhase
 from magctl.control.push.planned import PlannedAssemblyTask
@@ -61,25 +62,6 @@ def test_lockstep_assembly_plans_off_the_frame_identically_and_converges(tmp_pat
     assert log.events[-1]["outputs"]["status"] == Status.CONVERGED        # eq 21 on every bond
     assert replay(log.path).identical
 
-
-class FakeClock:
-    """Monotonic time that advances only when slept on (and by 1 µs per reading, so spins end), as in
-    ``test_runtime.py``: the real-time loop runs its ticks back to back, on schedule."""
-
-    def __init__(self):
-        self.t = 1000.0
-
-    def monotonic(self):
-        self.t += 1e-6
-        return self.t
-
-    perf_counter = monotonic
-
-    def sleep(self, dt):
-        self.t += max(0.0, dt)
-
-    def time(self):
-        return self.t
 
 
 class GatedRig(SimRig):

@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 import pytest
+from rig_helpers import FakeClock
 
 from magctl.cli import main
 from magctl.rig.log import read_log, replay
@@ -135,24 +136,6 @@ def test_a_tampered_log_through_the_command_line_is_exit_1_naming_the_tick(late_
     doc = json.loads(captured.out)
     assert not doc["identical"] and doc["first_mismatch"]["seq"] == a0 and "Traceback" not in captured.err
 
-
-class FakeClock:
-    """Monotonic time that advances only when slept on (and by 1 µs per reading, so spins end)."""
-
-    def __init__(self):
-        self.t = 1000.0
-
-    def monotonic(self):
-        self.t += 1e-6
-        return self.t
-
-    perf_counter = monotonic
-
-    def sleep(self, dt):
-        self.t += max(0.0, dt)
-
-    def time(self):
-        return self.t
 
 
 def test_a_real_time_run_replays_whenever_its_plans_came_back(tmp_path, monkeypatch):

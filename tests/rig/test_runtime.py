@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 import pytest
-from rig_helpers import ROOT, magctl_cmd
+from rig_helpers import ROOT, FakeClock, magctl_cmd
 
 from magctl.config import load_model
 from magctl.control.servo import servo_params
@@ -69,24 +69,6 @@ def test_front_push_completes_through_the_server_exactly_as_in_process(start_ser
     assert [(e["obs"], e["cmd_raw"], e["cmd"], e["outputs"]) for e in wire] == \
         [(e["obs"], e["cmd_raw"], e["cmd"], e["outputs"]) for e in here]
 
-
-class FakeClock:
-    """Monotonic time that advances only when slept on (and by 1 µs per reading, so spins end)."""
-
-    def __init__(self):
-        self.t = 1000.0
-
-    def monotonic(self):
-        self.t += 1e-6
-        return self.t
-
-    perf_counter = monotonic
-
-    def sleep(self, dt):
-        self.t += max(0.0, dt)
-
-    def time(self):
-        return self.t
 
 
 class SlowRig(SimRig):

@@ -40,7 +40,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from magctl import FRAME_PERIOD_S
-from magctl.config import UNITS, Params, split_unit
+from magctl.config import UNITS, Params, read_toml, split_unit
 from magctl.core.errors import ParameterError
 from magctl.rig.devices.base import Frame, dropped_between
 from magctl.rig.interface import Observation
@@ -159,13 +158,7 @@ class PixelCalibration:
     def load(cls, path: str | os.PathLike) -> PixelCalibration:
         """A calibration file: a ``[calibration]`` table (or top-level keys) as :meth:`from_params` reads them."""
         path = Path(path)
-        try:
-            with open(path, "rb") as fh:
-                data = tomllib.load(fh)
-        except FileNotFoundError:
-            raise ParameterError(f"{path}: calibration file not found") from None
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-            raise ParameterError(f"{path}: not a valid TOML calibration file: {err}") from None
+        data = read_toml(path, "calibration file")
         table = data.get("calibration", data)
         if not isinstance(table, Mapping):
             raise ParameterError(f"{path}: [calibration] must be a table")

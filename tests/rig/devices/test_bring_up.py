@@ -8,16 +8,14 @@ computer by ``test_firmware_deadline.py``).
 
 from __future__ import annotations
 
-import json
-import os
 import re
-import selectors
 import shlex
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
+
+from magctl.rig.server import start_server
 
 ROOT = Path(__file__).resolve().parents[3]
 PAGE = ROOT / "docs" / "bring-up.md"
@@ -34,21 +32,6 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def _start(argv: list[str], cwd: Path) -> subprocess.Popen:
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=cwd,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    sel = selectors.DefaultSelector()
-    sel.register(proc.stdout, selectors.EVENT_READ)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        if sel.select(timeout=0.2) and json.loads(proc.stdout.readline()).get("ready"):
-            return proc
-        if proc.poll() is not None:
-            break
-    proc.kill()
-    raise AssertionError(f"{' '.join(argv)} did not start: {proc.stderr.read().decode()}")
 
 
 def test_the_page_has_the_commands_we_run():
@@ -76,7 +59,7 @@ def test_every_magctl_command_of_the_page_runs(tmp_path):
                 port = f"127.0.0.1:{_free_port()}"
                 ports[page_port] = port
                 argv = [a.replace(page_port, port) for a in argv]
-                servers.append(_start(argv, tmp_path))
+                servers.append(start_server(argv, cwd=tmp_path))
                 continue
             done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=600,
                                   stdin=subprocess.DEVNULL)

@@ -10,11 +10,9 @@ from __future__ import annotations
 
 import json
 import os
-import selectors
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +21,7 @@ import pytest
 from magctl.rig.lab import build_station, load_lab
 from magctl.rig.log import read_log
 from magctl.rig.runtime import Runtime
+from magctl.rig.server import start_server
 from magctl.rig.station import StationRig
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -40,19 +39,8 @@ class LabServer:
 
     def __init__(self, lab: Path, *extra: str):
         self.address = f"tcp://127.0.0.1:{_free_port()}"
-        self.proc = subprocess.Popen([sys.executable, "-m", "magctl", "rig", "serve", "--config", str(lab), "--bind",
-                                      self.address, *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        sel = selectors.DefaultSelector()
-        sel.register(self.proc.stdout, selectors.EVENT_READ)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            if sel.select(timeout=0.2) and json.loads(self.proc.stdout.readline()).get("ready"):
-                return
-            if self.proc.poll() is not None:
-                break
-        self.stop()
-        raise RuntimeError(f"rig serve did not start: {self.proc.stderr.read().decode()}")
+        self.proc = start_server([sys.executable, "-m", "magctl", "rig", "serve", "--config", str(lab), "--bind",
+                                  self.address, *extra], cwd=ROOT)
 
     def stop(self) -> None:
         if self.proc.poll() is None:
