@@ -13,8 +13,6 @@ import math
 import numpy as np
 import pytest
 
-from magctl.cli.common import Parser
-from magctl.cli.rig_calibrate import add_parsers
 from magctl.config import load_file
 from magctl.core.errors import MagctlError
 from magctl.rig.devices.tracking import PixelCalibration
@@ -68,14 +66,6 @@ spheres_um = {spheres_um}
     return path
 
 
-def calibrate(*argv: str) -> int:
-    """``magctl rig calibrate …`` through the commands' own parser (errors: MagctlError, one line)."""
-    parser = Parser(prog="magctl rig")
-    add_parsers(parser.add_subparsers(dest="rig_command"))
-    args = parser.parse_args(["calibrate", *argv])
-    return args.func(args)
-
-
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
     folder = tmp_path_factory.mktemp("camera")
@@ -85,7 +75,7 @@ def calibrated(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def result(calibrated):
+def result(calibrate, calibrated):
     folder, _, lab = calibrated
     out = folder / "calibration.toml"
     buf = io.StringIO()
@@ -147,7 +137,7 @@ def test_with_the_calibration_the_tracker_finds_the_robot_where_it_is(calibrated
     assert math.degrees(max(heading_errors)) < 3.0
 
 
-def test_a_lab_without_spheres_needs_a_target_size(tmp_path):
+def test_a_lab_without_spheres_needs_a_target_size(calibrate, tmp_path):
     lab = write_lab(tmp_path, true_geometry(), spheres=False)
     with pytest.raises(MagctlError) as err:
         calibrate("camera", "--config", str(lab), "--out", str(tmp_path / "c.toml"))
@@ -156,7 +146,7 @@ def test_a_lab_without_spheres_needs_a_target_size(tmp_path):
     assert not (tmp_path / "c.toml").exists()
 
 
-def test_a_target_size_that_nothing_in_view_has_is_named(tmp_path):
+def test_a_target_size_that_nothing_in_view_has_is_named(calibrate, tmp_path):
     lab = write_lab(tmp_path, true_geometry())
     with pytest.raises(MagctlError) as err:
         calibrate("camera", "--config", str(lab), "--out", str(tmp_path / "c.toml"), "--target-diameter-um", "600",
@@ -165,7 +155,7 @@ def test_a_target_size_that_nothing_in_view_has_is_named(tmp_path):
     assert "\n" not in msg and "no round targets of 600 µm" in msg
 
 
-def test_a_robot_out_of_view_is_one_line(tmp_path):
+def test_a_robot_out_of_view_is_one_line(calibrate, tmp_path):
     # the camera looks 3 mm to the side of the robot
     lab = write_lab(tmp_path, true_geometry(mirror=False, shift_um=(3000.0, 0.0)))
     with pytest.raises(MagctlError) as err:

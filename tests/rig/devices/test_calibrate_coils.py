@@ -13,8 +13,6 @@ import math
 import numpy as np
 import pytest
 
-from magctl.cli.common import Parser
-from magctl.cli.rig_calibrate import add_parsers
 from magctl.config import load_file
 from magctl.core.errors import MagctlError
 from magctl.rig.calibrate import CalibrationError, hall_scale, load_coil_calibration
@@ -62,16 +60,8 @@ seed = 5
     return path
 
 
-def calibrate(*argv: str) -> int:
-    """``magctl rig calibrate …`` through the commands' own parser (errors: MagctlError, one line)."""
-    parser = Parser(prog="magctl rig")
-    add_parsers(parser.add_subparsers(dest="rig_command"))
-    args = parser.parse_args(["calibrate", *argv])
-    return args.func(args)
-
-
 @pytest.fixture(scope="module")
-def result(tmp_path_factory):
+def result(calibrate, tmp_path_factory):
     folder = tmp_path_factory.mktemp("coils")
     lab = write_lab(folder)
     out = folder / "coils-calibration.toml"
@@ -153,7 +143,7 @@ def test_a_hall_probe_reading_sets_the_scale():
 
 
 @pytest.mark.parametrize("reading, needle", [("zp=1.0", "a vertical coil"), ("xq=0.5", "no such coil")])
-def test_a_hall_reading_of_a_coil_it_cannot_scale_is_one_line(tmp_path, reading, needle):
+def test_a_hall_reading_of_a_coil_it_cannot_scale_is_one_line(calibrate, tmp_path, reading, needle):
     lab = write_lab(tmp_path, perturbed=False)
     with pytest.raises(MagctlError) as err:
         calibrate("coils", "--config", str(lab), "--out", str(tmp_path / "c.toml"), "--field-mT-per-A", reading)
@@ -161,7 +151,7 @@ def test_a_hall_reading_of_a_coil_it_cannot_scale_is_one_line(tmp_path, reading,
     assert not (tmp_path / "c.toml").exists()
 
 
-def test_a_malformed_hall_reading_is_a_parse_error(tmp_path, capsys):
+def test_a_malformed_hall_reading_is_a_parse_error(calibrate, tmp_path, capsys):
     lab = write_lab(tmp_path, perturbed=False)
     with pytest.raises(SystemExit) as done:
         calibrate("coils", "--config", str(lab), "--out", str(tmp_path / "c.toml"), "--field-mT-per-A", "xp:0.5")

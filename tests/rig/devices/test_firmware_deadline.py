@@ -30,17 +30,6 @@ DC = (1_000_000, -1_000_000, 500_000, 0, 1_200_000, 0)
 AC = (0, 100_000, 0, -300_000, 0, 200_000)
 
 
-@pytest.fixture(scope="module")
-def exe(tmp_path_factory):
-    return str(build_host(tmp_path_factory.mktemp("fw")))
-
-
-@pytest.fixture
-def board(exe):
-    with HostBoard(exe=exe) as b:
-        yield b
-
-
 class Link:
     """The board's serial port opened raw by the test; replies matched by seq, hang-guarded."""
 

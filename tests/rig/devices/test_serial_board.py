@@ -21,17 +21,6 @@ from magctl.rig.interface import CommandRejected
 GOOD = CoilSetpoint([1.0, -1.0, 0.5, 0.0, 1.2, 0.0], [0.0, 0.1, 0.0, -0.3, 0.0, 0.2], 20.0)
 
 
-@pytest.fixture(scope="module")
-def exe(tmp_path_factory):
-    return str(build_host(tmp_path_factory.mktemp("fw")))
-
-
-@pytest.fixture
-def board(exe):
-    with HostBoard(exe=exe) as b:
-        yield b
-
-
 class Relay:
     """A pty pair between the adapter and the board's pty; every chunk passes through
     ``transform(direction, offset, data) -> bytes`` (direction "up": adapter → board, "down": board → adapter;
