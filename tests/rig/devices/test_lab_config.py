@@ -201,3 +201,19 @@ def test_a_labs_own_adapter_plugs_in_by_dotted_path_and_keeps_the_contract(tmp_p
                                                                             '"mylab_coils:RecordingCoils"'))
     with pytest.raises(LabConfigError, match="rated 1 A"):
         build_station(load_lab(lab))
+
+
+def test_a_labs_own_adapter_plugs_in_by_entry_point(tmp_path, monkeypatch):
+    """An installed package declaring ``[magctl.rig_devices] recording = mylab_coils:RecordingCoils``."""
+    from magctl.rig.lab import resolve_adapter
+
+    (tmp_path / "mylab_coils.py").write_text(textwrap.dedent(PLUGIN))
+    info = tmp_path / "mylab-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: mylab\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[magctl.rig_devices]\nrecording = mylab_coils:RecordingCoils\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cls = resolve_adapter("coils", "recording")
+    assert cls.__name__ == "RecordingCoils" and cls.__module__ == "mylab_coils"
+    with pytest.raises(LabConfigError, match="unknown device"):
+        resolve_adapter("coils", "no-such-plug-in")
