@@ -162,6 +162,8 @@ RULES: dict[str, dict[str, tuple]] = {
         "watchdog.timeout_ms": ("number", 10.0, 1000.0, True),
         "watchdog.lockstep_wall_timeout_ms": ("number", 10.0, 60000.0, False),
         "session.timeout_s": ("number", _POS, 3600.0, False),
+        "session.takeover_interval_s": ("number", 0.0, 3600.0, False),
+        "log.max_mb_1": ("number", 0.0, 1e6, False),
         "runtime.rate_Hz": ("number", _POS, 1000.0, True),
         "runtime.lost_timeout_s": ("number", _POS, 3600.0, True),
         "runtime.warn_interval_s": ("number", _POS, 3600.0, True),
