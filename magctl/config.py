@@ -169,6 +169,7 @@ RULES: dict[str, dict[str, tuple]] = {
         "runtime.warn_interval_s": ("number", _POS, 3600.0, True),
         "runtime.spin_ms": ("number", 0.0, 100.0, True),
         "runtime.request_timeout_ms": ("number", 1.0, 60000.0, True),
+        "runtime.configure_timeout_ms": ("number", 1.0, 600000.0, False),
         "scene.robot_start_um": ("numbers", -1e6, 1e6, False),
         "scene.sphere_spacing_um": ("number", _POS, 1e6, False),
         "physics.robot_steps": ("bool", None, None, False),

@@ -79,6 +79,8 @@ class RigClient(Rig):
         super().__init__(limits or RigLimits.from_params(params))
         self.address = address
         self.timeout = params.runtime.request_timeout if timeout is None else float(timeout)
+        rt = params.runtime
+        self.configure_timeout = max(self.timeout, rt.configure_timeout if "configure_timeout" in rt else 30.0)
         self._ctx = zmq.Context.instance()
         self._sock = None
         self._id = 0
@@ -103,10 +105,13 @@ class RigClient(Rig):
             self._sock.close(0)
             self._sock = None
 
-    def call(self, op: str, **fields) -> dict:
-        """One request/reply; raises :class:`RigError` subclasses on error replies or timeouts."""
+    def call(self, op: str, *, timeout: float | None = None, **fields) -> dict:
+        """One request/reply (within ``timeout`` s, the request timeout by default); raises :class:`RigError`
+        subclasses on error replies or timeouts."""
         if self._sock is None:
             self._connect()
+        wait = self.timeout if timeout is None else float(timeout)
+        self._sock.setsockopt(zmq.RCVTIMEO, int(wait * 1e3))
         self._id += 1
         if self.session is not None:
             fields.setdefault("session", self.session)
@@ -117,7 +122,7 @@ class RigClient(Rig):
         except zmq.Again:
             self._disconnect()
             raise RigConnectionError(
-                f"rig server at {self.address} did not answer {op!r} within {self.timeout * 1e3:.0f} ms"
+                f"rig server at {self.address} did not answer {op!r} within {wait * 1e3:.0f} ms"
             ) from None
         except zmq.ZMQError as err:
             self._disconnect()
@@ -152,7 +157,8 @@ class RigClient(Rig):
         fields = {"reset": reset}
         if self.takeover:
             fields["takeover"] = True
-        reply = self.call("configure", **fields)
+        # a configure may build the server's station (devices opened, a plant's flow solved): seconds, not frames
+        reply = self.call("configure", timeout=self.configure_timeout, **fields)
         self.session = reply.get("session")
         self.n_spheres = int(reply["n_spheres"])
 
