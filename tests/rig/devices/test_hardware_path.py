@@ -146,3 +146,28 @@ def test_the_log_of_a_lab_run_replays(tmp_path, task):
     done = _run_cli("log", "replay", str(log), "--json")
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["identical"] is True
+
+
+def test_the_simulated_camera_keeps_the_camera_contract():
+    """The simulated camera is checked by the same contract as the OpenCV one."""
+    from magctl.rig.devices.base import CoilSetpoint
+    from magctl.rig.devices.contract import check_camera
+    from magctl.rig.devices.simulated import SimCamera, SimWorld
+    from magctl.rig.interface import CoilMap
+    from magctl.rig.plant import Scene
+
+    def make():
+        world = SimWorld(Scene.default(1), CoilMap.from_coils(), plant="standin")
+        return SimCamera(world, lambda t: CoilSetpoint.zero(6), encoding="jpg")
+
+    check_camera(make)
+
+
+def test_the_host_board_keeps_the_coil_driver_contract_through_the_lab_adapter():
+    """The lab's simulated board is the serial adapter on the firmware: the contract with the board's clock driven."""
+    from magctl.rig.devices.contract import check_coil_driver
+    from magctl.rig.devices.firmware import HostBoard
+    from magctl.rig.devices.serial_board import SerialCoilBoard
+
+    with HostBoard(clock="external", deadline=0.1) as board:
+        check_coil_driver(lambda: SerialCoilBoard(board.pty, deadline=0.1, name="sim-board"), wait=board.advance)
