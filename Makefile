@@ -24,7 +24,10 @@ $(DEV_STAMP): pyproject.toml | $(BIN)/python
 demo: $(DEMO_STAMP)
 	$(BIN)/magctl reproduce --out out
 
+# the coil board's firmware is compiled for this computer in the tests: a C compiler (Debian's gcc when missing)
 test: $(DEV_STAMP)
+	@command -v cc >/dev/null 2>&1 || command -v gcc >/dev/null 2>&1 || \
+		(apt-get update -qq && apt-get install -y -qq gcc >/dev/null)
 	$(BIN)/ruff check magctl analysis tests benchmarks docs/notebooks
 	$(BIN)/mkdocs build --strict --quiet --site-dir site
 	PYTHON=$(PYTHON) BUILD_PY=$(BIN)/python .ci/wheel-check
