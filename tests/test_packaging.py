@@ -21,7 +21,8 @@ DIST = {"zmq": "pyzmq", "PIL": "pillow", "skfem": "scikit-fem", "cv2": "opencv-p
         "serial": "pyserial"}
 # optional imports, each behind its extra and a clear error when missing
 OPTIONAL = {"distributed": "dask", "pyarrow": "export", "h5py": "export", "xarray": "xarray",
-            "skfem": "fem", "pyamg": "fem", "cv2": "hardware", "serial": "hardware", "pyvisa": "hardware"}
+            "skfem": "fem", "pyamg": "fem", "cv2": "hardware", "serial": "hardware", "pyvisa": "hardware",
+            "plotly": "view", "starlette": "view", "uvicorn": "view", "websockets": "view"}
 
 
 def _imports(folders) -> set[str]:

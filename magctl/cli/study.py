@@ -27,7 +27,8 @@ def register(sub) -> None:
     add_json(p)
     p.set_defaults(func=cmd_study, parser=p)
 
-    r = sub.add_parser("reproduce", help="run every study and write DIR/report.md and DIR/results.json")
+    r = sub.add_parser("reproduce",
+                       help="run every study and write DIR/report.md, DIR/report.html and DIR/results.json")
     r.add_argument("--only", nargs="+", metavar="NAME", default=None,
                    help="run only these studies (magctl study --list shows them)")
     _common(r)
@@ -82,6 +83,7 @@ def cmd_study(args) -> int:
 def cmd_reproduce(args) -> int:
     from magctl.studies import runner as studies
     from magctl.studies.report import write_report
+    from magctl.studies.report_html import write_html_report
 
     found = studies.discover()
     studies.check_reuses(found)
@@ -112,7 +114,8 @@ def cmd_reproduce(args) -> int:
     (args.out / "results.json").write_text(json.dumps(to_jsonable(doc), indent=2))
     (args.out / "timings.json").write_text(json.dumps({"wall_time_s": timings}, indent=2))
     report = write_report(args.out, results, timings, conditions=args.conditions)
-    print(f"wrote {report}, {args.out / 'results.json'} and timings.json ({len(results)} studies, "
+    page = write_html_report(args.out, results, timings, conditions=args.conditions)
+    print(f"wrote {report}, {page}, {args.out / 'results.json'} and timings.json ({len(results)} studies, "
           f"{sum(timings.values()):.1f} s)")
     return 0
 

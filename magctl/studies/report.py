@@ -4,6 +4,7 @@
 :mod:`magctl.studies.paper_statistics`; ``claims.md`` is that table alone. The README's claims table is
 generated from a committed copy of it (``docs/claims.md``): ``python -m magctl.studies.report docs/claims.md``
 rewrites the README's block between :data:`BEGIN` and :data:`END`, and a test keeps the two equal.
+The same report as one self-contained page, ``report.html``, is :mod:`magctl.studies.report_html`'s.
 """
 
 from __future__ import annotations
@@ -50,6 +51,16 @@ def claims_table(results: list[StudyResult], conditions: str = "magctl") -> list
     return lines
 
 
+def quantities_table(results: list[StudyResult]) -> list[str]:
+    """The paper-vs-magctl quantities (the rows without a verdict) as a Markdown table; empty when there are none."""
+    rows = [(r.name, row) for r in results for row in r.paper if not row.verdict]
+    if not rows:
+        return []
+    return ["| study | quantity | paper | magctl | model | note |", "|---|---|---|---|---|---|",
+            *(f"| {name} | {row.quantity} | {row.paper} | {row.magctl} | {row.model} | {row.note} |"
+              for name, row in rows)]
+
+
 def write_report(out: Path, results: list[StudyResult], timings: dict[str, float],
                  conditions: str = "magctl") -> Path:
     """Write ``out/report.md`` (the claims table, the paper-vs-magctl quantities, then one section per study)
@@ -58,16 +69,12 @@ def write_report(out: Path, results: list[StudyResult], timings: dict[str, float
 
     lines = ["# magctl reproduce — report", "", f"Conditions: **{conditions}** — {CONDITIONS[conditions]}.", ""]
     table = claims_table(results, conditions)
-    rows = [(r.name, row) for r in results for row in r.paper if not row.verdict]
+    rows = quantities_table(results)
     if table:
         lines += ["## The paper's claims, one row each", "", *table, ""]
         (out / "claims.md").write_text("\n".join(table) + "\n")
     if rows:
-        lines += ["## Paper vs magctl: quantities", "", "| study | quantity | paper | magctl | model | note |",
-                  "|---|---|---|---|---|---|"]
-        lines += [f"| {name} | {row.quantity} | {row.paper} | {row.magctl} | {row.model} | {row.note} |"
-                  for name, row in rows]
-        lines.append("")
+        lines += ["## Paper vs magctl: quantities", "", *rows, ""]
     for r in results:
         lines += [f"## {r.name}", "", f"_wall time {timings.get(r.name, 0.0):.1f} s_", ""]
         lines += r.summary + [""]
