@@ -11,9 +11,9 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# the demo needs magctl and its run-time dependencies only
+# the demo needs magctl, its run-time dependencies and the view extra (report.html's charts, rig run --view)
 $(DEMO_STAMP): pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e .
+	$(BIN)/python -m pip install --quiet -e '.[view]'
 	touch $@
 
 # tests, lint, docs, notebooks, wheel building, and every optional extra
@@ -24,10 +24,13 @@ $(DEV_STAMP): pyproject.toml | $(BIN)/python
 demo: $(DEMO_STAMP)
 	$(BIN)/magctl reproduce --out out
 
-# the coil board's firmware is compiled for this computer in the tests: a C compiler (Debian's gcc when missing)
+# the coil board's firmware is compiled for this computer in the tests: a C compiler (Debian's gcc when missing);
+# the view's pages are tested in a real headless browser: Debian's chromium when missing
 test: $(DEV_STAMP)
 	@command -v cc >/dev/null 2>&1 || command -v gcc >/dev/null 2>&1 || \
 		(apt-get update -qq && apt-get install -y -qq gcc >/dev/null)
+	@command -v chromium >/dev/null 2>&1 || \
+		(apt-get update -qq && apt-get install -y -qq chromium >/dev/null)
 	$(BIN)/ruff check magctl analysis tests benchmarks docs/notebooks
 	$(BIN)/mkdocs build --strict --quiet --site-dir site
 	PYTHON=$(PYTHON) BUILD_PY=$(BIN)/python .ci/wheel-check

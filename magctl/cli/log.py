@@ -1,10 +1,10 @@
-"""``magctl log show|export|replay FILE``: run logs written by ``magctl rig run --log``."""
+"""``magctl log show|export|replay|view FILE``: run logs written by ``magctl rig run --log``."""
 
 from __future__ import annotations
 
 import sys
 
-from magctl.cli.common import add_json, emit, existing_file, output_file
+from magctl.cli.common import add_json, emit, existing_file, output_file, positive_float
 
 
 def register(sub) -> None:
@@ -27,6 +27,15 @@ def register(sub) -> None:
     r.add_argument("file", type=existing_file, help="run log (JSON lines)")
     add_json(r)
     r.set_defaults(func=cmd_replay)
+
+    v = ls.add_parser("view", help="the replay page of one or more run logs in the browser (needs magctl[view])")
+    v.add_argument("files", type=existing_file, nargs="+", metavar="FILE",
+                   help="run logs (JSON lines); several are shown side by side")
+    v.add_argument("--view", default=None, metavar="HOST:PORT",
+                   help="address to serve the page on (default 127.0.0.1:8050; port 0: any free port)")
+    v.add_argument("--duration", type=positive_float, default=None, metavar="S",
+                   help="stop serving after S seconds (default: until Ctrl-C)")
+    v.set_defaults(func=cmd_view)
 
 
 def _warn_crashed(note) -> None:
@@ -101,3 +110,26 @@ def cmd_replay(args) -> int:
                                   if d["crashed"] else "")))
     _warn_crashed(res.note)
     return 0 if res.identical else 1
+
+
+def cmd_view(args) -> int:
+    import time
+
+    from magctl.view.replay import open_runs
+    from magctl.view.server import DEFAULT_ADDRESS, ViewServer
+
+    runs = open_runs(args.files)     # a file that is not a run log: its one-line error, before anything is served
+    server = ViewServer.replay(runs, args.view or DEFAULT_ADDRESS)
+    for run in runs:
+        _warn_crashed(run.log.crash_note())
+    print(f"magctl log view: {server.url}  ({len(runs)} run{'s' * (len(runs) > 1)}; Ctrl-C to stop)",
+          file=sys.stderr, flush=True)
+    try:
+        end = None if args.duration is None else time.monotonic() + args.duration
+        while end is None or time.monotonic() < end:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.close()
+    return 0

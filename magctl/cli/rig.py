@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from functools import partial
 
 from magctl.cli.common import (
@@ -125,6 +126,12 @@ def register(sub) -> None:
     r.add_argument("--engine", choices=("auto", "compiled", "interpreted"), default="auto",
                    help="controller engine: one compiled call per frame (auto: when every block has a kernel; "
                         "compiled before the coils are activated) or the interpreted blocks")
+    r.add_argument("--view", nargs="?", const="127.0.0.1:8050", default=None, metavar="HOST:PORT",
+                   help="serve the live page of the run (default 127.0.0.1:8050; port 0: any free port; needs "
+                        "magctl[view])")
+    r.add_argument("--view-controls", action="store_true",
+                   help="with --view: the page's stop and pause buttons act on the run (beyond loopback they need "
+                        "the token the printed address carries)")
     r.add_argument("--quiet", action="store_true")
     add_json(r)
     r.set_defaults(func=cmd_run, parser=r)
@@ -299,6 +306,9 @@ def cmd_run(args) -> int:
     from magctl.rig.runtime import Runtime, open_rig, set_realtime_priority
 
     options = _task_options(args)
+    if args.view_controls and args.view is None:
+        args.parser.error("argument --view-controls: needs --view")
+    view = _start_view(args) if args.view is not None else None
     sched = set_realtime_priority(args.rt_priority)
     try:
         rig, desc = open_rig(args.rig, n_spheres=args.spheres, realtime=not args.fast, seed=args.seed,
@@ -306,19 +316,39 @@ def cmd_run(args) -> int:
                              curve_server_key=args.curve_server_key, curve_secret=args.curve_secret,
                              scheduling=sched)
     except RigError as err:
+        if view is not None:
+            view[2].close()
         raise MagctlError(f"rig run: {err}") from None
     try:
         runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not args.fast,
                           max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,
                           rig_description=desc, engine=args.engine,
                           # MB = 10^6 bytes; None: the run's rig.toml [log] max_mb
-                          log_max_bytes=None if args.log_max_mb is None else int(round(args.log_max_mb * 1e6)))
+                          log_max_bytes=None if args.log_max_mb is None else int(round(args.log_max_mb * 1e6)),
+                          monitor=None if view is None else view[0], controls=None if view is None else view[1])
         report = runtime.run()
     finally:
         rig.close()
+        if view is not None:
+            view[2].close()
     doc = report.stats()
     emit(args, doc, _summary)
     return 0 if doc["exit_status"] in ("done", "stopped") else 1
+
+
+def _start_view(args):
+    """The live page's feed, controls and server, started before the rig is opened (a taken address is a one-line
+    error before any coil is live)."""
+    from magctl.rig.monitor import RunControls
+    from magctl.view.feed import LiveFeed
+    from magctl.view.server import ViewServer
+
+    feed = LiveFeed()
+    controls = RunControls() if args.view_controls else None
+    server = ViewServer.live(feed, args.view, controls)
+    print(f"magctl rig run: live view at {server.url}" + ("" if controls else " (controls off: --view-controls)"),
+          file=sys.stderr, flush=True)
+    return feed, controls, server
 
 
 def _summary(d: dict) -> str:

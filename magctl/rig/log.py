@@ -132,7 +132,10 @@ SCHEMA: dict = {
                 "cmd_raw": _CMD, "cmd": _CMD,
                 "outputs": {"type": "object", "additionalProperties": {"type": ["number", "boolean", "array"]}},
                 "timing": {"type": "object", "additionalProperties": _NUM},
-                "error": {"type": "string"}}}},
+                "error": {"type": "string"}, "paused": {"type": "boolean"},
+                "control": {"type": "array", "items": {
+                    "type": "object", "required": ["action", "by"],
+                    "properties": {"action": {"enum": ["stop", "pause", "resume"]}, "by": {"type": "string"}}}}}}},
         {"if": {"properties": {"doc": {"const": "stop"}}}, "then": {
             "required": ["run", "time_unix", "exit_status", "reason", "n_events"],
             "properties": {"run": {"type": "string"}, "time_unix": _NUM, "exit_status": {"type": "string"},
@@ -275,26 +278,26 @@ class RunLogWriter:
         if event:
             self._part_events += 1
 
-    def start(self, **fields) -> None:
-        doc = {"doc": "start", "format": FORMAT, "uid": self.uid, "time_unix": time.time(),
-               "magctl_version": __version__, **fields}
+    def start(self, **fields) -> dict:
+        doc = start_document(self.uid, **fields)
         self._write(doc)
         self._start_doc = doc
+        return doc
 
-    def descriptor(self, fields: dict[str, dict]) -> None:
+    def descriptor(self, fields: dict[str, dict]) -> dict:
         doc = {"doc": "descriptor", "run": self.uid, "fields": fields}
         self._write(doc)
         self._descriptor_doc = doc
+        return doc
 
     def event(self, seq: int, obs: Observation, cmd_raw: Command | None, cmd: Command | None,
-              outputs: dict[str, Any], timing: dict[str, float], activation: int, error: str | None = None) -> None:
-        doc = {"doc": "event", "seq": seq, "activation": activation, "obs": P.observation_to_wire(obs),
-               "cmd_raw": None if cmd_raw is None else P.command_to_wire(cmd_raw),
-               "cmd": None if cmd is None else P.command_to_wire(cmd), "outputs": outputs, "timing": timing}
-        if error is not None:
-            doc["error"] = error
+              outputs: dict[str, Any], timing: dict[str, float], activation: int, error: str | None = None,
+              **extra) -> dict:
+        """Write one frame's event document (:func:`event_document`) and return it."""
+        doc = event_document(seq, obs, cmd_raw, cmd, outputs, timing, activation, error, **extra)
         self._write(doc)
         self.n_events += 1
+        return doc
 
     def stop(self, exit_status: str, reason: str = "", **fields) -> None:
         """Write the stop document (to the current part, whatever its size) and close; after a write error,
@@ -318,6 +321,27 @@ class RunLogWriter:
             # after a write error the buffer may still hold the unwritten rest: nothing more to say
             if self.failed is None:
                 raise self._fail(self.current, err) from None
+
+
+def start_document(uid: str, **fields) -> dict:
+    """A run's start document (``fields``: task, options, seed, rig, limits, parameter files…)."""
+    return {"doc": "start", "format": FORMAT, "uid": uid, "time_unix": time.time(), "magctl_version": __version__,
+            **fields}
+
+
+def event_document(seq: int, obs: Observation, cmd_raw: Command | None, cmd: Command | None,
+                   outputs: dict[str, Any], timing: dict[str, float], activation: int, error: str | None = None,
+                   **extra) -> dict:
+    """One frame's event document, as logged and as the live view receives it. ``extra``: ``paused`` (a tick the
+    run was paused: no controller step, ``cmd_raw`` None) and ``control`` (the stop/pause/resume requests the tick
+    took, each ``{"action", "by"}``)."""
+    doc = {"doc": "event", "seq": seq, "activation": activation, "obs": P.observation_to_wire(obs),
+           "cmd_raw": None if cmd_raw is None else P.command_to_wire(cmd_raw),
+           "cmd": None if cmd is None else P.command_to_wire(cmd), "outputs": outputs, "timing": timing}
+    if error is not None:
+        doc["error"] = error
+    doc.update({k: v for k, v in extra.items() if v is not None})
+    return doc
 
 
 def descriptor_fields(n_spheres: int, outputs: dict[str, tuple]) -> dict[str, dict]:
@@ -426,7 +450,7 @@ class RunLog:
         from magctl.control.status import STATUS_NAMES
 
         fields = (self.descriptor or {}).get("fields", {})
-        phases = _task_phases((self.start or {}).get("task"))
+        phases = task_phases((self.start or {}).get("task"))
         out: dict[str, Any] = {}
         for key, value in outputs.items():
             unit = fields.get(f"outputs.{key}", {}).get("unit")
@@ -459,7 +483,7 @@ def _scaled(value, factor: float):
     return round(float(value) * factor, 3)
 
 
-def _task_phases(task: str | None) -> dict[int, str]:
+def task_phases(task: str | None) -> dict[int, str]:
     """Phase names of a push task's ``phase`` output (empty for tasks without phases)."""
     from magctl.control.push.assembly import FrontThenSideAssemblyTask
     from magctl.control.push.front import FrontPushTask
@@ -843,6 +867,8 @@ def replay(log_path) -> ReplayResult:
 
     for e in log.events:
         seq, outs = e["seq"], e["outputs"]
+        if e.get("paused"):
+            continue   # the run held the robot without stepping the controller (docs/rig.md "Live view")
         if e["activation"] != activation:
             ctrl.reset()
             pending.clear()   # the runtime drops the plans of the last activation too

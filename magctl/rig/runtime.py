@@ -53,15 +53,18 @@ import numpy as np
 from magctl.config import load_file, models_dir
 from magctl.core.compiled import NotCompilable
 from magctl.core.errors import MagctlError
-from magctl.rig.interface import Lifecycle, Observation, Rig, RigError
+from magctl.rig.interface import Command, Lifecycle, Observation, Rig, RigError
 from magctl.rig.log import (
     LogError,
     RunLogWriter,
     default_part_bytes,
     descriptor_fields,
+    event_document,
     limits_to_doc,
     models_snapshot,
+    start_document,
 )
+from magctl.rig.monitor import ControlRequest, RunControls, RunMonitor
 from magctl.rig.tasks import Controller, Task, build_task, check_options
 
 
@@ -162,12 +165,18 @@ class Runtime:
         Size cap of one file of the run log, bytes (``RunLogWriter(max_bytes=…)``: past it the log goes on in
         ``LOG.1``, ``LOG.2``…; 0: no cap). Default: ``[log] max_mb`` of the run's rig parameter file
         (``params_path``), MB = 10⁶ bytes.
+    monitor : RunMonitor, optional
+        Receives the start document, every event document and the stop document as they are made (the live
+        view's feed, :mod:`magctl.rig.monitor`); it must return at once.
+    controls : RunControls, optional
+        Stop, pause and resume requests from outside (the live view's buttons), taken once a tick.
     """
 
     def __init__(self, rig: Rig, task: str, options: dict | None = None, *, log_path=None, realtime: bool = True,
                  max_ticks: int | None = None, duration: float | None = None, seed: int = 0, params_path=None,
                  quiet: bool = False, rig_description: dict | None = None, engine: str = "auto",
-                 off_frame: bool = True, log_max_bytes: int | None = None):
+                 off_frame: bool = True, log_max_bytes: int | None = None, monitor: RunMonitor | None = None,
+                 controls: RunControls | None = None):
         self.rig, self.task_name, self.options = rig, task, dict(options or {})
         self.engine = engine
         self.off_frame = bool(off_frame)
@@ -188,6 +197,10 @@ class Runtime:
         self.lockstep = not realtime
         self._events: list[_Pending] = []
         self.log_max_bytes = None if self.log_path is None else self._log_cap(log_max_bytes)
+        self.monitor, self.controls = monitor, controls
+        self.paused = False
+        self._stop_control: dict | None = None
+        self._last_cmd: Command | None = None
 
     def _log_cap(self, given) -> int:
         """The run log's part size cap in bytes: ``given``, else the run's rig.toml ``[log] max_mb`` (else
@@ -294,8 +307,8 @@ class Runtime:
         jitter, compute = [], []
         status, reason, ticks, overruns, final = "error", "", 0, 0, {}
         try:
-            if writer is not None:
-                writer.start(task=task.name, options=task.options, seed=self.seed, rig=self.rig_description,
+            if writer is not None or self.monitor is not None:
+                start = dict(task=task.name, options=task.options, seed=self.seed, rig=self.rig_description,
                              limits=limits_to_doc(rig.limits), models_toml=self._models_snapshot(),
                              params_file=str(self.params_path), period_s=self.period, realtime=self.realtime,
                              argv=sys.argv)
@@ -307,7 +320,13 @@ class Runtime:
                                "outputs.event_applied": {"shape": [], "unit": "1"},
                                "outputs.event_pending": {"shape": [], "unit": "bool"},
                                "timing.events_s": {"shape": [], "unit": "s"}}
-                writer.descriptor(fields)
+                if writer is not None:
+                    start_doc = writer.start(**start)
+                    descriptor = writer.descriptor(fields)
+                else:
+                    start_doc = start_document("unlogged", **start)
+                    descriptor = {"doc": "descriptor", "run": "unlogged", "fields": fields}
+                self._monitor("run_started", start_doc, descriptor)
             status, reason, ticks, overruns, final = self._loop(ctrl, writer, jitter, compute, worker)
         except KeyboardInterrupt:
             status, reason, ticks, overruns = "aborted", "interrupted (Ctrl-C)", self.ticks, self.overruns
@@ -330,14 +349,18 @@ class Runtime:
             events = [{"requested": p.requested, "applied": p.applied,
                        "worker_s": p.future.result()[1] if p.future.done() and not p.future.cancelled()
                        and p.future.exception() is None else None} for p in self._events]
+            stop_fields = {"ticks": ticks, "overruns": overruns, "slow_steps": self.slow_steps,
+                           **({"events": events} if worker is not None else {}),
+                           **({"control": self._stop_control} if self._stop_control is not None else {})}
             if writer is not None:
                 try:
-                    writer.stop(status, reason, ticks=ticks, overruns=overruns, slow_steps=self.slow_steps,
-                                **({"events": events} if worker is not None else {}))
+                    writer.stop(status, reason, **stop_fields)
                 except LogError as err:
                     # the run is over (coils zeroed); its log lacks the stop document, which readers report
                     note = f"the log's stop document was not written: {_one_line(err)}"
                     status, reason = "error", f"{reason}; {note}" if reason else note
+            self._monitor("run_stopped", {"doc": "stop", "exit_status": status, "reason": reason,
+                                          "n_events": ticks, **stop_fields})
         return RunReport(status, reason, ticks, overruns, np.asarray(jitter), np.asarray(compute), final,
                          None if self.log_path is None else str(self.log_path),
                          {} if task is None else task.options, self.slow_steps, events,
@@ -389,6 +412,11 @@ class Runtime:
                         time.sleep(wait)
                     while clock() < sched:
                         pass
+                control = self._take_controls(ticks) if self.controls is not None else None
+                if self._stop_control is not None:    # the operator's stop: a deliberate end, like max ticks
+                    return "stopped", self._stop_reason, ticks, overruns, final
+                if self._stop_reason is not None:
+                    return "aborted", self._stop_reason, ticks, overruns, final
                 start = clock()
                 obs = rig.read()
                 t_read = clock()
@@ -398,6 +426,14 @@ class Runtime:
                     ctrl.reset()
                     pending.clear()      # plans of the last activation: never applied
                     activation = rig.activation
+                if self.paused:
+                    self._held_tick(obs, final, writer, control, ticks, start - t0, sched - t0, t_read - start,
+                                    activation)
+                    ticks += 1
+                    self.ticks = ticks
+                    sched, overruns, pending_skips, last_warn = self._next_tick(sched, period, clock, overruns,
+                                                                                last_warn)
+                    continue
                 applied = self._apply_events(ctrl, pending, ticks) if pending else -1
                 held = bool(pending)     # this step runs with a plan pending: the task holds the robot
                 t_events = clock()
@@ -426,8 +462,11 @@ class Runtime:
                 if worker is not None:
                     out_doc |= {"event_requested": requested, "event_applied": applied, "event_pending": held}
                     timing["events_s"] = t_events - t_read
-                if writer is not None:
-                    writer.event(ticks, obs, cmd_raw, cmd, out_doc, timing, activation)
+                if writer is not None or self.monitor is not None:
+                    doc = (writer.event if writer is not None else event_document)(
+                        ticks, obs, cmd_raw, cmd, out_doc, timing, activation, control=control)
+                    self._monitor("run_frame", doc, self._status(ticks + 1))
+                self._last_cmd = cmd
                 pending_skips = 0
                 ticks += 1
                 self.ticks = ticks
@@ -444,22 +483,81 @@ class Runtime:
                                 ticks, overruns, final)
                 else:
                     lost_since = None
-                sched += period
-                if self.realtime:
-                    late = clock() - sched
-                    if late > 0:
-                        missed = int(late // period) + 1
-                        sched += missed * period
-                        overruns += missed
-                        self.overruns = overruns
-                        pending_skips = missed
-                        now = clock()
-                        if now - last_warn >= self.warn_interval:
-                            self._warn(f"overrun: skipped {missed} tick(s) ({overruns} so far)")
-                            last_warn = now
+                sched, overruns, pending_skips, last_warn = self._next_tick(sched, period, clock, overruns,
+                                                                            last_warn)
         finally:
             gc.enable()
             gc.unfreeze()
+
+    def _next_tick(self, sched: float, period: float, clock, overruns: int, last_warn: float):
+        """The next tick's scheduled time; in real time, the ticks already missed are skipped and counted."""
+        sched += period
+        skipped = 0
+        if self.realtime:
+            late = clock() - sched
+            if late > 0:
+                skipped = int(late // period) + 1
+                sched += skipped * period
+                overruns += skipped
+                self.overruns = overruns
+                now = clock()
+                if now - last_warn >= self.warn_interval:
+                    self._warn(f"overrun: skipped {skipped} tick(s) ({overruns} so far)")
+                    last_warn = now
+        return sched, overruns, skipped, last_warn
+
+    # --- the live view's controls -------------------------------------------------------------------------
+    def _take_controls(self, tick: int) -> list[dict] | None:
+        """Act on the requests queued since the last tick (before tick ``tick``'s read): a stop sets the stop
+        reason (the loop returns before reading: the coils are zeroed before another command is sent), pause/resume
+        switch the hold. Returns them for the tick's event document (None: none). The stop document's ``control``
+        says which tick took the stop (``before_seq``) and the newest frame its sender had seen (``seen_seq``)."""
+        taken: list[ControlRequest] = self.controls.take()
+        if not taken:
+            return None
+        for req in taken:
+            if req.action == "stop" and self._stop_reason is None:
+                self._stop_reason = f"stop button (by {req.by})"
+                self._stop_control = {"action": "stop", "by": req.by, "before_seq": tick,
+                                      "seen_seq": req.seen_seq, "waited_s": time.monotonic() - req.t_monotonic}
+            elif req.action in ("pause", "resume"):
+                self.paused = req.action == "pause"
+            self._warn(f"{req.action} by {req.by} before tick {tick}")
+        return [{"action": r.action, "by": r.by} for r in taken]
+
+    def _held_tick(self, obs: Observation, final: dict, writer, control, tick: int, start_s: float,
+                   scheduled_s: float, read_s: float, activation: int) -> None:
+        """A paused tick: the servo's hold — the last command's static field (its heading), no oscillating field —
+        sent without stepping the controller, logged ``paused`` with ``cmd_raw`` None (replay skips it)."""
+        last = self._last_cmd
+        hold = Command(np.zeros(2) if last is None else np.array(last.b_static, dtype=float), 0.0,
+                       0.0 if last is None else float(last.freq))
+        cmd = self.rig.limits.clip(hold)
+        self.rig.write(cmd)
+        timing = {"scheduled_s": scheduled_s, "start_s": start_s, "jitter_s": start_s - scheduled_s if self.realtime
+                  else 0.0, "read_s": read_s, "compute_s": 0.0, "write_s": 0.0, "skipped": 0}
+        outputs = dict(final.get("outputs", {}))
+        if writer is not None or self.monitor is not None:
+            doc = (writer.event if writer is not None else event_document)(
+                tick, obs, None, cmd, outputs, timing, activation, control=control, paused=True)
+            self._monitor("run_frame", doc, self._status(tick + 1))
+
+    def _monitor(self, method: str, *docs) -> None:
+        """Hand documents to the monitor. A monitor that fails is dropped with one warning: what a run shows must
+        never end it (its log is the record)."""
+        if self.monitor is None:
+            return
+        try:
+            getattr(self.monitor, method)(*docs)
+        except Exception as err:  # noqa: BLE001 - any failure of the view's side
+            self.monitor = None
+            self._warn(f"the live view failed and is detached; the run goes on ({type(err).__name__}: "
+                       f"{_one_line(err)})")
+
+    def _status(self, ticks: int) -> dict[str, Any]:
+        """The counters the live view shows beside a frame."""
+        return {"state": self.rig.state.value, "ticks": ticks, "overruns": self.overruns,
+                "slow_steps": self.slow_steps, "paused": self.paused}
 
 
 def open_rig(address: str, *, n_spheres: int = 1, realtime: bool = True, seed: int = 0, plant: str = "physics",
