@@ -319,6 +319,8 @@ def cmd_run(args) -> int:
         if view is not None:
             view[2].close()
         raise MagctlError(f"rig run: {err}") from None
+    if view is not None:
+        view[0].image_source = getattr(rig, "camera_view", None)   # a lab's camera frames, when the rig has them
     try:
         runtime = Runtime(rig, args.task, options, log_path=args.log, realtime=not args.fast,
                           max_ticks=args.max_ticks, duration=args.duration, seed=args.seed, quiet=args.quiet,

@@ -130,7 +130,8 @@ SCHEMA: dict = {
                                        "spheres_est_m": {"type": "array", "items": _XY}, "lost": {"type": "boolean"},
                                        "currents_A": {"type": "array", "items": _NUM}}},
                 "cmd_raw": _CMD, "cmd": _CMD,
-                "outputs": {"type": "object", "additionalProperties": {"type": ["number", "boolean", "array"]}},
+                "outputs": {"type": "object",
+                            "additionalProperties": {"type": ["number", "boolean", "array", "null"]}},
                 "timing": {"type": "object", "additionalProperties": _NUM},
                 "error": {"type": "string"}, "paused": {"type": "boolean"},
                 "control": {"type": "array", "items": {
@@ -267,7 +268,12 @@ class RunLogWriter:
         bad = schema_error(doc)
         if bad is not None:
             raise LogError(f"{self.current}: refusing to write an invalid {bad}")
-        return (_dumps(doc) + "\n").encode("utf-8")
+        try:
+            return (_dumps(doc) + "\n").encode("utf-8")
+        except ValueError:
+            where = doc.get("doc") + (f" seq {doc['seq']}" if "seq" in doc else "")
+            raise LogError(f"{self.current}: refusing to write {where}: {_non_finite(doc)} is not a finite number "
+                           "(JSON has no NaN or infinity)") from None
 
     def _write(self, doc: dict) -> None:
         data = self._line(doc)
@@ -321,6 +327,19 @@ class RunLogWriter:
             # after a write error the buffer may still hold the unwritten rest: nothing more to say
             if self.failed is None:
                 raise self._fail(self.current, err) from None
+
+
+def _non_finite(doc, path: str = "") -> str | None:
+    """The path of the first non-finite number in ``doc`` (``obs.robot_est_m[0]``), None if there is none."""
+    if isinstance(doc, float) and not np.isfinite(doc):
+        return path or "a value"
+    items = doc.items() if isinstance(doc, dict) else enumerate(doc) if isinstance(doc, list) else ()
+    for key, value in items:
+        found = _non_finite(value, f"{path}.{key}" if isinstance(key, str) and path else
+                            key if isinstance(key, str) else f"{path}[{key}]")
+        if found is not None:
+            return found
+    return None
 
 
 def start_document(uid: str, **fields) -> dict:
@@ -480,7 +499,7 @@ def _um(x: float) -> float:
 def _scaled(value, factor: float):
     if isinstance(value, list):
         return [_scaled(v, factor) for v in value]
-    return round(float(value) * factor, 3)
+    return None if value is None else round(float(value) * factor, 3)
 
 
 def task_phases(task: str | None) -> dict[int, str]:

@@ -39,6 +39,7 @@ took longer than the period.
 from __future__ import annotations
 
 import gc
+import math
 import signal
 import sys
 import threading
@@ -629,5 +630,15 @@ def _drop_unwritten(writer: RunLogWriter) -> None:
 
 
 def _scalar(v):
+    """A task output of the (single) trial as JSON: a not-yet-defined value (NaN: e.g. the side push's gap before
+    its first attempt) is null, which JSON can carry and a NaN it cannot."""
     a = np.asarray(v)[0]
-    return a.tolist() if a.ndim else (bool(a) if a.dtype == bool else float(a))
+    if a.dtype == bool:
+        return a.tolist() if a.ndim else bool(a)
+    return _finite_or_none(a.tolist() if a.ndim else float(a))
+
+
+def _finite_or_none(x):
+    if isinstance(x, list):
+        return [_finite_or_none(v) for v in x]
+    return x if not isinstance(x, float) or math.isfinite(x) else None

@@ -89,6 +89,7 @@ class DeviceStation:
             camera.close()
             raise
         self._last_frame_wall = time.monotonic()
+        self.last_frame = None
         self._latest = self.tracker.blank(0.0, 0)
         self.latest = self._latest
         self._lock = threading.Lock()
@@ -103,6 +104,7 @@ class DeviceStation:
         frame = self.camera.grab(timeout)
         if frame is None:
             return None
+        self.last_frame = frame
         obs = self.tracker.track(frame)
         self.frames_tracked += 1
         return obs
@@ -151,6 +153,12 @@ class DeviceStation:
                                   spheres_est=obs.spheres_est, lost=bool(obs.lost or age_frames > self.stale_frames),
                                   currents=self.setpoint.peak())
         return self.latest
+
+    def camera_view(self):
+        """The newest camera frame and the pixel calibration that maps it onto the glass (for the live view), or
+        None before the first frame. A reference only: the frame is never copied or held for the caller."""
+        frame = self.last_frame
+        return None if frame is None else (frame.image, self.tracker.calibration)
 
     # --- coils ----------------------------------------------------------------------------------------
     def apply(self, cmd: Command, now: float) -> np.ndarray:
@@ -246,6 +254,12 @@ class StationRig(Rig):
     def _read(self) -> Observation:
         self._advance()
         return self.plant.latest
+
+    def camera_view(self):
+        """The station's newest camera frame and its pixel calibration (:meth:`DeviceStation.camera_view`), or
+        None: a simulated plant has no camera frames, nor a station before ``configure``."""
+        view = getattr(self.plant, "camera_view", None)
+        return None if view is None else view()
 
     def _write(self, cmd: Command) -> None:
         if self.realtime:

@@ -38,6 +38,9 @@ class LiveFeed:
         self.history: collections.deque = collections.deque(maxlen=history)
         self.attempts = AttemptErrors(None)
         self.stop: dict[str, Any] | None = None
+        self.image_source = None
+        """A callable giving the rig's newest camera frame and pixel calibration, or None (a ``StationRig``'s
+        ``camera_view``); the web server calls it, never the runtime."""
 
     # --- RunMonitor (the runtime's thread) -------------------------------------------------------------------
     def run_started(self, start: dict[str, Any], descriptor: dict[str, Any]) -> None:
@@ -61,4 +64,24 @@ class LiveFeed:
     def info(self) -> dict[str, Any]:
         """The page's first document: the scene, the history so far, the attempts, the stop document if any."""
         return {"scene": self.scene, "history": list(self.history), "attempts": list(self.attempts.rows),
-                "stop": self.stop}
+                "stop": self.stop, "camera": self.image_source is not None}
+
+    def camera_png(self) -> tuple[bytes, list[float]] | None:
+        """The newest camera frame as an 8-bit PNG and the affine map of its pixels onto the glass,
+        ``[a, b, c, d, e, f]``: ``x = a·j + b·i + c``, ``y = d·j + e·i + f`` for column ``j``, row ``i`` (m).
+        None when the rig gives no frames."""
+        import io
+
+        import numpy as np
+        from PIL import Image
+
+        got = None if self.image_source is None else self.image_source()
+        if got is None:
+            return None
+        image, calibration = got
+        pixels = (np.clip(np.nan_to_num(np.asarray(image, dtype=float)), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        buf = io.BytesIO()
+        Image.fromarray(pixels, mode="L").save(buf, format="PNG", compress_level=1)
+        corners = calibration.to_glass(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]))
+        (c, f), (x1, y1), (x2, y2) = corners
+        return buf.getvalue(), [x1 - c, x2 - c, c, y1 - f, y2 - f, f]

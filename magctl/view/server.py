@@ -200,6 +200,15 @@ def build_app(*, live: _Live | None = None, runs: list[ReplayRun] | None = None)
             return JSONResponse({"error": "run: no such run"}, status_code=400)
         return json_response(run.series())
 
+    async def camera(request):
+        got = None if live is None else await asyncio.to_thread(live.feed.camera_png)
+        if got is None:
+            return Response(status_code=204)
+        png, affine = got
+        return Response(png, media_type="image/png",
+                        headers={"X-Magctl-Affine": ",".join(repr(float(v)) for v in affine),
+                                 "Cache-Control": "no-store"})
+
     async def times(request):
         run = _run_arg(request) if runs else None
         if run is None:
@@ -283,7 +292,8 @@ def build_app(*, live: _Live | None = None, runs: list[ReplayRun] | None = None)
 
     routes = [Route("/", index), Route("/favicon.ico", no_icon), Route("/static/plotly.min.js", plotly_js),
               Route("/api/info", info), Route("/api/series", series), Route("/api/frames", frames),
-              Route("/api/times", times), Route("/api/path", path), WebSocketRoute("/ws", ws_endpoint),
+              Route("/api/times", times), Route("/api/path", path), Route("/api/camera.png", camera),
+              WebSocketRoute("/ws", ws_endpoint),
               Mount("/static", StaticFiles(directory=str(static)), name="static")]
     return Starlette(routes=routes)
 

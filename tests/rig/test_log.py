@@ -254,3 +254,30 @@ def test_log_show_is_in_micrometres_with_status_and_phase_names(push_log, capsys
     text = capsys.readouterr().out
     assert f"status {outs['status']}" in text and "µm/s" in text and "final robot: [" in text
     assert "e-0" not in text                                           # no SI floats such as 9.99e-06
+
+
+def test_an_undefined_output_is_logged_as_null_and_a_non_finite_observation_is_refused_by_name(tmp_path):
+    """The side push's gap is NaN until its first attempt (a lost first frame keeps it so): the log carries it as
+    null, and every reader takes it; a NaN where the log needs a number is a LogError naming the field."""
+    from magctl.rig.interface import Observation
+    from magctl.rig.runtime import _scalar
+
+    assert _scalar(np.array([np.nan])) is None and _scalar(np.array([[np.nan, 1.5]])) == [None, 1.5]
+    assert _scalar(np.array([True])) is True and _scalar(np.array([2.0])) == 2.0
+    obs = Observation(t=0.0, frame=0, robot_est=np.array([1e-3, 1e-3]), heading_est=0.0,
+                      spheres_est=np.array([[2e-3, 1e-3]]), lost=True)
+    w = RunLogWriter(tmp_path / "null.jsonl")
+    w.start(task="side-push", options={}, seed=0, rig={}, limits={"b_static_max_T": 3e-3, "b_osc_max_T": 3e-3,
+                                                                 "freq_max_Hz": 200.0})
+    w.descriptor({"outputs.gap": {"shape": [], "unit": "m"}})
+    timing = dict.fromkeys(("scheduled_s", "start_s", "jitter_s", "read_s", "compute_s", "write_s"), 0.0)
+    w.event(0, obs, None, None, {"gap": None, "target": [None, None]}, {**timing, "skipped": 0}, 1)
+    bad = Observation(t=0.0, frame=1, robot_est=np.array([1e-3, np.nan]), heading_est=0.0,
+                      spheres_est=np.array([[2e-3, 1e-3]]), lost=False)
+    with pytest.raises(LogError, match=r"refusing to write event seq 1: obs.robot_est_m\[1\] is not a finite"):
+        w.event(1, bad, None, None, {"gap": 1e-4}, {**timing, "skipped": 0}, 1)
+    w.stop("stopped", "test")
+    log = read_log(tmp_path / "null.jsonl")
+    assert [e["outputs"]["gap"] for e in log.events] == [None]
+    assert np.isnan(columns(log)["out_gap"][0])
+    assert log.summary()["final_outputs"]["gap_um"] is None

@@ -26,7 +26,7 @@ function transformOf(scene, canvas) {
 
 function toCanvas(t, x, y) { return [t.ox + x * t.scale, t.oy - y * t.scale]; }
 
-function drawRobot(ctx, t, scene, pos, heading) {
+function drawRobot(ctx, t, scene, pos, heading, outline) {
   const L = scene.robot.length_m, W = scene.robot.width_m, r = Math.min(scene.robot.notch_m, W / 2);
   ctx.save();
   ctx.setTransform(t.scale, 0, 0, -t.scale, t.ox, t.oy);
@@ -40,9 +40,12 @@ function drawRobot(ctx, t, scene, pos, heading) {
   ctx.lineTo(L / 2, -W / 2);
   ctx.lineTo(-L / 2, -W / 2);
   ctx.closePath();
-  ctx.fillStyle = COLORS.robot;
-  ctx.fill();
   ctx.restore();
+  if (outline) {   // over the camera frame: the tracked outline, the robot itself seen through it
+    ctx.strokeStyle = COLORS.robot; ctx.lineWidth = 2; ctx.stroke(); ctx.lineWidth = 1;
+  } else {
+    ctx.fillStyle = COLORS.robot; ctx.fill();
+  }
 }
 
 function circle(ctx, t, c, radius, style, fill, dash) {
@@ -64,6 +67,14 @@ function drawScene(k, event, status) {
   const [x0, y0] = toCanvas(t, 0, scene.field_m[1]);
   ctx.fillStyle = COLORS.field;
   ctx.fillRect(x0, y0, scene.field_m[0] * t.scale, scene.field_m[1] * t.scale);
+  const image = run.image;
+  if (image) {   // the camera frame mapped onto the glass by the rig's pixel calibration (pixel centres at j, i)
+    const [a, b, c, d, e, f] = image.affine, s = t.scale;
+    ctx.save();
+    ctx.setTransform(s * a, -s * d, s * b, -s * e, t.ox + s * c, t.oy - s * f);
+    ctx.drawImage(image.bitmap, -0.5, -0.5);
+    ctx.restore();
+  }
   ctx.lineWidth = 1;
   if (scene.goal_m) {
     if (scene.eps_m) circle(ctx, t, scene.goal_m, scene.eps_m, COLORS.band, true);
@@ -84,15 +95,17 @@ function drawScene(k, event, status) {
     ctx.setLineDash([]); ctx.lineWidth = 1;
     ctx.strokeRect(bx - 4, by - 4, 8, 8);
   }
-  drawRobot(ctx, t, scene, obs.robot_est_m, obs.heading_est_rad);
-  obs.spheres_est_m.forEach(s => circle(ctx, t, s, scene.sphere_radius_m, COLORS.sphere, true));
+  drawRobot(ctx, t, scene, obs.robot_est_m, obs.heading_est_rad, !!image);
+  ctx.lineWidth = image ? 2 : 1;
+  obs.spheres_est_m.forEach(s => circle(ctx, t, s, scene.sphere_radius_m, COLORS.sphere, !image));
+  ctx.lineWidth = 1;
   ctx.fillStyle = "#222";
   ctx.font = "12px system-ui";
   ctx.fillText(`t ${obs.t_s.toFixed(2)} s   frame ${obs.frame}   seq ${event.seq}` +
                (event.paused ? "   PAUSED" : "") + (obs.lost ? "   TRACKING LOST" : ""), 14, 18);
   ctx.fillText("1 mm", 14, canvas.height - 16);
   ctx.fillRect(14, canvas.height - 12, 1e-3 * t.scale, 3);
-  view.drawn[k] = {seq: event.seq, t_s: obs.t_s, transform: t,
+  view.drawn[k] = {seq: event.seq, t_s: obs.t_s, transform: t, camera: image ? image.count : 0,
                    robot_px: toCanvas(t, obs.robot_est_m[0], obs.robot_est_m[1]),
                    spheres_px: obs.spheres_est_m.map(s => toCanvas(t, s[0], s[1])),
                    colors: {robot: COLORS.robot, sphere: COLORS.sphere}};
@@ -216,9 +229,32 @@ function liveSetup(info) {
     }
   };
   socket.onclose = () => { if (!view.ended) say("connection to the run closed"); };
+  if (info.runs[0].camera) cameraLoop(run, 0);
   const send = (action) => socket.send(JSON.stringify({action: action, page: pageId, token: view.token}));
   $("stop").onclick = () => send("stop");
   $("pause").onclick = () => send(view.paused ? "resume" : "pause");
+}
+
+async function cameraLoop(run, misses) {   // the rig's camera frame, a few times a second, while the run goes
+  if (view.ended || misses > 5) return;
+  let next = 200;
+  try {
+    const r = await fetch(`/api/camera.png?n=${run.imageCount || 0}`, {cache: "no-store"});
+    if (r.status === 200) {
+      const affine = r.headers.get("X-Magctl-Affine").split(",").map(Number);
+      const bitmap = await createImageBitmap(await r.blob());
+      run.imageCount = (run.imageCount || 0) + 1;
+      run.image = {bitmap: bitmap, affine: affine, count: run.imageCount};
+      misses = 0;
+    } else {
+      misses += 1;    // no frame (yet): a simulated plant has none; give up after a few
+      next = 1000;
+    }
+  } catch (err) {
+    misses += 1;
+    next = 1000;
+  }
+  setTimeout(() => cameraLoop(run, misses), next);
 }
 
 // --- replay ------------------------------------------------------------------------------------------------
