@@ -156,9 +156,13 @@ function plotAll() {
   const shapes = eps ? [{type: "rect", xref: "paper", x0: 0, x1: 1, y0: 0, y1: eps * 1e6, fillcolor: COLORS.band,
                          line: {width: 0}}] : [];
   const small = {margin: {l: 50, r: 50, t: 30, b: 40}, showlegend: true, legend: {orientation: "h", y: -0.25}};
+  const ended = Math.max(0, ...view.runs.map(r => r.attempts.length));
+  const none = ended ? [] : [{text: "no attempt has ended yet", xref: "paper", yref: "paper", x: 0.5, y: 0.6,
+                              showarrow: false, font: {color: "#888"}}];
   Plotly.react("plot-errors", errorTraces, {...small, title: {text: "error per attempt (band: ε)", font: {size: 13}},
-               xaxis: {title: "attempt", dtick: 1}, yaxis: {title: "µm", rangemode: "tozero"}, shapes: shapes},
-               {displayModeBar: false});
+               xaxis: {title: "attempt", dtick: 1, range: [0.5, Math.max(ended, 3) + 0.5]},
+               yaxis: ended ? {title: "µm", rangemode: "tozero"} : {title: "µm", range: [0, 4 * (eps || 1e-5) * 1e6]},
+               shapes: shapes, annotations: none}, {displayModeBar: false});
   Plotly.react("plot-commands", commandTraces, {...small, title: {text: "field commands", font: {size: 13}},
                xaxis: {title: "t (s)"}, yaxis: {title: "mT"}, yaxis2: {title: "Hz", overlaying: "y", side: "right"}},
                {displayModeBar: false});
