@@ -12,7 +12,7 @@ from __future__ import annotations
 import collections
 from typing import Any
 
-from magctl.view.scene import AttemptErrors, scene_of
+from magctl.view.scene import AttemptErrors, Passes, scene_of
 
 HISTORY_POINTS = 1800
 """Plot points kept for a page that connects mid-run: the last minute at 30 frames/s."""
@@ -37,6 +37,7 @@ class LiveFeed:
         self.version = 0
         self.history: collections.deque = collections.deque(maxlen=history)
         self.attempts = AttemptErrors(None)
+        self.passes = Passes({})
         self.stop: dict[str, Any] | None = None
         self.image_source = None
         """A callable giving the rig's newest camera frame and pixel calibration, or None (a ``StationRig``'s
@@ -48,10 +49,12 @@ class LiveFeed:
         shape = self.fields.get("obs.spheres_est_m", {}).get("shape") or [None]
         self.scene = scene_of(start, n_spheres=shape[0])
         self.attempts = AttemptErrors(self.scene["goal_m"])
+        self.passes = Passes(self.scene["phases"])
         self.version += 1
 
     def run_frame(self, event: dict[str, Any], status: dict[str, Any]) -> None:
         self.attempts.update(event)
+        self.passes.update(event)
         self.history.append(plot_point(event))
         self.latest = (event, status)
         self.version += 1
@@ -64,7 +67,7 @@ class LiveFeed:
     def info(self) -> dict[str, Any]:
         """The page's first document: the scene, the history so far, the attempts, the stop document if any."""
         return {"scene": self.scene, "history": list(self.history), "attempts": list(self.attempts.rows),
-                "stop": self.stop, "camera": self.image_source is not None}
+                "passes": list(self.passes.rows), "stop": self.stop, "camera": self.image_source is not None}
 
     def camera_png(self) -> tuple[bytes, list[float]] | None:
         """The newest camera frame as an 8-bit PNG and the affine map of its pixels onto the glass,

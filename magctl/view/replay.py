@@ -11,7 +11,7 @@ from typing import Any
 
 from magctl.rig.log import LogError, RunLog, read_log
 from magctl.view.feed import plot_point
-from magctl.view.scene import AttemptErrors, scene_of
+from magctl.view.scene import AttemptErrors, Passes, scene_of
 
 SERIES_POINTS = 4000
 """At most this many points per plotted series (every k-th frame of a longer run)."""
@@ -31,17 +31,18 @@ class ReplayRun:
             self.scene = scene_of(self.log.start, n_spheres=len(self.log.events[0]["obs"]["spheres_est_m"]))
         except ValueError as err:
             raise LogError(f"{self.path}:1: start document: {err}") from None
-        attempts = AttemptErrors(self.scene["goal_m"])
+        attempts, passes = AttemptErrors(self.scene["goal_m"]), Passes(self.scene["phases"])
         for e in self.log.events:
             attempts.update(e)
-        self.attempts = attempts.rows
+            passes.update(e)
+        self.attempts, self.passes = attempts.rows, passes.rows
         self.times = [e["obs"]["t_s"] for e in self.log.events]
 
     def info(self) -> dict[str, Any]:
         ev = self.log.events
         return {"path": str(self.path), "name": self.path.name, "scene": self.scene, "n_events": len(ev),
                 "first_seq": ev[0]["seq"], "t0_s": self.times[0], "t1_s": self.times[-1],
-                "attempts": self.attempts, "stop": self.log.stop, "note": self.log.crash_note(),
+                "attempts": self.attempts, "passes": self.passes, "stop": self.log.stop, "note": self.log.crash_note(),
                 "controls": [{"seq": e["seq"], **c} for e in ev for c in e.get("control", [])]}
 
     def series(self) -> dict[str, Any]:

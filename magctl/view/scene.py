@@ -6,7 +6,10 @@ it ran with), the goal, its ε band and the contact threshold from the resolved 
 the logged limits — so the live page and the replay page of one run draw the same picture.
 
 The error per attempt is the distance from the goal to the nearest sphere at the frame where the task's
-``attempt`` output steps (the end of that attempt), the quantity the push laws (eq 13-20) drive below ε.
+``attempt`` output steps (the end of that attempt), the quantity the push laws (eq 13-20) drive below ε. The
+passes are the lines the robot pushed along: each begins where the robot was when the task entered its pushing
+phase (the side push's ``pass``, the front push's ``push``) and ends at the servo's target of that phase — the
+motion line's end (§VI).
 """
 
 from __future__ import annotations
@@ -111,5 +114,35 @@ class AttemptErrors:
         error = min(math.hypot(s[0] - gx, s[1] - gy) for s in spheres)
         row = {"attempt": int(attempt), "seq": int(event["seq"]), "t_s": float(event["obs"]["t_s"]),
                "error_m": error}
+        self.rows.append(row)
+        return row
+
+
+PUSHING_PHASES = ("pass", "push")
+"""The last word of the phase names in which a push task drives the robot along its motion line."""
+
+
+class Passes:
+    """The motion lines of the passes so far, fed event by event (O(1) a frame)."""
+
+    def __init__(self, phases: dict[str, str]):
+        self.codes = {int(k) for k, name in phases.items() if name.split()[-1] in PUSHING_PHASES}
+        self.rows: list[dict[str, Any]] = []
+        self._pushing = False
+
+    def update(self, event: dict[str, Any]) -> dict[str, Any] | None:
+        """Take one event document; returns the new pass when the task enters a pushing phase at this frame."""
+        if event.get("paused"):
+            return None
+        outputs = event.get("outputs", {})
+        phase = outputs.get("phase")
+        pushing = isinstance(phase, (int, float)) and not isinstance(phase, bool) and int(phase) in self.codes
+        entered, self._pushing = pushing and not self._pushing, pushing
+        end = _point(outputs.get("target"))
+        if not entered or end is None:
+            return None
+        attempt = outputs.get("attempt")
+        row = {"seq": int(event["seq"]), "attempt": int(attempt) + 1 if isinstance(attempt, (int, float)) else None,
+               "start_m": list(event["obs"]["robot_est_m"]), "end_m": end}
         self.rows.append(row)
         return row

@@ -131,11 +131,12 @@ class _Live:
         latest, stop = self.feed.latest, self.feed.stop
         if stop is not None:
             text = dumps({"type": "stopped", "stop": stop, "attempts": list(self.feed.attempts.rows),
+                          "passes": list(self.feed.passes.rows),
                           "event": None if latest is None else latest[0],
                           "status": None if latest is None else latest[1]})
         elif latest is not None:
             text = dumps({"type": "frame", "event": latest[0], "status": latest[1],
-                          "attempts": list(self.feed.attempts.rows)})
+                          "attempts": list(self.feed.attempts.rows), "passes": list(self.feed.passes.rows)})
         else:
             text = None
         self._cache = (version, text)

@@ -96,6 +96,23 @@ def test_attempt_rows_are_the_goal_distance_where_the_attempt_counter_steps(tmp_
         assert row["error_m"] == min(math.dist(s, goal) for s in spheres)
 
 
+def test_passes_are_the_motion_lines_from_where_the_pass_phase_begins_to_its_target(tmp_path):
+    from magctl.control.push.side import SidePushTask
+
+    run = ReplayRun(side_push_log(tmp_path / "a.jsonl"))
+    pass_code = next(k for k, v in SidePushTask.PHASES.items() if v == "pass")
+    ev = run.log.events
+    begins = [b for a, b in zip(ev, ev[1:], strict=False)
+              if b["outputs"]["phase"] == pass_code and a["outputs"]["phase"] != pass_code]
+    assert len(begins) >= len(run.attempts) >= 2
+    assert [p["seq"] for p in run.passes] == [b["seq"] for b in begins]
+    for p, b in zip(run.passes, begins, strict=True):
+        assert p["start_m"] == b["obs"]["robot_est_m"] and p["end_m"] == b["outputs"]["target"]
+        # the robot then drives along it: at the pass's last frame it is nearer the end than where it began
+        last = next(e for e in ev if e["seq"] > p["seq"] and e["outputs"]["phase"] != pass_code)
+        assert math.dist(last["obs"]["robot_est_m"], p["end_m"]) < 0.5 * math.dist(p["start_m"], p["end_m"])
+
+
 def test_the_series_is_decimated_to_its_cap_and_keeps_the_last_frame(tmp_path, monkeypatch):
     import magctl.view.replay as replay_mod
 

@@ -87,7 +87,15 @@ function drawScene(k, event, status) {
   ctx.beginPath();
   run.trail.forEach((p, i) => { const [x, y] = toCanvas(t, p[0], p[1]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
   ctx.stroke();
-  if (Array.isArray(out.target)) {   // the servo's target: the next pass's waypoint
+  const passes = (run.passes || []).filter(p => p.seq <= event.seq);
+  passes.forEach((p, i) => {   // the motion lines pushed along so far; the newest bold
+    const [ax, ay] = toCanvas(t, p.start_m[0], p.start_m[1]), [bx, by] = toCanvas(t, p.end_m[0], p.end_m[1]);
+    ctx.strokeStyle = i === passes.length - 1 ? COLORS.path : "rgba(240,140,0,0.35)";
+    ctx.lineWidth = i === passes.length - 1 ? 3 : 1.5;
+    ctx.beginPath(); ctx.moveTo(ax, ay); ctx.lineTo(bx, by); ctx.stroke();
+  });
+  ctx.lineWidth = 1;
+  if (Array.isArray(out.target) && out.target[0] != null) {   // the servo's target: the next waypoint
     const [ax, ay] = toCanvas(t, obs.robot_est_m[0], obs.robot_est_m[1]);
     const [bx, by] = toCanvas(t, out.target[0], out.target[1]);
     ctx.strokeStyle = COLORS.path; ctx.setLineDash([6, 4]); ctx.lineWidth = 2;
@@ -189,7 +197,8 @@ function addRun(info, name) {
                   `id="scene-${k}"></canvas><table id="numbers-${k}"></table>`;
   $("runs").appendChild(box);
   const run = {name: name, scene: info.scene, canvas: box.querySelector("canvas"), numbers: box.querySelector("table"),
-               attempts: info.attempts || [], points: [], trail: [], current: null, info: info};
+               attempts: info.attempts || [], passes: info.passes || [], points: [], trail: [], current: null,
+               info: info};
   view.runs.push(run);
   return run;
 }
@@ -212,6 +221,7 @@ function liveSetup(info) {
     }
     if (!run.scene && doc.event) return;
     if (doc.attempts) run.attempts = doc.attempts;
+    if (doc.passes) run.passes = doc.passes;
     if (doc.event) {
       const e = doc.event;
       run.current = e;
