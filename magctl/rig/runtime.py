@@ -557,8 +557,10 @@ class Runtime:
 
     def _status(self, ticks: int) -> dict[str, Any]:
         """The counters the live view shows beside a frame."""
+        trips = getattr(self.rig, "watchdog_trips", None)   # an in-process rig counts its host watchdog's trips
         return {"state": self.rig.state.value, "ticks": ticks, "overruns": self.overruns,
-                "slow_steps": self.slow_steps, "paused": self.paused}
+                "slow_steps": self.slow_steps, "paused": self.paused,
+                **({"watchdog_trips": trips} if isinstance(trips, int) else {})}
 
 
 def open_rig(address: str, *, n_spheres: int = 1, realtime: bool = True, seed: int = 0, plant: str = "physics",

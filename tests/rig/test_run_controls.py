@@ -64,6 +64,7 @@ def test_pause_holds_the_robot_and_resume_goes_on_and_the_log_still_replays_bit_
     assert moving > 300e-6 and held < 10e-6
     assert ev[170]["cmd"]["b_osc_T"] > 0            # walking again
     assert [s["paused"] for s in monitor.statuses[99:101]] == [False, True]
+    assert {s["watchdog_trips"] for s in monitor.statuses} == {0} and monitor.statuses[-1]["ticks"] == 400
     result = replay(log.path)
     assert result.identical and result.compared == 2 * (400 - 60)
 

@@ -138,7 +138,8 @@ function showNumbers(k, event, status) {
     ["tracking", event.obs.lost ? "<span class=lost>lost</span>" : "ok"],
   ];
   if (status) rows.push(["rig", `${status.state}${status.paused ? " (paused)" : ""}; ticks ${status.ticks}, ` +
-                         `overruns ${status.overruns}, slow steps ${status.slow_steps}`]);
+                         `overruns ${status.overruns}, slow steps ${status.slow_steps}` +
+                         (status.watchdog_trips != null ? `, watchdog trips ${status.watchdog_trips}` : "")]);
   run.numbers.innerHTML = rows.map(([a, b]) => `<tr><td>${a}</td><td data-key="${a}">${b}</td></tr>`).join("");
 }
 
