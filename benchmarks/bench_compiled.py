@@ -12,7 +12,7 @@ all measured in one run (ratios matter on a shared machine); the block-diagram p
 * **Compile times**: the closed front-push loop compiled in a fresh process with empty caches (numba's
   and the generated sources'), then again with them warm.
 
-``rows`` lists what the README's benchmark table shows (``benchmarks/readme.py``).
+``rows`` lists what the benchmark table of docs/benchmarks.md shows (``benchmarks/readme.py``).
 """
 
 from __future__ import annotations

@@ -81,7 +81,7 @@ def run(quick: bool = False) -> dict:
 
 
 def _rows(out: dict, n: int) -> list[dict]:
-    """The README's rows, per mode: messages, server exits, invalid commands applied, replies, watchdog."""
+    """The table's rows, per mode: messages, server exits, invalid commands applied, replies, watchdog."""
     import math
 
     from magctl.config import load_model

@@ -64,7 +64,7 @@ def run(quick: bool = False) -> dict:
 
 
 def _rows(soaks: dict, plant: dict) -> list[dict]:
-    """The README's rows: per soak (default scheduling, SCHED_FIFO where it ran) the whole run, overruns, jitter and
+    """The table's rows: per soak (default scheduling, SCHED_FIFO where it ran) the whole run, overruns, jitter and
     compute; and the plant's frame."""
     from magctl.config import load_model
 

@@ -1,12 +1,12 @@
-"""The README's benchmark table, generated from committed results files.
+"""The benchmark tables of the docs (docs/benchmarks.md, docs/identify.md), generated from committed results files.
 
     python benchmarks/readme.py benchmarks/results/2026-12-04-abc1234567.json [more files …]
 
 writes the rows every named file's benchmarks give (``rows``: name, target, value, unit, verdict, note;
-each verdict computed by the benchmark from the figure it names) between the README's markers
-``<!-- benchmarks:begin -->`` and ``<!-- benchmarks:end -->``, each row with the file and commit it
-came from. ``tests/test_readme_benchmarks.py`` checks that the README holds exactly this table for the
-files it names, so the README cannot quote a number no committed file contains.
+each verdict computed by the benchmark from the figure it names) between docs/benchmarks.md's markers
+``<!-- benchmarks:begin -->`` and ``<!-- benchmarks:end -->`` (``--into PAGE.md``: another page's), each row with
+the file and commit it came from. ``tests/test_readme_benchmarks.py`` checks that each page holds exactly this
+table for the files it names, so no page can quote a number no committed file contains.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def render(files: list[Path]) -> str:
 
 
 def named_files(readme: str) -> list[Path]:
-    """The results files the README's table was generated from (its rows' file column)."""
+    """The results files a page's table was generated from (its rows' file column)."""
     if BEGIN not in readme:
         return []
     section = readme.split(BEGIN, 1)[1].split(END, 1)[0]
@@ -64,7 +64,7 @@ def named_files(readme: str) -> list[Path]:
 
 
 def main(argv: list[str]) -> int:
-    target = "README.md"
+    target = "docs/benchmarks.md"
     if argv[:1] == ["--into"] and len(argv) > 1:      # another page with the same markers, e.g. docs/identify.md
         target, argv = argv[1], argv[2:]
     files = [Path(a).resolve().relative_to(ROOT) for a in argv]

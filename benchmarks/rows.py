@@ -1,4 +1,4 @@
-"""One row of the README's benchmark table (``benchmarks/readme.py``), its verdict computed from the value it shows.
+"""One row of a benchmark table (``benchmarks/readme.py``), its verdict computed from the value it shows.
 
 Every ``bench_*.py`` module lists its targets as ``rows`` in the dict its ``run`` returns, each made by
 :func:`row` from a number measured in that run and the target's bound, so the verdict cannot disagree with

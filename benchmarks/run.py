@@ -4,7 +4,7 @@ Each benchmark module defines ``run(quick: bool = False) -> dict``; its numbers
 (with targets and whether they were met) go into the JSON under its name, beside a ``meta``
 block: the date, the commit measured (``+dirty`` when the tree had uncommitted changes), the
 machine's cores and numpy's small-op cost before the run. The file is
-``benchmarks/results/<date>-<commit>.json``; committed, it is what the README's benchmark
+``benchmarks/results/<date>-<commit>.json``; committed, it is what docs/benchmarks.md's
 table is generated from (``benchmarks/readme.py``). Every
 ``bench_*.py`` here is picked up; the rig's (``rig_soak``, ``rig_fuzz``, ``rig_watchdog``)
 start ``serve-sim`` processes on loopback and take minutes each (``--only`` to pick); those in

@@ -1,9 +1,9 @@
-"""The Markdown report written by ``magctl reproduce``, and the claims table the README carries.
+"""The Markdown report written by ``magctl reproduce``, and the claims tables docs/results.md carries.
 
 ``report.md`` opens with the paper's claims, one row each, judged by the rule of
-:mod:`magctl.studies.paper_statistics`; ``claims.md`` is that table alone. The README's claims table is
+:mod:`magctl.studies.paper_statistics`; ``claims.md`` is that table alone. The claims tables of docs/results.md are
 generated from a committed copy of it (``docs/claims.md``): ``python -m magctl.studies.report docs/claims.md``
-rewrites the README's block between :data:`BEGIN` and :data:`END`, and a test keeps the two equal.
+rewrites the page's blocks between :data:`BEGIN` and :data:`END`, and a test keeps the two equal.
 The same report as one self-contained page, ``report.html``, is :mod:`magctl.studies.report_html`'s.
 """
 
@@ -21,12 +21,12 @@ def _probability(p: float | None) -> str:
 
 
 BEGIN, END = "<!-- claims:begin -->", "<!-- claims:end -->"
-"""The markers of the README's generated claims table (magctl's conditions); the paper's conditions' table sits
+"""The markers of docs/results.md's generated claims table (magctl's conditions); the paper's conditions' table sits
 between the same markers with ``claims-paper`` (:func:`markers`)."""
 
 
 def markers(conditions: str = "magctl") -> tuple[str, str]:
-    """The README markers of the claims table of ``conditions``."""
+    """The markers of the claims table of ``conditions`` in docs/results.md."""
     if conditions == "magctl":
         return BEGIN, END
     return BEGIN.replace("claims", f"claims-{conditions}"), END.replace("claims", f"claims-{conditions}")
@@ -87,29 +87,29 @@ def write_report(out: Path, results: list[StudyResult], timings: dict[str, float
     return path
 
 
-def readme_block(claims_md: str, conditions: str = "magctl") -> str:
-    """The README's generated block for the text of a ``claims.md`` written under ``conditions``."""
+def results_block(claims_md: str, conditions: str = "magctl") -> str:
+    """docs/results.md's generated block for the text of a ``claims.md`` written under ``conditions``."""
     begin, end = markers(conditions)
     return f"{begin}\n{claims_md.rstrip()}\n{end}"
 
 
-def update_readme(claims_path: Path, readme: Path, conditions: str = "magctl") -> None:
-    """Rewrite ``readme``'s claims block of ``conditions`` from ``claims_path``."""
+def update_results_page(claims_path: Path, page: Path, conditions: str = "magctl") -> None:
+    """Rewrite ``page``'s claims block of ``conditions`` from ``claims_path``."""
     begin, end = markers(conditions)
-    text = readme.read_text()
+    text = page.read_text()
     if begin not in text or end not in text:
-        raise SystemExit(f"{readme}: no {begin} … {end} block to rewrite")
+        raise SystemExit(f"{page}: no {begin} … {end} block to rewrite")
     head, rest = text.split(begin, 1)
     tail = rest.split(end, 1)[1]
-    readme.write_text(head + readme_block(Path(claims_path).read_text(), conditions) + tail)
+    page.write_text(head + results_block(Path(claims_path).read_text(), conditions) + tail)
 
 
 if __name__ == "__main__":
     import sys
 
     if len(sys.argv) not in (2, 3):
-        raise SystemExit("usage: python -m magctl.studies.report CLAIMS.md [PAPER-CLAIMS.md]  (rewrites README.md's "
+        raise SystemExit("usage: python -m magctl.studies.report CLAIMS.md [PAPER-CLAIMS.md]  (rewrites docs/results.md's "
                          "claims tables: magctl's conditions, then the paper's)")
-    readme_path = Path(__file__).resolve().parents[2] / "README.md"
+    page_path = Path(__file__).resolve().parents[2] / "docs" / "results.md"
     for path, cond in zip(sys.argv[1:], ("magctl", "paper"), strict=False):
-        update_readme(Path(path), readme_path, cond)
+        update_results_page(Path(path), page_path, cond)
