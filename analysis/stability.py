@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from magctl.control.push.common import ExpSideModel, LinSideModel
+from magctl.core.units import UM
 from magctl.stability import iteration as S
 from magctl.stability import switched as W
 from magctl.studies.runner import Cause, Computed, PaperRow, StudyContext, claim
@@ -16,7 +17,6 @@ NAME = "stability"
 TITLE = "Iteration-domain stability of front and side pushing (eq 13-23)"
 ORDER = 10
 DEFAULT_TRIALS = 20000
-UM = 1e-6
 FRONT_CASES = [(0.0, 0.0), (0.0, 127 * UM), (0.5, 0.0), (1.0, 0.0), (1.0, 127 * UM), (1.0, 300 * UM)]
 """(K_c, δ(0) [m]) of the front-push convergence comparison."""
 SIDE_RATIOS = (0.5, 1.0, 1.5, 2.5)
@@ -97,7 +97,7 @@ def compute(ctx: StudyContext) -> Computed:
     tangent_slope = float(exp.slope(500 * UM))
     tangent_icpt = float(exp.gap(500 * UM) - tangent_slope * 500 * UM) / UM
     results = {
-        "front_stable_gain_range": [0.0, 2.0],
+        "front_stable_gain_range": list(S.front_loop(1.0).stable_gain_range),
         "front_pole_kc1": float(S.front_loop(1.0).poles[0].real),
         "front_damping": {str(k): S.front_loop(k).damping for k in (0.5, 1.0, 1.5, 2.1)},
         "front_convergence": front,

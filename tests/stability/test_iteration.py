@@ -16,9 +16,8 @@ from magctl.control.learning import front_push_law, side_push_law
 from magctl.control.push.common import ExpSideModel, LinSideModel, side_model
 from magctl.core.errors import MagctlError
 from magctl.core.simulation import simulate
+from magctl.core.units import UM
 from magctl.stability import iteration as S
-
-UM = 1e-6
 
 
 # --- eq 14-15 -------------------------------------------------------------------------------
@@ -236,3 +235,24 @@ def test_tabulated_plant_reproduces_eq_22_and_rejects_bad_tables():
         TabulatedSideModel((1e-4, 2e-4), (1e-5, 2e-5))
     with pytest.raises(MagctlError, match="--plant"):
         S.side_report(0.9, "lin", plant="cfd")
+
+
+def test_the_stable_gain_ranges_are_where_python_controls_poles_lie_inside_the_unit_circle():
+    """The front loop's (0, 2) and the side loop's (0, 2/ρ) against the closed-loop poles python-control computes
+    on a grid of gains, not against the closed form they state."""
+    import control
+
+    from magctl.control.learning import front_push_law, side_push_law
+
+    def stable(law_tf, sign, ratio):
+        cl = control.feedback(law_tf * (sign * ratio), 1)
+        return bool(np.all(np.abs(cl.poles()) < 1 - 1e-12))
+
+    for ratio, make, sign, loop in ((1.0, front_push_law, 1.0, lambda g, r: S.front_loop(g)),
+                                    (1.4, side_push_law, -1.0, S.side_loop), (0.6, side_push_law, -1.0, S.side_loop)):
+        lo, hi = loop(1.0, ratio).stable_gain_range
+        for g in np.linspace(lo - 0.5, hi + 0.5, 41):
+            inside = lo < g < hi
+            if min(abs(g - lo), abs(g - hi)) < 1e-6:
+                continue
+            assert stable(make(float(g)).to_control(), sign, ratio) == inside, (ratio, g)
