@@ -11,14 +11,15 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# the demo needs magctl, its run-time dependencies and the view extra (report.html's charts, rig run --view)
-$(DEMO_STAMP): pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e '.[view]'
+# the demo needs magctl, its run-time dependencies and the view extra (report.html's charts, rig run --view), at
+# the versions the committed results were produced with (constraints.txt, written by .ci/constraints.py)
+$(DEMO_STAMP): pyproject.toml constraints.txt | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[view]'
 	touch $@
 
 # tests, lint, docs, notebooks, wheel building, and every optional extra
-$(DEV_STAMP): pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+$(DEV_STAMP): pyproject.toml constraints.txt | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
 	touch $@ $(DEMO_STAMP)
 
 demo: $(DEMO_STAMP)
