@@ -186,20 +186,29 @@ def build_app(*, live: _Live | None = None, runs: list[ReplayRun] | None = None)
         return json_response({"mode": "replay", "controls": False, "token_required": False,
                               "runs": [r.info() for r in runs]})
 
-    def _run_arg(request):
-        try:
-            k = int(request.query_params.get("run", "0"))
+    def of_run(answer):
+        """An endpoint answering for the replay run ``?run=K`` (400 for a run that is not there)."""
+        async def endpoint(request):
+            try:
+                k = int(request.query_params.get("run", "0"))
+            except ValueError:
+                k = -1
             if not 0 <= k < len(runs or []):
-                raise ValueError
-            return runs[k]
-        except ValueError:
-            return None
+                return JSONResponse({"error": "run: no such run"}, status_code=400)
+            return answer(runs[k], request.query_params)
+        return endpoint
 
-    async def series(request):
-        run = _run_arg(request) if runs else None
-        if run is None:
-            return JSONResponse({"error": "run: no such run"}, status_code=400)
-        return json_response(run.series())
+    def frames_of(run, query):
+        try:
+            start, count = int(query.get("start", "0")), int(query.get("count", "1"))
+        except ValueError:
+            return JSONResponse({"error": "start and count must be integers"}, status_code=400)
+        return json_response({"start": start, "events": run.frames(start, count)})
+
+    series = of_run(lambda run, query: json_response(run.series()))
+    times = of_run(lambda run, query: json_response(run.times))
+    path = of_run(lambda run, query: json_response(run.robot_path()))
+    frames = of_run(frames_of)
 
     async def camera(request):
         got = None if live is None else await asyncio.to_thread(live.feed.camera_png)
@@ -209,29 +218,6 @@ def build_app(*, live: _Live | None = None, runs: list[ReplayRun] | None = None)
         return Response(png, media_type="image/png",
                         headers={"X-Magctl-Affine": ",".join(repr(float(v)) for v in affine),
                                  "Cache-Control": "no-store"})
-
-    async def times(request):
-        run = _run_arg(request) if runs else None
-        if run is None:
-            return JSONResponse({"error": "run: no such run"}, status_code=400)
-        return json_response(run.times)
-
-    async def path(request):
-        run = _run_arg(request) if runs else None
-        if run is None:
-            return JSONResponse({"error": "run: no such run"}, status_code=400)
-        return json_response(run.robot_path())
-
-    async def frames(request):
-        run = _run_arg(request) if runs else None
-        if run is None:
-            return JSONResponse({"error": "run: no such run"}, status_code=400)
-        try:
-            start = int(request.query_params.get("start", "0"))
-            count = int(request.query_params.get("count", "1"))
-        except ValueError:
-            return JSONResponse({"error": "start and count must be integers"}, status_code=400)
-        return json_response({"start": start, "events": run.frames(start, count)})
 
     async def ws_endpoint(websocket: WebSocket):
         await websocket.accept()

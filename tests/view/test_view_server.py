@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.error
 import urllib.request
 
 import pytest
@@ -290,3 +291,19 @@ def test_controls_are_refused_when_off_and_need_the_token_beyond_loopback(tmp_pa
     assert replies[0]["reason"] == "wrong or missing token"
     taken = controls.take()
     assert [(r.action, r.by.endswith("page p2")) for r in taken] == [("pause", True)]
+
+
+def test_the_replay_endpoints_answer_for_the_runs_there_and_refuse_the_others(tmp_path):
+    run = ReplayRun(side_push_log(tmp_path / "a.jsonl", ticks=40))
+    server = ViewServer.replay([run], "127.0.0.1:0")
+    try:
+        base = f"http://127.0.0.1:{server.port}/api/"
+        assert get_json(base + "frames?run=0&start=10&count=3")["events"] == run.log.events[10:13]
+        assert get_json(base + "times?run=0") == run.times
+        assert get_json(base + "path?run=0")["robot_m"][0] == run.log.events[0]["obs"]["robot_est_m"]
+        for bad in ("frames?run=1", "series?run=x", "times?run=-1", "frames?run=0&start=a"):
+            with pytest.raises(urllib.error.HTTPError) as err:
+                get_json(base + bad)
+            assert err.value.code == 400
+    finally:
+        server.close()
