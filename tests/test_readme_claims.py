@@ -1,5 +1,5 @@
-"""The claims tables of docs/results.md are the committed docs/claims.md and docs/claims-paper.md that ``magctl reproduce``
-and ``magctl reproduce --conditions paper`` wrote (their claims.md)."""
+"""The claims tables of docs/results.md are the committed docs/claims.md and docs/claims-paper.md that
+``magctl reproduce`` and ``magctl reproduce --conditions paper`` wrote (their claims.md)."""
 
 from pathlib import Path
 

@@ -108,8 +108,8 @@ if __name__ == "__main__":
     import sys
 
     if len(sys.argv) not in (2, 3):
-        raise SystemExit("usage: python -m magctl.studies.report CLAIMS.md [PAPER-CLAIMS.md]  (rewrites docs/results.md's "
-                         "claims tables: magctl's conditions, then the paper's)")
+        raise SystemExit("usage: python -m magctl.studies.report CLAIMS.md [PAPER-CLAIMS.md]  (rewrites "
+                         "docs/results.md's claims tables: magctl's conditions, then the paper's)")
     page_path = Path(__file__).resolve().parents[2] / "docs" / "results.md"
     for path, cond in zip(sys.argv[1:], ("magctl", "paper"), strict=False):
         update_results_page(Path(path), page_path, cond)
