@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.control.push.common import task_defaults
+from magctl.control.push_params import task_defaults
 from magctl.control.status import Status
 from magctl.loops import Experiment, Variability, geometry
 from magctl.studies.paper_statistics import p_all, p_none

@@ -30,8 +30,10 @@ from scipy.special import ndtr
 
 from magctl.control.curve_learning import curve_learning_law
 from magctl.control.learning import side_push_law
-from magctl.control.push.common import ExpSideModel, task_defaults
+from magctl.control.push_params import task_defaults
+from magctl.control.side_models import ExpSideModel
 from magctl.control.status import Status
+from magctl.core.units import UM
 from magctl.stability.front_bound import cross_validated, later_success_needed
 from magctl.stability.iteration import side_attempt_map
 from magctl.stability.switched import ScaledSideModel
@@ -56,7 +58,6 @@ FRONT_SIDE = "front push, then side passes (curve law)"
 KC1 = "K_c=1, δ(0)=0"
 FRONT_TRIALS = 2000
 BY_TARGET = 10
-UM = 1e-6
 PLANT_SCALES = (0.3, 0.6, 1.0, 1.4, 2.0, 2.6, 3.0)
 GAP_SCALES = (0.7, 1.0, 1.5)
 GOAL_UM = 300.0

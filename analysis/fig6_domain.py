@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from magctl.core.units import UM_PER_M
 from magctl.plant.fluid.calibration import EQ22_A, EQ22_B, eq22
 from magctl.plant.fluid.domain import Domain
 from magctl.plant.fluid.flow import robot_flow
@@ -34,7 +35,6 @@ TITLE = "Fig 6 by domain — which bounds of the oil give the paper's side-push 
 ORDER = 32
 REPRODUCE = False  # seven boundary-element solves (10–40 s each on a cold cache): run it by name
 
-UM = 1e6  # m → µm
 PAPER_THRESHOLD_UM = 370.0  # paper §IV-D
 GAPS = np.linspace(200e-6, 650e-6, 24)
 AT = np.array([370e-6, 500e-6, 650e-6])
@@ -64,28 +64,28 @@ def domain_curve(domain: Domain) -> dict:
     near = sidepush_curve([threshold + 10e-6], flow=flow)
     return {
         "domain": domain.label(), "kind": domain.kind, "depth_mm": domain.depth * 1e3 if domain.bounded else None,
-        "gaps_um": (GAPS * UM).tolist(), "displacement_um": (res.displacement * UM).tolist(),
+        "gaps_um": (GAPS * UM_PER_M).tolist(), "displacement_um": (res.displacement * UM_PER_M).tolist(),
         "contact": res.contact.tolist(),
-        "fit": {"a_um": a * UM, "b_per_um": b / UM, "r2": r2},
-        "at_um": {f"{g * UM:.0f}": float(np.copysign(d, al) * UM)
+        "fit": {"a_um": a * UM_PER_M, "b_per_um": b / UM_PER_M, "r2": r2},
+        "at_um": {f"{g * UM_PER_M:.0f}": float(np.copysign(d, al) * UM_PER_M)
                   for g, d, al in zip(AT, at.displacement, at.along, strict=True)},
-        "contact_threshold_um": threshold * UM,
+        "contact_threshold_um": threshold * UM_PER_M,
         # sideways drift of a sphere 10 µm outside the threshold: negative = pulled towards the robot's line
-        "drift_near_threshold_um": float(near.across[0] * UM),
+        "drift_near_threshold_um": float(near.across[0] * UM_PER_M),
     }
 
 
 def verdict(curves: list[dict]) -> dict:
     """The domain closest to the paper in decay rate b and contact threshold (equal weight, relative)."""
     def score(c):
-        return (abs(c["fit"]["b_per_um"] / (EQ22_B / UM) - 1.0)
+        return (abs(c["fit"]["b_per_um"] / (EQ22_B / UM_PER_M) - 1.0)
                 + abs(c["contact_threshold_um"] / PAPER_THRESHOLD_UM - 1.0))
 
     best = min(curves, key=score)
     unbounded = next(c for c in curves if c["kind"] == "unbounded")
     return {"best": best["domain"], "best_b_per_um": best["fit"]["b_per_um"],
             "best_threshold_um": best["contact_threshold_um"], "best_drift_um": best["drift_near_threshold_um"],
-            "b_error": best["fit"]["b_per_um"] / (EQ22_B / UM) - 1.0,
+            "b_error": best["fit"]["b_per_um"] / (EQ22_B / UM_PER_M) - 1.0,
             "unbounded_b_per_um": unbounded["fit"]["b_per_um"],
             "unbounded_threshold_um": unbounded["contact_threshold_um"]}
 
@@ -94,8 +94,8 @@ def compute(ctx: StudyContext) -> Computed:
     """Every layer domain, and the box domains with ``--fem``."""
     domains = list(LAYERS) + (list(BOXES) if ctx.fem else [])
     curves = [domain_curve(d) for d in ctx.progress(domains, "domains", total=len(domains))]
-    paper = {"a_um": EQ22_A * UM, "b_per_um": EQ22_B / UM, "contact_threshold_um": PAPER_THRESHOLD_UM,
-             "at_um": {f"{g * UM:.0f}": float(d * UM) for g, d in zip(AT, eq22(AT), strict=True)}}
+    paper = {"a_um": EQ22_A * UM_PER_M, "b_per_um": EQ22_B / UM_PER_M, "contact_threshold_um": PAPER_THRESHOLD_UM,
+             "at_um": {f"{g * UM_PER_M:.0f}": float(d * UM_PER_M) for g, d in zip(AT, eq22(AT), strict=True)}}
     results = {"domains": curves, "paper": paper, "verdict": verdict(curves), "fem": bool(ctx.fem)}
     return Computed(results, {"curves": curves})
 
@@ -108,7 +108,7 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
     curves = computed.data["curves"]
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
     g = np.linspace(200, 650, 100)
-    ax.semilogy(g, eq22(g / UM) * UM, "k-", lw=2.5, label="paper eq 22 (COMSOL)")
+    ax.semilogy(g, eq22(g / UM_PER_M) * UM_PER_M, "k-", lw=2.5, label="paper eq 22 (COMSOL)")
     styles = {"unbounded": ("C0", "-"), "lid": ("C1", "--"), "free_surface": ("C2", "-."), "box": ("C3", ":")}
     for c in curves:
         col, ls = styles[c["kind"]]
@@ -128,7 +128,7 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
             bx.plot(h, b, "o-", color=col, label=kind.replace("_", " "))
     unb = next(c for c in curves if c["kind"] == "unbounded")
     bx.axhline(unb["fit"]["b_per_um"], color="C0", label="unbounded")
-    bx.axhline(EQ22_B / UM, color="k", lw=2.5, label="paper eq 22")
+    bx.axhline(EQ22_B / UM_PER_M, color="k", lw=2.5, label="paper eq 22")
     bx.set_xlabel("oil depth H (mm)")
     bx.set_ylabel("decay rate b (1/µm)")
     bx.legend(fontsize=8)
@@ -149,13 +149,13 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
                      f"threshold {c['contact_threshold_um']:.0f} µm "
                      f"({drift} {abs(c['drift_near_threshold_um']):.0f} µm)")
     p = r["paper"]["at_um"]
-    lines.append(f"- paper eq 22: b = {EQ22_B / UM:.6f} /µm; D_s(370/500/650) = {p['370']:.1f} / {p['500']:.1f} / "
-                 f"{p['650']:.1f} µm; threshold ≈ 370 µm (pull-in)")
+    lines.append(f"- paper eq 22: b = {EQ22_B / UM_PER_M:.6f} /µm; D_s(370/500/650) = {p['370']:.1f} / "
+                 f"{p['500']:.1f} / {p['650']:.1f} µm; threshold ≈ 370 µm (pull-in)")
     lines.append(f"- closest to the paper: {v['best']} (b {v['b_error']:+.0%} from eq 22, threshold "
                  f"{v['best_threshold_um']:.0f} µm); the unbounded model predicts "
                  f"b = {v['unbounded_b_per_um']:.5f} /µm "
                  f"and a {v['unbounded_threshold_um']:.0f} µm threshold"
                  + ("" if r["fem"] else " (the COMSOL box itself runs with --fem)"))
-    paper = [PaperRow("Fig 6 decay rate b", f"{EQ22_B / UM:.6f} /µm", f"{v['best_b_per_um']:.5f} /µm",
+    paper = [PaperRow("Fig 6 decay rate b", f"{EQ22_B / UM_PER_M:.6f} /µm", f"{v['best_b_per_um']:.5f} /µm",
                       f"closest domain: {v['best']}; unbounded {v['unbounded_b_per_um']:.5f} /µm")]
     return lines, paper

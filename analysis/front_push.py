@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from magctl.config import load_model
-from magctl.control.push.common import task_defaults
+from magctl.control.push_params import task_defaults
 from magctl.control.status import Status
 from magctl.loops import Experiment, Variability, geometry
 from magctl.plant.fluid.scenarios import release_displacement

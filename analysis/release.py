@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from magctl.core.units import UM_PER_M
 from magctl.plant.fluid.calibration import PAPER_RELEASE_EXPERIMENT, PAPER_RELEASE_SIMULATION
 from magctl.plant.fluid.params import sphere_params
 from magctl.plant.fluid.scenarios import release_displacement
@@ -29,7 +30,6 @@ DEFAULT_TRIALS = 200
 SCATTER = 0.1  # the studies' mobility scatter (analysis/front_push.py)
 
 
-UM = 1e6  # m → µm
 
 
 def compute(ctx: StudyContext) -> Computed:
@@ -45,16 +45,18 @@ def compute(ctx: StudyContext) -> Computed:
     n = ctx.n_trials(DEFAULT_TRIALS)
     mc = in_task_release(None, trials=n, seed=ctx.seed, scatter=SCATTER)
     results = {
-        "paper_setup": {"film_um": d0[0] * UM, "face_film_um": d_face[0] * UM, "paper_drag_um": d_paper[0] * UM},
-        "in_task": {"contact_gap_um": sphere_params().contact_gap * UM,
-                    "grid_contact_gap_um": [h * UM for h in GAP_GRID],
-                    "grid_release_um": [float(r.pull_back.mean() * UM) for r in scan]},
-        "monte_carlo": {"trials": n, "scatter": SCATTER, "mean_um": float(mc.pull_back.mean() * UM),
-                        "std_um": float(mc.pull_back.std() * UM),
-                        "overshoot_mean_um": float(mc.overshoot.mean() * UM),
+        "paper_setup": {"film_um": d0[0] * UM_PER_M, "face_film_um": d_face[0] * UM_PER_M,
+                        "paper_drag_um": d_paper[0] * UM_PER_M},
+        "in_task": {"contact_gap_um": sphere_params().contact_gap * UM_PER_M,
+                    "grid_contact_gap_um": [h * UM_PER_M for h in GAP_GRID],
+                    "grid_release_um": [float(r.pull_back.mean() * UM_PER_M) for r in scan]},
+        "monte_carlo": {"trials": n, "scatter": SCATTER, "mean_um": float(mc.pull_back.mean() * UM_PER_M),
+                        "std_um": float(mc.pull_back.std() * UM_PER_M),
+                        "overshoot_mean_um": float(mc.overshoot.mean() * UM_PER_M),
                         "turn_median_deg": float(np.degrees(np.median(mc.turn))),
                         "within_paper_band": float(np.mean(np.abs(mc.pull_back - PAPER_RELEASE_EXPERIMENT) <= 75e-6))},
-        "paper": {"simulation_um": PAPER_RELEASE_SIMULATION * UM, "experiment_um": PAPER_RELEASE_EXPERIMENT * UM,
+        "paper": {"simulation_um": PAPER_RELEASE_SIMULATION * UM_PER_M,
+                  "experiment_um": PAPER_RELEASE_EXPERIMENT * UM_PER_M,
                   "experiment_spread_um": 75.0},
     }
     return Computed(results, {"retreat_m": retreat, "cases": cases, "monte_carlo_m": mc.pull_back, "seed": ctx.seed})
@@ -69,15 +71,15 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
     retreat, mc, n = d["retreat_m"], d["monte_carlo_m"], computed.results["monte_carlo"]["trials"]
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 4))
     for (label, (disp, p)), col in zip(d["cases"].items(), ("C0", "C2", "C3"), strict=True):
-        ax.plot(retreat * UM, p * UM, color=col, label=f"{label}: {disp * UM:.0f} µm")
+        ax.plot(retreat * UM_PER_M, p * UM_PER_M, color=col, label=f"{label}: {disp * UM_PER_M:.0f} µm")
     ax.axhspan(225, 375, color="k", alpha=0.1, label="paper experiment 300 ± 75 µm")
-    ax.axhline(PAPER_RELEASE_SIMULATION * UM, color="k", ls="--", label="paper simulation 127 µm")
+    ax.axhline(PAPER_RELEASE_SIMULATION * UM_PER_M, color="k", ls="--", label="paper simulation 127 µm")
     ax.set_title("the paper's set-up: 1.5 mm retreat at 0.4 mm/s", fontsize=9)
     ax.set_xlabel("robot retreat (µm)")
     ax.set_ylabel("sphere displacement (µm)")
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
-    bx.hist(mc * UM, bins=25, color="C3", alpha=0.7)
+    bx.hist(mc * UM_PER_M, bins=25, color="C3", alpha=0.7)
     bx.axvspan(225, 375, color="k", alpha=0.1)
     bx.set_xlabel("D_p,r in the task (µm)")
     bx.set_ylabel("trials")

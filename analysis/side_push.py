@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.control.push.common import ExpSideModel, LinSideModel, side_model, task_defaults
+from magctl.control.push_params import task_defaults
+from magctl.control.side_models import ExpSideModel, LinSideModel, side_model
+from magctl.core.units import UM
 from magctl.loops import Experiment, Variability, geometry
 from magctl.studies.paper_statistics import ordering_cause, p_all, p_at_least, p_order
 from magctl.studies.push import (
@@ -38,7 +40,6 @@ DEFAULT_TRIALS = 100
 _DEFAULTS = task_defaults("side")
 EPS_UM = _DEFAULTS["eps"] / 1e-6  # one pixel (models/push.toml)
 MAX_ATTEMPTS = _DEFAULTS["max_attempts"]
-UM = 1e-6
 PLANT = Variability(release_scatter=0.1)
 MAX_FRAMES = 14000
 BEST = "lin-fit, K_s=0.9"

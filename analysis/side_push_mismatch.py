@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.control.push.common import side_model
+from magctl.control.side_models import side_model
 from magctl.studies import runner as studies
 from magctl.studies.push import controller_summary, controller_table, overshoot_fraction, reuse_note, run_experiments
 from magctl.studies.runner import Computed, PaperRow, StudyContext

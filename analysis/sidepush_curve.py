@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from magctl.core.units import UM_PER_M
 from magctl.plant.fluid.calibration import EQ22_A, EQ22_B, FIG6_GAPS, eq22, eq23_gap
 from magctl.plant.fluid.domain import Domain
 from magctl.plant.fluid.flow import robot_flow
@@ -26,7 +27,6 @@ ORDER = 30
 
 PAPER_THRESHOLD = 370e-6   # paper §IV-D
 PAPER_R2 = 0.9971          # paper §VI-B
-UM = 1e6  # m → µm
 FLOW_SPEED = 0.4e-3  # robot speed of the flow map figure, m/s
 
 
@@ -43,17 +43,19 @@ def compute(ctx: StudyContext) -> Computed:
     judged = sidepush_curve(FIG6_GAPS)
     error = judged.displacement / eq22(FIG6_GAPS) - 1.0
     results = {
-        "points": [{"gap_um": gg * UM, "displacement_um": d * UM, "along_um": al * UM, "contact": bool(c)}
+        "points": [{"gap_um": gg * UM_PER_M, "displacement_um": d * UM_PER_M, "along_um": al * UM_PER_M,
+                    "contact": bool(c)}
                    for gg, d, al, c in zip(gaps, res.displacement, res.along, res.contact, strict=True)],
-        "fit": {"a_um": a * UM, "b_per_um": b / UM, "r2": r2},
-        "contact_threshold_um": threshold * UM,
+        "fit": {"a_um": a * UM_PER_M, "b_per_um": b / UM_PER_M, "r2": r2},
+        "contact_threshold_um": threshold * UM_PER_M,
         "domain": Domain.from_params().label(),
         "drag_mode": sphere_params().drag_mode,
-        "paper_drag_fit": {"a_um": pd_fit[0] * UM, "b_per_um": pd_fit[1] / UM, "r2": pd_fit[2]},
-        "paper": {"a_um": EQ22_A * UM, "b_per_um": EQ22_B / UM, "r2": PAPER_R2,
-                  "contact_threshold_um": PAPER_THRESHOLD * UM},
-        "against_eq22": {"gaps_um": (FIG6_GAPS * UM).tolist(), "displacement_um": (judged.displacement * UM).tolist(),
-                         "eq22_um": (eq22(FIG6_GAPS) * UM).tolist(), "error": error.tolist(),
+        "paper_drag_fit": {"a_um": pd_fit[0] * UM_PER_M, "b_per_um": pd_fit[1] / UM_PER_M, "r2": pd_fit[2]},
+        "paper": {"a_um": EQ22_A * UM_PER_M, "b_per_um": EQ22_B / UM_PER_M, "r2": PAPER_R2,
+                  "contact_threshold_um": PAPER_THRESHOLD * UM_PER_M},
+        "against_eq22": {"gaps_um": (FIG6_GAPS * UM_PER_M).tolist(),
+                         "displacement_um": (judged.displacement * UM_PER_M).tolist(),
+                         "eq22_um": (eq22(FIG6_GAPS) * UM_PER_M).tolist(), "error": error.tolist(),
                          "max_abs_error": float(np.abs(error).max())},
     }
     at = np.array([370e-6, 500e-6, 650e-6])
@@ -89,15 +91,15 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
     gaps, disp, free = d["gaps_m"], d["displacement_m"], ~d["contact"]
     a, b, r2 = d["fit_m"]
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    ax.semilogy(gaps[free] * UM, disp[free] * UM, "o", color="C0", label="magctl (ε = 25 nm)")
-    ax.semilogy(gaps[~free] * UM, disp[~free] * UM, "x", color="C0", label="magctl, contact")
+    ax.semilogy(gaps[free] * UM_PER_M, disp[free] * UM_PER_M, "o", color="C0", label="magctl (ε = 25 nm)")
+    ax.semilogy(gaps[~free] * UM_PER_M, disp[~free] * UM_PER_M, "x", color="C0", label="magctl, contact")
     g = np.linspace(200e-6, 650e-6, 200)
-    ax.semilogy(g * UM, a * np.exp(-b * g) * UM, "-", color="C0", lw=1, label=f"magctl fit (R²={r2:.4f})")
-    ax.semilogy(g * UM, eq22(g) * UM, "k--", label="paper eq 22 (Sim Fit)")
+    ax.semilogy(g * UM_PER_M, a * np.exp(-b * g) * UM_PER_M, "-", color="C0", lw=1, label=f"magctl fit (R²={r2:.4f})")
+    ax.semilogy(g * UM_PER_M, eq22(g) * UM_PER_M, "k--", label="paper eq 22 (Sim Fit)")
     ds = np.linspace(1e-6, 79e-6, 100)   # eq 23 over D_g = 200-620 µm
-    ax.semilogy(eq23_gap(ds) * UM, ds * UM, "k:", label="paper eq 23 (Sim Fit Lin)")
-    ax.axvline(d["threshold_m"] * UM, color="C0", lw=0.8)
-    ax.axvline(PAPER_THRESHOLD * UM, color="k", lw=0.8, ls="--")
+    ax.semilogy(eq23_gap(ds) * UM_PER_M, ds * UM_PER_M, "k:", label="paper eq 23 (Sim Fit Lin)")
+    ax.axvline(d["threshold_m"] * UM_PER_M, color="C0", lw=0.8)
+    ax.axvline(PAPER_THRESHOLD * UM_PER_M, color="k", lw=0.8, ls="--")
     ax.set_xlabel("D_g: side gap, robot centre line to sphere centre (µm)")
     ax.set_ylabel("D_s: sphere displacement (µm)")
     ax.set_title("Fig 6: side-push (vertical lines: contact threshold, magctl solid, paper dashed)", fontsize=9)
@@ -114,16 +116,16 @@ def _flow_figure(flow: dict, ctx: StudyContext):
     plt = pyplot()
     xx, yy, u, speed = flow["x"], flow["y"], flow["u"], flow["speed"]
     fig, ax = plt.subplots(figsize=(6, 5))
-    cs = ax.contourf(xx * UM, yy * UM, flow["ratio"], levels=np.linspace(0, 1, 21), cmap="viridis")
+    cs = ax.contourf(xx * UM_PER_M, yy * UM_PER_M, flow["ratio"], levels=np.linspace(0, 1, 21), cmap="viridis")
     k = slice(None, None, 12)
-    ax.quiver(xx[k, k] * UM, yy[k, k] * UM, u[k, k, 0], u[k, k, 1], color="w", scale=speed * 12)
+    ax.quiver(xx[k, k] * UM_PER_M, yy[k, k] * UM_PER_M, u[k, k, 0], u[k, k, 1], color="w", scale=speed * 12)
     foot = flow["footprint"]
-    ax.plot(foot[:, 0] * UM, foot[:, 1] * UM, "r-", lw=1)
+    ax.plot(foot[:, 0] * UM_PER_M, foot[:, 1] * UM_PER_M, "r-", lw=1)
     fig.colorbar(cs, ax=ax, label="|u| / robot speed")
     ax.set_aspect("equal")
     ax.set_xlabel("x (µm), robot moving towards +x (concave face at +x)")
     ax.set_ylabel("y (µm)")
-    ax.set_title(f"Flow at the sphere-centre height z = {flow['height'] * UM:.0f} µm\n"
+    ax.set_title(f"Flow at the sphere-centre height z = {flow['height'] * UM_PER_M:.0f} µm\n"
                  "(red: footprint; white: solid at this height)", fontsize=9)
     return save_figure(fig, ctx.figure_path("flow_map"), dpi=120)
 
@@ -135,11 +137,11 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
     threshold, at, ours = d["threshold_m"], d["at_m"], d["at_displacement_m"]
     judged = r["against_eq22"]
     summary = [
-        f"- contact threshold: {threshold * UM:.0f} µm (paper 370 µm)",
-        f"- fit D_s = {a * UM:.0f} µm · exp(-{b / UM:.5f}/µm · D_g), R² = {r2:.4f} "
+        f"- contact threshold: {threshold * UM_PER_M:.0f} µm (paper 370 µm)",
+        f"- fit D_s = {a * UM_PER_M:.0f} µm · exp(-{b / UM_PER_M:.5f}/µm · D_g), R² = {r2:.4f} "
         f"(paper eq 22: 1755 µm · exp(-0.009042/µm · D_g), R² = 0.9971)",
-        "- D_s at D_g = 370 / 500 / 650 µm: " + " / ".join(f"{v * UM:.1f}" for v in ours)
-        + " µm (eq 22: " + " / ".join(f"{v * UM:.1f}" for v in eq22(at)) + " µm)",
+        "- D_s at D_g = 370 / 500 / 650 µm: " + " / ".join(f"{v * UM_PER_M:.1f}" for v in ours)
+        + " µm (eq 22: " + " / ".join(f"{v * UM_PER_M:.1f}" for v in eq22(at)) + " µm)",
         f"- against eq 22 at D_g = {judged['gaps_um'][0]:.0f}–{judged['gaps_um'][-1]:.0f} µm: errors "
         + ", ".join(f"{e:+.0%}" for e in judged["error"]) + f" (largest {judged['max_abs_error']:.0%})",
         f"- oil: {r['domain']}; near-wall drag {r['drag_mode']} (eq 4–5 as printed give a = "
@@ -147,12 +149,12 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
         "the other domains: magctl study fig6-domain",
     ]
     paper = [
-        PaperRow("side-push contact threshold D_g", "≈ 370 µm (sim)", f"{threshold * UM:.0f} µm",
+        PaperRow("side-push contact threshold D_g", "≈ 370 µm (sim)", f"{threshold * UM_PER_M:.0f} µm",
                  "sphere overlaps the robot footprint during the pass"),
-        PaperRow("eq 22 a", "1755 µm", f"{a * UM:.0f} µm", "exponential fit of non-contact points"),
-        PaperRow("eq 22 b", "0.009042 /µm", f"{b / UM:.5f} /µm",
+        PaperRow("eq 22 a", "1755 µm", f"{a * UM_PER_M:.0f} µm", "exponential fit of non-contact points"),
+        PaperRow("eq 22 b", "0.009042 /µm", f"{b / UM_PER_M:.5f} /µm",
                  f"{r['domain']} (unbounded oil decays more slowly: fig6-domain)"),
-        PaperRow("D_s at D_g = 500 µm", f"{eq22(500e-6) * UM:.1f} µm (eq 22)", f"{ours[1] * UM:.1f} µm",
+        PaperRow("D_s at D_g = 500 µm", f"{eq22(500e-6) * UM_PER_M:.1f} µm (eq 22)", f"{ours[1] * UM_PER_M:.1f} µm",
                  f"ε = 25 nm, {r['domain']}; largest error 370–650 µm {judged['max_abs_error']:.0%}"),
     ]
     return summary, paper

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.control.push.common import ExpSideModel, LinSideModel
+from magctl.control.side_models import ExpSideModel, LinSideModel
 from magctl.core.units import UM
 from magctl.stability import iteration as S
 from magctl.stability import switched as W

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from magctl.core.units import UM
 from magctl.plant.fluid.geometry import RobotGeometry
 from magctl.plant.fluid.lubrication import fit_edge_law
 from magctl.plant.fluid.params import fluid_viscosity, sphere_params
@@ -44,7 +45,6 @@ TITLE = "Robot, sphere and glass in one Stokes problem — the check of the plan
 ORDER = 34
 REPRODUCE = False  # about a dozen boundary-element solves: run it by name
 
-UM = 1e-6
 GAPS = (0.5, 0.2, 0.1, 0.05, 0.02)
 """Gaps between the sphere and the notch's footprint edge, in sphere radii."""
 SOLVED_GAP = 0.1

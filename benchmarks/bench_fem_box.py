@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-UM = 1e6
+from magctl.core.units import UM_PER_M
+
 GAPS = np.linspace(200e-6, 650e-6, 24)
 AT = np.array([370e-6, 500e-6, 650e-6])
 PAPER = {"a_um": 1755.0, "b_per_um": 0.009042, "contact_threshold_um": 370.0, "drift": "pull-in",
@@ -47,7 +48,8 @@ def lateral_drift(gap: float, **block_kw) -> dict:
                                      "velocity": np.array([[ROBOT_SPEED, 0.0]])})
         if alongside is None and x >= state["xy"][0, 0, 0]:
             alongside = float(state["xy"][0, 0, 1] - gap)
-    return {"gap_um": gap * UM, "alongside_um": alongside * UM, "final_um": float(state["xy"][0, 0, 1] - gap) * UM}
+    return {"gap_um": gap * UM_PER_M, "alongside_um": alongside * UM_PER_M,
+            "final_um": float(state["xy"][0, 0, 1] - gap) * UM_PER_M}
 
 
 def side_push(**block_kw) -> dict:
@@ -60,11 +62,12 @@ def side_push(**block_kw) -> dict:
     a, b, r2 = sidepush_fit(GAPS[free], res.displacement[free])
     thr = contact_threshold(**block_kw)
     drift = lateral_drift(thr + 5e-6, **block_kw)
-    return {"D_s_um": (np.interp(AT, GAPS, res.displacement) * UM).tolist(), "a_um": a * UM, "b_per_um": b / UM,
-            "r2": r2, "contact_threshold_um": thr * UM, "drift_above_threshold": drift,
+    return {"D_s_um": (np.interp(AT, GAPS, res.displacement) * UM_PER_M).tolist(), "a_um": a * UM_PER_M,
+            "b_per_um": b / UM_PER_M, "r2": r2, "contact_threshold_um": thr * UM_PER_M,
+            "drift_above_threshold": drift,
             "drift": "pushed out" if drift["final_um"] > 0 else "pull-in",
-            "curve_um": {"gaps": (GAPS * UM).tolist(), "D_s": (res.displacement * UM).tolist(),
-                         "along": (res.along * UM).tolist(), "contact": res.contact.tolist()},
+            "curve_um": {"gaps": (GAPS * UM_PER_M).tolist(), "D_s": (res.displacement * UM_PER_M).tolist(),
+                         "along": (res.along * UM_PER_M).tolist(), "contact": res.contact.tolist()},
             "backward": bool(np.any(res.along[free] < 0)),
             "side_pass_time_s": time.perf_counter() - t0}
 

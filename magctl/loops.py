@@ -34,10 +34,10 @@ import numpy as np
 from magctl.config import Params, load_model
 from magctl.control.guards import ArrivalStatus, Patrol
 from magctl.control.push.assembly import AssemblyTask, FrontThenSideAssemblyTask
-from magctl.control.push.common import goal_distance
 from magctl.control.push.front import FrontAssemblyTask, FrontPushTask
 from magctl.control.push.planned import PlannedAssemblyTask
 from magctl.control.push.side import SidePushTask
+from magctl.control.push_params import goal_distance
 from magctl.control.servo import Servo, servo_params
 from magctl.core.batched import perp, unit
 from magctl.core.diagram import Diagram

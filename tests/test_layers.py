@@ -1,6 +1,8 @@
-"""No import runs upward: every module of magctl imports only from its own layer or the layers below.
+"""No import runs upward: every module of magctl imports only from its own layer or the layers below, and no
+modules of magctl import one another round a cycle.
 
-The layer order is the one drawn in docs/architecture.md; imports inside functions count too.
+The layer order is the one drawn in docs/architecture.md; imports inside functions count too (a cycle an import
+inside a function closes is a cycle: it only hides until the function runs).
 """
 
 from __future__ import annotations
@@ -42,8 +44,9 @@ def module_name(path: Path) -> str:
     return ".".join(parts)
 
 
-def imports_of(path: Path, here: str | None = None) -> list[tuple[int, str]]:
-    """(line, module) of every magctl import in the file (module ``here``), at any depth."""
+def imports_of(path: Path, here: str | None = None, modules=None) -> list[tuple[int, str]]:
+    """(line, module) of every magctl import in the file (module ``here``), at any depth. With ``modules`` (the
+    names of magctl's modules) ``from package import name`` is an import of ``package.name`` where that is a module."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     here = here or module_name(path)
     package = here if path.name == "__init__.py" else here.rsplit(".", 1)[0]
@@ -63,6 +66,8 @@ def imports_of(path: Path, here: str | None = None) -> list[tuple[int, str]]:
             if mod == "magctl":  # ``from magctl import x``: x is a module (its layer) or a root constant
                 out += [(node.lineno, f"magctl.{a.name}" if (PACKAGE / a.name).exists()
                          or (PACKAGE / f"{a.name}.py").exists() else "magctl") for a in node.names]
+            elif modules is not None:
+                out += [(node.lineno, f"{mod}.{a.name}" if f"{mod}.{a.name}" in modules else mod) for a in node.names]
             else:
                 out.append((node.lineno, mod))
     return out
@@ -135,7 +140,7 @@ def test_the_may_use_column_is_read_and_enforced(tmp_path):
     assert allowed["sweep"] == {"sweep", "core"} and allowed["cli"] == set(layers[: layers.index("cli") + 1])
     probe = tmp_path / "probe.py"
     probe.write_text("from magctl.loops import controller\nfrom magctl.sensing.camera import field_of_view\n"
-                     "def f():\n    from magctl.stability.iteration import front_report\n")
+                     "def f():\n    from magctl.stability.iteration import side_attempt_map\n")
     found = forbidden_imports(probe, layers, allowed, here="magctl.rig.probe")
     assert [line.split(" imports ")[1] for line in found] == ["magctl.stability.iteration"]
     probe.write_text("from magctl.plant.sphere import Spheres\n")
@@ -156,3 +161,98 @@ def test_the_checker_sees_upward_imports(tmp_path):
                      "def f():\n    from magctl.rig.server import RigServer\n")
     found = upward_imports(probe, layers, here="magctl.plant.probe")
     assert [line.split(" imports ")[1] for line in found] == ["magctl.control", "magctl.loops", "magctl.rig.server"]
+
+
+# --- no cycles ------------------------------------------------------------------------------------------------
+def package_modules() -> dict[str, Path]:
+    """Every module of magctl by name (a package by its ``__init__.py``)."""
+    return {module_name(path): path for path in sorted(PACKAGE.rglob("*.py"))}
+
+
+def import_graph(modules: dict[str, Path]) -> dict[str, dict[str, int]]:
+    """Module → {module it imports: the line of the first such import}, over ``modules`` only: every import at any
+    depth (inside functions too), ``from package import module`` an import of that module. The packages an import
+    runs first (``magctl.control`` before ``magctl.control.servo``) are not edges: a package's ``__init__`` gathering
+    its modules' names is no cycle with them."""
+    names = set(modules)
+    graph: dict[str, dict[str, int]] = {}
+    for me, path in modules.items():
+        edges = graph.setdefault(me, {})
+        for line, mod in imports_of(path, me, modules=names):
+            if mod in names and mod != me:
+                edges.setdefault(mod, line)
+    return graph
+
+
+def import_cycles(graph: dict[str, dict[str, int]]) -> list[str]:
+    """One cycle of every strongly connected group of modules, shortest through the group's first module, written
+    ``a (line 12) -> b (line 30) -> a`` with the line of each import."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    groups: list[list[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while not group or group[-1] != v:
+                group.append(stack.pop())
+            if len(group) > 1:
+                groups.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    out = []
+    for group in groups:  # breadth first from the group's first module, inside the group, until an import of it
+        start, inside = group[0], set(group)
+        parent: dict[str, str | None] = {start: None}
+        queue, last = [start], None
+        for v in queue:
+            if start in graph[v]:
+                last = v
+                break
+            for w in sorted(graph[v]):
+                if w in inside and w not in parent:
+                    parent[w] = v
+                    queue.append(w)
+        path = [last]
+        while parent[path[-1]] is not None:
+            path.append(parent[path[-1]])
+        cycle = [*reversed(path), start]
+        out.append(" -> ".join(f"{u} (line {graph[u][w]})" for u, w in zip(cycle, cycle[1:], strict=False))
+                   + f" -> {start}")
+    return out
+
+
+def test_no_import_cycle():
+    """A cycle (a imports b, b imports a, perhaps inside a function) means neither can be read, tested or moved
+    without the other; the lower module's piece the higher one needs belongs below both."""
+    cycles = import_cycles(import_graph(package_modules()))
+    assert cycles == [], "import cycles among magctl's modules:\n" + "\n".join(cycles)
+
+
+def test_the_checker_sees_import_cycles(tmp_path):
+    """Two probe modules importing each other (one of the imports inside a function, one as ``from package import
+    module``) are a cycle; one importing the other is not."""
+    a, b, c = tmp_path / "probe_a.py", tmp_path / "probe_b.py", tmp_path / "probe_c.py"
+    a.write_text("from magctl.probe import probe_b\nfrom magctl.core.block import Block\n")
+    b.write_text("import numpy as np\n\n\ndef f():\n    from magctl.probe.probe_a import g\n")
+    c.write_text("from magctl.probe.probe_a import g\n")
+    modules = {"magctl.probe.probe_a": a, "magctl.probe.probe_b": b, "magctl.probe.probe_c": c}
+    graph = import_graph(modules)
+    assert graph == {"magctl.probe.probe_a": {"magctl.probe.probe_b": 1},
+                     "magctl.probe.probe_b": {"magctl.probe.probe_a": 5},
+                     "magctl.probe.probe_c": {"magctl.probe.probe_a": 1}}
+    assert import_cycles(graph) == ["magctl.probe.probe_a (line 1) -> magctl.probe.probe_b (line 5) -> "
+                                    "magctl.probe.probe_a"]
+    b.write_text("import numpy as np\n")
+    assert import_cycles(import_graph(modules)) == []

@@ -20,11 +20,10 @@ import magctl.rig.tasks
 from magctl.config import Params
 from magctl.core.block import Block
 from magctl.core.diagram import Diagram
+from magctl.core.units import UM
 from magctl.loops import Experiment, Variability, experiment_controller, geometry, push_loop
 from magctl.rig.interface import Observation
 from magctl.rig.tasks import build_task
-
-UM = 1e-6
 
 
 def structure(obj, depth: int = 0):

@@ -1,7 +1,7 @@
 """``magctl stability servo|front|side``: loop analyses under one command.
 
 ``servo`` is registered by :mod:`magctl.cli.stability_servo`; ``front`` and ``side``
-here call :mod:`magctl.stability.iteration`.
+here print the reports of :mod:`magctl.cli.stability_reports` (the analyses of :mod:`magctl.stability`).
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def _register_side(subparsers) -> None:
 
 
 def cmd_front(args) -> int:
-    from magctl.stability.iteration import front_report
+    from magctl.cli.stability_reports import front_report
 
     doc = front_report(args.kc, args.delta0_um, model=args.model)
     emit(args, doc, _front_summary)
@@ -67,12 +67,9 @@ def cmd_front(args) -> int:
 
 
 def cmd_side(args) -> int:
-    from magctl.core.units import UM
-    from magctl.stability.iteration import MIN_GAP, SIDE_GOAL, side_report
+    from magctl.cli.stability_reports import side_report
 
-    min_gap_um = MIN_GAP / UM if args.min_gap_um is None else args.min_gap_um
-    goal_um = SIDE_GOAL / UM if args.goal_um is None else args.goal_um
-    doc = side_report(args.ks, args.model, min_gap_um=min_gap_um, goal_um=goal_um, ratio=args.ratio,
+    doc = side_report(args.ks, args.model, min_gap_um=args.min_gap_um, goal_um=args.goal_um, ratio=args.ratio,
                       plant=args.plant, plant_scale=args.plant_scale, plant_gap_scale=args.plant_gap_scale)
     emit(args, doc, _side_summary)
     return 0

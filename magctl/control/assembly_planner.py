@@ -51,11 +51,13 @@ from magctl.config import load_model
 from magctl.control.arrangement import Arrangement
 from magctl.control.learning import ATTEMPT
 from magctl.control.pass_model import PassMap
+from magctl.control.push_params import with_defaults
+from magctl.control.side_models import side_model
 from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
+from magctl.core.units import MM
 
-_MM = 1e-3
 SIGMA = 10e-6
 """Scale of the bond errors in the objective (m): the objective is in units of (10 µm)²."""
 FEASIBLE_TOL = 1e-9
@@ -234,10 +236,10 @@ class AssemblyPlanner:
         a, b = x[:2], x[2:]
         moved = spheres + prm[2 * n] * self.map.symbolic(spheres, a, b)
         bonds = self.target.bonds
-        err = [ca.norm_2(moved[int(j), :] - moved[int(i), :]) - t / _MM
+        err = [ca.norm_2(moved[int(j), :] - moved[int(i), :]) - t / MM
                for (i, j, _), t in zip(bonds, self.target.targets(), strict=True)]
         length = ca.norm_2(b - a)
-        f = ca.sumsqr(ca.vertcat(*err)) / (SIGMA / _MM) ** 2 + lim.length_weight * _MM * length
+        f = ca.sumsqr(ca.vertcat(*err)) / (SIGMA / MM) ** 2 + lim.length_weight * MM * length
         d = b - a
         g = []
         for i in range(n):
@@ -246,10 +248,10 @@ class AssemblyPlanner:
             g += [ca.sumsqr(pi - a - t * d), ca.sumsqr(pi - a), ca.sumsqr(pi - b)]
         g.append(ca.sumsqr(d))
         g = ca.vertcat(*g)
-        self._g_lb = np.array([(lim.min_gap / _MM) ** 2, (lim.end_clearance / _MM) ** 2,
-                               (lim.end_clearance / _MM) ** 2] * n + [(lim.min_length / _MM) ** 2])
-        self._g_ub = np.array([np.inf] * (3 * n) + [(lim.max_length / _MM) ** 2])
-        x0, y0, x1, y1 = (v / _MM for v in lim.field)
+        self._g_lb = np.array([(lim.min_gap / MM) ** 2, (lim.end_clearance / MM) ** 2,
+                               (lim.end_clearance / MM) ** 2] * n + [(lim.min_length / MM) ** 2])
+        self._g_ub = np.array([np.inf] * (3 * n) + [(lim.max_length / MM) ** 2])
+        x0, y0, x1, y1 = (v / MM for v in lim.field)
         self._x_lb, self._x_ub = np.array([x0, y0, x0, y0]), np.array([x1, y1, x1, y1])
         self.objective = ca.Function("objective", [x, prm], [f]).expand()
         self.gradient = ca.Function("gradient", [x, prm], [ca.gradient(f, x)])
@@ -282,8 +284,8 @@ class AssemblyPlanner:
         ang = 2 * np.pi * np.arange(dirs) / dirs
         u = np.stack([np.cos(ang), np.sin(ang)])                                     # (2, D)
         nrm = np.stack([-u[1], u[0]])
-        offset = (np.array([1.0, -1.0])[:, None] * gaps / _MM).ravel()                # (2·G,): side, gap
-        along = np.tile(self.behind / _MM * u, (1, n * offset.size))                  # (2, S), S = N·2·G·D
+        offset = (np.array([1.0, -1.0])[:, None] * gaps / MM).ravel()                # (2·G,): side, gap
+        along = np.tile(self.behind / MM * u, (1, n * offset.size))                  # (2, S), S = N·2·G·D
         across = np.tile((offset[:, None, None] * nrm.T[None]).reshape(-1, 2).T, (1, n))
         which = np.repeat(np.arange(n), offset.size * dirs)
         pick = ca.DM(ca.Sparsity.triplet(n, which.size, which.tolist(), list(range(which.size))), 1.0)
@@ -294,7 +296,7 @@ class AssemblyPlanner:
 
         x, p = ca.MX.sym("x", 4), ca.MX.sym("p", 2 * n + 1)
         g = constraints(x, p)
-        tol = FEASIBLE_TOL / _MM
+        tol = FEASIBLE_TOL / MM
         upper = np.flatnonzero(np.isfinite(self._g_ub))
         slack = ca.vertcat(g - (np.sqrt(self._g_lb) - tol) ** 2,            # squared distances, the bound less tol
                            (np.sqrt(self._g_ub[upper]) + tol) ** 2 - g[upper.tolist()],
@@ -305,7 +307,7 @@ class AssemblyPlanner:
         return ca.Function("pass_samples", [prm], [samples, cost])
 
     def _parameters(self, spheres, mobility: float) -> np.ndarray:
-        return np.r_[np.asarray(spheres, float).ravel() / _MM, mobility]
+        return np.r_[np.asarray(spheres, float).ravel() / MM, mobility]
 
     # --- sampling, refinement ----------------------------------------------------------------------
     def _sampled(self, prm) -> tuple[ca.DM, np.ndarray]:
@@ -318,7 +320,7 @@ class AssemblyPlanner:
         is broken) and which keep the bounds — one mapped evaluation of the problem."""
         spheres = np.asarray(spheres, float).reshape(self.target.n, 2)
         samples, cost = self._sampled(self._parameters(spheres, mobility))
-        return np.asarray(samples).T.reshape(-1, 2, 2) * _MM, cost, np.isfinite(cost)
+        return np.asarray(samples).T.reshape(-1, 2, 2) * MM, cost, np.isfinite(cost)
 
     def samples(self, spheres) -> tuple[np.ndarray, np.ndarray]:
         """Sampled passes ``(S, 2, 2)`` (start, end; m) round every sphere and which keep the bounds."""
@@ -336,7 +338,7 @@ class AssemblyPlanner:
 
     def cost(self, spheres, a, b, mobility: float = 1.0) -> float:
         """The objective of the pass ``a → b`` (m) for spheres ``(N, 2)`` (m)."""
-        return float(self.objective(np.r_[np.asarray(a, float), np.asarray(b, float)] / _MM,
+        return float(self.objective(np.r_[np.asarray(a, float), np.asarray(b, float)] / MM,
                                     self._parameters(spheres, mobility)))
 
     def plan(self, spheres, mobility: float = 1.0) -> Pass | None:
@@ -368,10 +370,10 @@ class AssemblyPlanner:
             x = np.asarray(sol["x"], float).ravel()
             f = float(sol["f"])
             if (f < best_f - SAME_COST * max(1.0, abs(best_f))
-                    and self.limits.violation(spheres, x[:2] * _MM, x[2:] * _MM) <= 1e-7):
+                    and self.limits.violation(spheres, x[:2] * MM, x[2:] * MM) <= 1e-7):
                 best_x, best_f, how = x, f, "ipopt"
         t2 = time.perf_counter()
-        a, b = best_x[:2] * _MM, best_x[2:] * _MM
+        a, b = best_x[:2] * MM, best_x[2:] * MM
         predicted = spheres + mobility * self.map.displacement(spheres, a, b)
         t3 = time.perf_counter()
         self.profile.update(ipopt_solves=len(refined), ipopt_iterations=iterations, sample_s=t1 - t0,
@@ -383,8 +385,6 @@ class GreedyPlanner:
     """The baseline: the paper's side push extended one sphere at a time (θ_n, eq 17 with ``exp-fit``)."""
 
     def __init__(self, target: Arrangement, *, theta_n: float | None = None, model=None):
-        from magctl.control.push.common import side_model, with_defaults
-
         p = with_defaults("assembly", theta_n=theta_n)
         side = with_defaults("side", min_gap=None, behind=None, ahead=None)
         self.target = target

@@ -29,20 +29,11 @@ import numpy as np
 
 from magctl.config import load_model
 from magctl.control.learning import ATTEMPT, AttemptLaw
+from magctl.control.side_models import side_model
 from magctl.core.block import Block, StateVar
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
-
-COST_RISE_TOL = 1e-9
-"""A Gauss–Newton step of the update counts as not raising ``J`` when it raises it by less than this fraction of
-``1 + J``: far above the rounding of ``J`` (~1e-16; near the mode successive steps change ``J`` by that much
-either way, and numpy's and libm's ``exp`` differ in the last bit), far below any rise the halving guards against.
-Without it a step is halved or not by rounding noise, and the kernel's estimates and a numpy form's part by ~1e-6."""
-
-
-HALVINGS = 30
-"""Most halvings of one Gauss–Newton step (after them the step is taken as it is)."""
 
 
 class CurveLearningLaw(AttemptLaw, Block):
@@ -124,10 +115,10 @@ class CurveLearningLaw(AttemptLaw, Block):
         ``h(θ) = exp(a − b·x) − c`` with Jacobian ``H = (e, −x·e, −1)``, ``e = exp(a − b·x)``, and variance
         ``R = (σ_pass·e⁻)² + σ_meas²`` at the predicted estimate. The update is Gauss–Newton on the negative
         log posterior ``J(θ) = (θ − θ⁻)ᵀP⁻⁻¹(θ − θ⁻) + (z − h(θ))²/R`` (the iterated EKF), each step halved
-        until ``J`` does not rise by more than :data:`COST_RISE_TOL` (a pass many times the prior's prediction
-        would otherwise throw the exponential's linearisation far past the mode); the prior term is a sum of
-        squares through the Cholesky factor of ``P⁻``. One iteration is the plain EKF step whenever that step
-        lowers ``J``. Covariance in Joseph form at the last linearisation; ``b ≥ b_min`` kept.
+        until ``J`` does not rise by more than :data:`~magctl.control.kernels.COST_RISE_TOL` (a pass many times the
+        prior's prediction would otherwise throw the exponential's linearisation far past the mode); the prior term
+        is a sum of squares through the Cholesky factor of ``P⁻``. One iteration is the plain EKF step whenever that
+        step lowers ``J``. Covariance in Joseph form at the last linearisation; ``b ≥ b_min`` kept.
         """
         from magctl.control import kernels as k
         from magctl.core.kernel import Kernel
@@ -196,8 +187,6 @@ def curve_learning_law(prior=None, name: str = "side_law", **overrides) -> Curve
     ``prior`` defaults to ``exp-fit`` (eq 22's form fitted to magctl's Fig 6 curve); ``overrides`` replace
     any ``[online]`` value by keyword (SI).
     """
-    from magctl.control.push.common import side_model
-
     params = load_model("push")
     online = params.online
     kw = {"reference_gap": float(params.side_fit.about_gap),

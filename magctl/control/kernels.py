@@ -18,13 +18,21 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from magctl.control.curve_learning import COST_RISE_TOL, HALVINGS
 from magctl.control.status import Status
 
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 
 RUNNING, CONVERGED, TRACKING_LOST = int(Status.RUNNING), int(Status.CONVERGED), int(Status.TRACKING_LOST)
 """Status codes (:class:`magctl.control.status.Status`)."""
+
+COST_RISE_TOL = 1e-9
+"""A Gauss–Newton step of the curve law's update (:func:`curve_update`) counts as not raising ``J`` when it raises it
+by less than this fraction of ``1 + J``: far above the rounding of ``J`` (~1e-16; near the mode successive steps
+change ``J`` by that much either way, and numpy's and libm's ``exp`` differ in the last bit), far below any rise the
+halving guards against. Without it a step is halved or not by rounding noise, and the kernel's estimates and a numpy
+form's part by ~1e-6."""
+HALVINGS = 30
+"""Most halvings of one Gauss–Newton step (after them the step is taken as it is)."""
 
 
 

@@ -23,10 +23,10 @@ import numpy as np
 
 from magctl.config import load_model
 from magctl.core.errors import MagctlError
+from magctl.core.units import MM
 
 SMOOTH_GAP = 1e-6
 """``|h|`` is taken as ``√(h² + η²)`` with η = 1 µm so the prediction is smooth where a line crosses a sphere."""
-_MM = 1e-3
 
 
 @dataclass(frozen=True)
@@ -76,15 +76,15 @@ class PassMap:
     def _spline(self) -> ca.Function:
         """``(S_a, S_w)`` as one casadi B-spline of ``(x, |h|)`` in mm, values in mm (the same values as a spline
         per component: the outputs share the basis, which is most of the work of an evaluation)."""
-        grid = [self.positions / _MM, self.gaps / _MM]
-        values = np.stack([(table / _MM).ravel(order="F") for table in (self.along, self.away)], axis=-1)
+        grid = [self.positions / MM, self.gaps / MM]
+        values = np.stack([(table / MM).ravel(order="F") for table in (self.along, self.away)], axis=-1)
         return ca.interpolant("S_pass", "bspline", grid, values.ravel())
 
     def _clamped(self, x, h):
         """Positions beyond the map read its ends (the sphere has not yet moved / has stopped moving); gaps
         below its first (the contact threshold: only spheres beyond the pass's end) read the first."""
-        lo, hi = self.positions[[0, -1]] / _MM
-        return ca.fmin(ca.fmax(x, lo), hi), ca.fmin(ca.fmax(h, self.gaps[0] / _MM), self.gaps[-1] / _MM)
+        lo, hi = self.positions[[0, -1]] / MM
+        return ca.fmin(ca.fmax(x, lo), hi), ca.fmin(ca.fmax(h, self.gaps[0] / MM), self.gaps[-1] / MM)
 
     def symbolic(self, spheres, a, b):
         """ΔP (N × 2, mm) of spheres ``(N, 2)`` for the pass ``a → b`` (mm); casadi or numeric entries."""
@@ -97,7 +97,7 @@ class PassMap:
         for i in range(spheres.shape[0]):
             rel = spheres[i, :].T - a
             xi, h = ca.dot(rel, u), ca.dot(rel, n)
-            hh = ca.sqrt(h ** 2 + (SMOOTH_GAP / _MM) ** 2)
+            hh = ca.sqrt(h ** 2 + (SMOOTH_GAP / MM) ** 2)
             x1, hc = self._clamped(length - xi, hh)
             x0, _ = self._clamped(-xi, hh)
             moved = spline(ca.vertcat(x1, hc)) - spline(ca.vertcat(x0, hc))
@@ -116,8 +116,8 @@ class PassMap:
         if f is None:
             p, a_, b_ = ca.MX.sym("p", n, 2), ca.MX.sym("a", 2), ca.MX.sym("b", 2)
             f = self._numeric[n] = ca.Function("pass_displacement", [p, a_, b_], [self.symbolic(p, a_, b_)])
-        out = f(spheres / _MM, np.asarray(a, float) / _MM, np.asarray(b, float) / _MM)
-        return np.asarray(out, float).reshape(n, 2) * _MM
+        out = f(spheres / MM, np.asarray(a, float) / MM, np.asarray(b, float) / MM)
+        return np.asarray(out, float).reshape(n, 2) * MM
 
     def side_curve(self, gaps, behind: float = 1e-3, ahead: float = 1e-3) -> np.ndarray:
         """Fig 6 read from the map: displacement along a pass from ``behind`` to ``ahead`` at ``gaps`` (m)."""

@@ -12,27 +12,62 @@ clear every disc of radius ``r_k`` (exact segment–circle test).
 A start inside a keep-out disc first escapes radially to its edge (the
 robot has just pushed the sphere); a goal inside one, outside the workspace or
 cut off from the start raises :class:`PlanningError`.
+
+The defaults are read from ``models/push.toml`` by :func:`planner_defaults`: the keep-out is ``[plan]
+reposition_clearance_um``, the cell side and the :class:`Planner` block's tolerances are ``[planner]``.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import shortest_path
 
 from magctl import FRAME_PERIOD_S
+from magctl.config import load_model
 from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
 from magctl.core.ports import DIMENSIONLESS, Port
-
-KEEP_OUT_M = 650e-6
-"""Keep-out distance from a sphere centre while repositioning (paper §VI-B)."""
+from magctl.core.units import UM_PER_M
 
 _NEIGHBOURS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
 
 
 class PlanningError(MagctlError):
     """No path: the goal is blocked, outside the workspace or unreachable."""
+
+
+@dataclass(frozen=True)
+class PlannerDefaults:
+    """The planner's defaults (m), from ``models/push.toml``: :func:`planner_defaults`."""
+
+    keep_out: float
+    """Keep-out distance from a sphere centre while repositioning: ``[plan] reposition_clearance_um``
+    (650 µm, paper §VI-B)."""
+    cell: float
+    """Grid cell side: ``[planner] cell_um``."""
+    waypoint_tol: float
+    """The :class:`Planner` block moves on to the next waypoint within this: ``[planner] waypoint_tol_um``."""
+    replan_tol: float
+    """The :class:`Planner` block plans again when a sphere has moved more than this:
+    ``[planner] replan_tol_um``."""
+
+
+def planner_defaults() -> PlannerDefaults:
+    """The keep-out, cell side and block tolerances of ``models/push.toml`` (read on each call).
+
+    The keep-out is the loaded SI value of ``[plan] reposition_clearance_um``, the same number as
+    :class:`~magctl.control.push.params.PlannedParams` ``clearance``. The ``[planner]`` values are the file's µm
+    divided by :data:`~magctl.core.units.UM_PER_M`, the double nearest the length (``25 / 1e6 == 25e-6``): the
+    loader's ``25 * 1e-6`` is one bit below it, and the grid's cell count ``floor((xmax − xmin) / h)`` can turn on
+    that bit.
+    """
+    push = load_model("push")
+    raw = push.planner.raw
+    return PlannerDefaults(keep_out=float(push.plan.reposition_clearance), cell=raw["cell_um"] / UM_PER_M,
+                           waypoint_tol=raw["waypoint_tol_um"] / UM_PER_M, replan_tol=raw["replan_tol_um"] / UM_PER_M)
 
 
 def segment_clearance(p0: np.ndarray, p1: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -147,7 +182,7 @@ def _attach(grid: Grid, free: np.ndarray, p: np.ndarray, centres: np.ndarray, ke
     return best
 
 
-def plan_path(start, goal, spheres, *, bounds, keep_out: float = KEEP_OUT_M, cell: float = 25e-6) -> np.ndarray:
+def plan_path(start, goal, spheres, *, bounds, keep_out: float | None = None, cell: float | None = None) -> np.ndarray:
     """Waypoints (K, 2) in m from ``start`` to ``goal`` around the inflated spheres.
 
     Parameters
@@ -157,16 +192,20 @@ def plan_path(start, goal, spheres, *, bounds, keep_out: float = KEEP_OUT_M, cel
         Sphere centres; each is a disc of radius ``keep_out`` the path must not enter.
     bounds : (xmin, ymin, xmax, ymax), m
         Workspace rectangle.
-    keep_out : float
-        Keep-out radius (m), 650 µm while repositioning (paper §VI-B).
-    cell : float
-        Grid cell side (m).
+    keep_out : float, optional
+        Keep-out radius (m); default :func:`planner_defaults` ``keep_out``, 650 µm while repositioning (paper §VI-B).
+    cell : float, optional
+        Grid cell side (m); default :func:`planner_defaults` ``cell``, 25 µm.
 
     Raises
     ------
     PlanningError
         Goal outside the workspace, inside a keep-out disc, or unreachable.
     """
+    if keep_out is None or cell is None:
+        defaults = planner_defaults()
+        keep_out = defaults.keep_out if keep_out is None else keep_out
+        cell = defaults.cell if cell is None else cell
     start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
     centres = np.asarray(spheres, dtype=float).reshape(-1, 2)
     grid = Grid(bounds, cell)
@@ -214,7 +253,8 @@ class Planner(Block):
     It plans when the goal changes or a sphere has moved more than ``replan_tol``
     since the last plan, and advances to the next waypoint once the robot is within
     ``waypoint_tol`` of the current one. Planning runs per trial (grid BFS); advancing
-    is vectorised over the batch.
+    is vectorised over the batch. ``keep_out``, ``cell``, ``waypoint_tol`` and ``replan_tol`` left ``None``
+    take :func:`planner_defaults` (``models/push.toml``).
 
     Ports
     -----
@@ -223,9 +263,14 @@ class Planner(Block):
     ``replans`` () count
     """
 
-    def __init__(self, name: str = "planner", *, n_spheres: int = 1, bounds, keep_out: float = KEEP_OUT_M,
-                 cell: float = 25e-6, waypoint_tol: float = 50e-6, replan_tol: float = 15e-6,
+    def __init__(self, name: str = "planner", *, n_spheres: int = 1, bounds, keep_out: float | None = None,
+                 cell: float | None = None, waypoint_tol: float | None = None, replan_tol: float | None = None,
                  max_waypoints: int = 64, dt: float = FRAME_PERIOD_S):
+        defaults = planner_defaults()
+        keep_out = defaults.keep_out if keep_out is None else keep_out
+        cell = defaults.cell if cell is None else cell
+        waypoint_tol = defaults.waypoint_tol if waypoint_tol is None else waypoint_tol
+        replan_tol = defaults.replan_tol if replan_tol is None else replan_tol
         self.bounds = tuple(float(b) for b in bounds)
         Grid(self.bounds, cell)  # validates
         self.keep_out, self.cell = float(keep_out), float(cell)

@@ -10,10 +10,13 @@ source is written to :func:`magctl.core.codegen.cache_dir` under a hash of
 its text, so numba's on-disk cache serves the next run; parameters are data, not code, so two
 diagrams that differ only in their gains share the compiled code.
 
-Semantics are the interpreted engine's (:meth:`magctl.core.diagram.Schedule.run`): same order of
+Semantics are the interpreted engine's (:meth:`magctl.core.schedule.Schedule.run`): same order of
 evaluation, same per-trial random streams (counter-based: each kernel reads its numbers by address,
 :mod:`magctl.core.philox`), same results to floating-point reassociation. The loop runs trial by trial
 (each trial's steps in turn), which changes nothing since trials never interact.
+
+It reads the diagram's schedule (:mod:`magctl.core.schedule`) and does not import :mod:`magctl.core.diagram`,
+whose ``Diagram.compile()`` calls it.
 """
 
 from __future__ import annotations
@@ -24,7 +27,6 @@ import numpy as np
 
 from magctl.core import codegen
 from magctl.core.codegen import JIT, fingerprint, is_record, kernel_name, param_value
-from magctl.core.diagram import EXTERNAL, Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.kernel import (
     EventRequest,
@@ -38,6 +40,7 @@ from magctl.core.kernel import (
     stream_keys_of,
     unpack_state,
 )
+from magctl.core.schedule import EXTERNAL
 
 GROUPS = {"float64": "F", "int64": "I", "bool": "B"}
 """Buffer of each dtype."""
@@ -123,7 +126,7 @@ class CompiledDiagram:
     runs.
     """
 
-    def __init__(self, diagram: Diagram):
+    def __init__(self, diagram):
         self.diagram = diagram
         sched = self.schedule = diagram.schedule
         self.kernels: list[Kernel] = []
@@ -540,7 +543,7 @@ def _indent(lines: list[str], level: int) -> list[str]:
     return [pad + line for line in lines]
 
 
-def compile_diagram(diagram: Diagram) -> CompiledDiagram:
+def compile_diagram(diagram) -> CompiledDiagram:
     """``diagram`` compiled (raises :class:`NotCompilable`, naming the block, when a leaf has no kernel)."""
     cached = getattr(diagram, "_compiled", None)
     if cached is None:

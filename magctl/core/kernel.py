@@ -27,6 +27,10 @@ into a member's state such as ``"robot.rng"``); the engine then passes that bloc
 ``noise`` (``(B, 5)`` ``uint64``, :mod:`magctl.core.philox`), and the kernel reads its numbers by
 address — ``normal(noise, b, k, i)`` for draw ``i`` at the position ``k`` its state counts — exactly
 the numbers the interpreted engine's :class:`~magctl.core.random.TrialStreams` gives. ``base`` is 0.
+
+The functions below take a block (:class:`~magctl.core.block.Block`) and read its declared state
+(:mod:`magctl.core.state`); this module does not import :mod:`magctl.core.block`, whose blocks run their kernels
+through :mod:`magctl.core.kernel_driver`, which imports this one.
 """
 
 from __future__ import annotations
@@ -36,8 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magctl.core.block import STREAM, Block, StateVar, flat_state_vars, state_get, state_with
 from magctl.core.errors import MagctlError
+from magctl.core.state import STREAM, StateVar, flat_state_vars, state_get, state_with
 
 
 @dataclass(frozen=True)
@@ -83,7 +87,7 @@ class Kernel:
             raise MagctlError("a kernel with output needs update (give a no-op one for a stateless block)")
 
 
-def compiled_vars(block: Block) -> list[tuple[tuple[str, ...], StateVar]]:
+def compiled_vars(block) -> list[tuple[tuple[str, ...], StateVar]]:
     """The state entries a kernel sees: every declared entry except random streams, in declaration order."""
     out = []
     for keys, var in flat_state_vars(block.state_vars()):
@@ -96,7 +100,7 @@ def compiled_vars(block: Block) -> list[tuple[tuple[str, ...], StateVar]]:
     return out
 
 
-def pack_state(block: Block, state: dict, batch: int, variables=None, copy: bool = True) -> list[np.ndarray]:
+def pack_state(block, state: dict, batch: int, variables=None, copy: bool = True) -> list[np.ndarray]:
     """``state`` as the kernel's arrays: one ``(B, n)`` array per entry of :func:`compiled_vars` (or of
     ``variables``, that list computed once). ``copy=False`` returns views of ``state``'s own arrays where
     their layout allows (for a kernel that only reads them)."""
@@ -114,7 +118,7 @@ def pack_state(block: Block, state: dict, batch: int, variables=None, copy: bool
     return arrays
 
 
-def unpack_state(block: Block, arrays: Sequence[np.ndarray], like: dict, variables=None) -> dict:
+def unpack_state(block, arrays: Sequence[np.ndarray], like: dict, variables=None) -> dict:
     """The kernel's arrays back into a state dict shaped as ``like`` (streams and the rest kept from it)."""
     state = like
     for (keys, var), arr in zip(compiled_vars(block) if variables is None else variables, arrays, strict=True):
@@ -146,7 +150,7 @@ def stream_keys_of(kernel: Kernel, state: dict, batch: int) -> np.ndarray:
     return rng.keys
 
 
-def event_index(block: Block, kernel: Kernel, variables=None) -> int:
+def event_index(block, kernel: Kernel, variables=None) -> int:
     """Position of the kernel's event flag among :func:`compiled_vars` (``-1`` without an event)."""
     if not kernel.event:
         return -1
@@ -158,7 +162,7 @@ def event_index(block: Block, kernel: Kernel, variables=None) -> int:
     raise MagctlError(f"block {block.name!r}: its kernel's event flag {kernel.event!r} is not a state entry")
 
 
-def handle_events(block: Block, arrays: Sequence[np.ndarray], inputs: dict, rows: np.ndarray, like: dict,
+def handle_events(block, arrays: Sequence[np.ndarray], inputs: dict, rows: np.ndarray, like: dict,
                   flag: int, variables=None) -> None:
     """Run ``block.handle_event`` for the trials ``rows`` of the kernel state ``arrays`` (``(B, n)`` each,
     updated in place) with their inputs ``inputs`` (already the rows' values); ``like`` supplies the state
@@ -187,7 +191,7 @@ class EventRequest:
     Attributes
     ----------
     block : Block
-        The block whose kernel raised the flag.
+        The block (a :class:`~magctl.core.block.Block`) whose kernel raised the flag.
     rows : ndarray of int
         The flagged trials (batch rows).
     state, inputs : dict
@@ -197,7 +201,7 @@ class EventRequest:
         kernel driver, which counts no steps, leaves it to its caller (the rig's controller sets its own count).
     """
 
-    block: Block
+    block: object
     rows: np.ndarray
     state: dict
     inputs: dict
@@ -208,7 +212,7 @@ class EventRequest:
         return self.block.handle_event(self.state, self.inputs)
 
 
-def merge_event(block: Block, arrays: Sequence[np.ndarray], rows: np.ndarray, before: dict, after: dict, flag: int,
+def merge_event(block, arrays: Sequence[np.ndarray], rows: np.ndarray, before: dict, after: dict, flag: int,
                 variables=None) -> None:
     """Write an event's result into the kernel state ``arrays`` (``(B, n)`` each, updated in place) at the
     trials ``rows``, ticks after the one that raised the flag: every element the handler changed (``after``

@@ -13,6 +13,9 @@ Only real-valued (float) signals are part of a linear model: boolean and
 integer ports (flags, status codes) are left out of every leaf model and of
 the exported inputs and outputs, and a leaf input driven by such a port is
 an error only if it is a float input.
+
+The functions read a diagram's schedule (:mod:`magctl.core.schedule`) and do not import
+:mod:`magctl.core.diagram`, whose ``Diagram.to_control()`` and ``Diagram.linearize()`` call them.
 """
 
 from __future__ import annotations
@@ -21,8 +24,8 @@ import control
 import numpy as np
 
 from magctl.core.block import STREAM, SUBSTATE, Block, flat_state_vars, state_get, state_with
-from magctl.core.diagram import EXTERNAL, Diagram
 from magctl.core.errors import MagctlError, NotLinearError, WiringError
+from magctl.core.schedule import EXTERNAL
 
 
 def _real(port) -> bool:
@@ -50,7 +53,7 @@ def _state_labels(block: Block, sys, path: str) -> list[str]:
     return [f"{path}.x[{e}]" for e in range(sys.nstates)]
 
 
-def _interconnect(diagram: Diagram, systems: list, state_names: list[list[str]]) -> control.StateSpace:
+def _interconnect(diagram, systems: list, state_names: list[list[str]]) -> control.StateSpace:
     sched = diagram.schedule
     if sched.multirate:
         raise WiringError(f"diagram {diagram.name!r} mixes sample periods; export needs a single rate")
@@ -89,7 +92,7 @@ def _interconnect(diagram: Diagram, systems: list, state_names: list[list[str]])
                       states=states, name=diagram.name)
 
 
-def diagram_to_control(diagram: Diagram) -> control.StateSpace:
+def diagram_to_control(diagram) -> control.StateSpace:
     """Exact python-control model of a diagram whose leaves are all linear.
 
     States are named ``"leafpath.state[i]"``; boolean and integer ports are left out.
@@ -222,7 +225,7 @@ def finite_difference_jacobians(block: Block, state: dict, u: dict, eps: float =
     return A, B, C, D
 
 
-def _operating_inputs(diagram: Diagram, u) -> dict:
+def _operating_inputs(diagram, u) -> dict:
     """The diagram inputs for trial 0 as ``(1, *shape)`` arrays, or a clear error."""
     given = dict(u or {})
     unknown = sorted(set(given) - set(diagram.inputs))
@@ -245,7 +248,7 @@ def _operating_inputs(diagram: Diagram, u) -> dict:
     return out
 
 
-def linearize_diagram(diagram: Diagram, state: dict, u: dict | None = None, eps: float = 1e-6):
+def linearize_diagram(diagram, state: dict, u: dict | None = None, eps: float = 1e-6):
     """Linearise ``diagram`` about ``state`` (a diagram state, trial 0 used) and inputs ``u``.
 
     The operating point is the noise-free path: every leaf's random stream is switched off

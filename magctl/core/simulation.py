@@ -1,6 +1,6 @@
 """Batched, deterministic simulation of a diagram.
 
-The step itself is the diagram's :meth:`~magctl.core.diagram.Schedule.run`, the
+The step itself is the diagram's :meth:`~magctl.core.schedule.Schedule.run`, the
 same routine behind ``Diagram.step`` and the rig; this module adds the batch,
 the input arrays, recording and the finite-value checks.
 

@@ -32,8 +32,7 @@ from magctl.config import UNITS, Params, load_model, split_unit
 from magctl.control.arrangement import ARRANGEMENTS
 from magctl.control.assembly_planner import PLANNERS
 from magctl.control.excitation import Excitation, ExcitationParams, inside_field
-from magctl.control.push.common import SIDE_MODELS
-from magctl.control.push.params import (
+from magctl.control.push_params import (
     DIRT_RESPONSES,
     FRONT_LEARNING,
     SIDE_LEARNING,
@@ -43,6 +42,7 @@ from magctl.control.push.params import (
     SideParams,
 )
 from magctl.control.servo import default_servo_setting, servo_params, servo_settings
+from magctl.control.side_models import SIDE_MODELS
 from magctl.control.status import STATUS_NAMES, Status
 from magctl.core.compiled import NotCompilable
 from magctl.core.diagram import Diagram
@@ -253,7 +253,7 @@ _PLANNED = "assemble (planned)"
 _SI_SUFFIX = {"m": "m", "m/s": "m_s", "rad": "rad", "s": "s", "1": "", "": ""}
 _PUSH_RECORDS = {"front-push": FrontParams, "side-push": SideParams, "assemble": AssemblyParams,
                  "front-side-assemble": AssemblyParams, _PLANNED: PlannedParams}
-"""Each push task's parameter record (:mod:`magctl.control.push.params`): its fields are the task's options."""
+"""Each push task's parameter record (:mod:`magctl.control.push_params`): its fields are the task's options."""
 _OPTIONAL = {"front-push": {}, "side-push": {"fixed_gap": "m"},
              "assemble": {"fixed_gap": "m", "n_spheres": "1", "arrangement": "", "planner": "", "plan_frames": "1"},
              "front-side-assemble": {"fixed_gap": "m", "front_attempts": "1"},

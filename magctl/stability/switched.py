@@ -49,10 +49,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magctl.control.push.common import ExpSideModel
+from magctl.control.learning import LearningLaw
+from magctl.control.side_models import ExpSideModel
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
 from magctl.core.units import UM
+from magctl.stability.iteration import side_attempt_map
 
 _T = np.diag([-1.0, 1.0])
 UNDER, OVER, NO_PUSH = 0, 1, 2
@@ -309,9 +311,6 @@ def map_growth_rate(ks, ratio, *, directions: int = 33, e0: float = 1e-9 * UM, a
     value), only ``Δ(0) = 0`` when ``K_s = 0`` (the law is idle). Rate as :func:`switched_growth_rate`,
     the largest over the starts; 0 for a start that lands exactly on the goal.
     """
-    from magctl.control.learning import LearningLaw
-    from magctl.stability.iteration import side_attempt_map
-
     k, r = np.broadcast_arrays(np.asarray(ks, dtype=float), np.asarray(ratio, dtype=float))
     th = np.linspace(-np.pi / 2, np.pi / 2, directions + 2)[1:-1]
     flat_k, flat_r = k.ravel(), r.ravel()

@@ -18,6 +18,7 @@ from matplotlib.patches import Circle, Polygon
 from PIL import Image
 
 from magctl.core.errors import MagctlError
+from magctl.core.units import UM_PER_M
 
 SPHERE_RADIUS_M = 105e-6
 """Radius of the 210 µm polystyrene spheres (paper §II)."""
@@ -185,7 +186,6 @@ def animate_push(t, robot_xy, robot_heading, spheres_xy, path, *, goal=None, out
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
 
-    um = 1e6
     dpi = 80
     fig = Figure(figsize=(size_px / dpi, size_px / dpi), dpi=dpi)
     canvas = FigureCanvasAgg(fig)
@@ -202,9 +202,9 @@ def animate_push(t, robot_xy, robot_heading, spheres_xy, path, *, goal=None, out
 
     # moving artists are drawn over a saved background (blitting): the axes are rendered only once
     (trail_line,) = ax.plot([], [], color="#c0392b", lw=0.8, alpha=0.7, animated=True)
-    spheres = [ax.add_patch(Circle((0, 0), sphere_radius * um, fc="#d9e7f5", ec="#2b5d8a", lw=1.0, animated=True))
+    spheres = [ax.add_patch(Circle((0, 0), sphere_radius * UM_PER_M, fc="#d9e7f5", ec="#2b5d8a", lw=1.0, animated=True))
                for _ in range(spheres_xy.shape[1])]
-    robot = ax.add_patch(Polygon(outline * um, closed=True, fc="#555555", ec="black", lw=0.8, animated=True))
+    robot = ax.add_patch(Polygon(outline * UM_PER_M, closed=True, fc="#555555", ec="black", lw=0.8, animated=True))
     (arrow,) = ax.plot([], [], color="white", lw=1.5, solid_capstyle="round", animated=True)
     nose = np.array([[0.0, 0.0], [0.8 * outline[:, 0].max(), 0.0]])  # heading marker, as the paper's figures
     (goal_mark,) = ax.plot([], [], "x", color="#1e8449", ms=9, mew=2, animated=True)
@@ -216,14 +216,14 @@ def animate_push(t, robot_xy, robot_heading, spheres_xy, path, *, goal=None, out
     def render(k: int) -> Image.Image:
         rot = np.array([[math.cos(robot_heading[k]), math.sin(robot_heading[k])],
                         [-math.sin(robot_heading[k]), math.cos(robot_heading[k])]])
-        robot.set_xy((outline @ rot + robot_xy[k]) * um)
-        arrow.set_data(*((nose @ rot + robot_xy[k]) * um).T)
+        robot.set_xy((outline @ rot + robot_xy[k]) * UM_PER_M)
+        arrow.set_data(*((nose @ rot + robot_xy[k]) * UM_PER_M).T)
         for circ, xy in zip(spheres, spheres_xy[k]):
-            circ.set_center(xy * um)
+            circ.set_center(xy * UM_PER_M)
         if trail:
-            trail_line.set_data(robot_xy[: k + 1, 0] * um, robot_xy[: k + 1, 1] * um)
+            trail_line.set_data(robot_xy[: k + 1, 0] * UM_PER_M, robot_xy[: k + 1, 1] * UM_PER_M)
         if goal is not None:
-            goal_mark.set_data([goal[k, 0] * um], [goal[k, 1] * um])
+            goal_mark.set_data([goal[k, 0] * UM_PER_M], [goal[k, 1] * UM_PER_M])
         stamp.set_text(f"t = {t[k]:6.2f} s")
         canvas.restore_region(background)
         for artist in moving:

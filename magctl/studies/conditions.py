@@ -24,7 +24,7 @@ PAPER_MODELS = {"lin-fit": "lin", "exp-fit": "exp"}
 
 def task_fields(kind: str) -> set[str]:
     """The options the task of an experiment ``kind`` takes (its parameter record's fields)."""
-    from magctl.control.push.params import AssemblyParams
+    from magctl.control.push_params import AssemblyParams
     from magctl.loops import EXPERIMENT_TASKS, PUSH_TASKS
 
     # Fig 15's protocol has no record of its own: its options go to its side-push assembly

@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from magctl.control.push.common import task_defaults
 from magctl.control.push.front import PUSH
+from magctl.control.push_params import task_defaults
 from magctl.control.status import Status
 from magctl.core import simulate
 from magctl.core.units import UM

@@ -19,10 +19,9 @@ the paper's observation has probability ≥ :data:`ALPHA` under magctl's model, 
 
 from __future__ import annotations
 
-import numpy as np
-from scipy.stats import binom
+from dataclasses import dataclass
 
-from magctl.studies.runner import Cause
+import numpy as np
 
 PAPER_TRIALS = 10
 """Trials per controller in the paper's §VI experiments."""
@@ -35,6 +34,29 @@ RULE = (f"Verdicts: reproduced — magctl's large sample says what the paper say
         f"direction with probability ≥ {ALPHA:.0%} (bootstrap); not reproduced / opposite — otherwise. "
         "Causes: each is built from the numbers it cites and printed only where its own check of those numbers "
         "holds in this run; otherwise the row says \"unexplained\" and shows what was checked.")
+
+
+@dataclass(frozen=True)
+class Cause:
+    """Why a claim is not reproduced: a sentence built from the numbers it cites, and the check of those
+    numbers that makes the sentence true in this run (``holds``).
+
+    A cause whose check fails is not printed as an explanation: :meth:`text` then reports the claim as
+    unexplained and shows what was checked, so a report can never carry an explanation its own numbers
+    contradict.
+    """
+
+    sentence: str
+    holds: bool
+
+    def text(self) -> str:
+        if self.holds:
+            return self.sentence
+        return f"{UNEXPLAINED} the computed cause does not hold in this run ({self.sentence})"
+
+
+UNEXPLAINED = "unexplained:"
+"""How a claim's cause starts when its own check fails (:class:`Cause`)."""
 
 
 def _share(q: float) -> float:
@@ -56,6 +78,8 @@ def p_none(q: float, n: int = PAPER_TRIALS) -> float:
 
 def p_at_least(k: int, q: float, n: int = PAPER_TRIALS) -> float:
     """Probability that at least ``k`` of ``n`` trials show an outcome each shows with probability ``q``."""
+    from scipy.stats import binom  # here: the claims' rows (magctl.studies.runner) need this module, not scipy
+
     return float(binom.sf(k - 1, n, _share(q)))
 
 

@@ -43,6 +43,7 @@ from types import ModuleType
 from typing import Any
 
 from magctl.core.errors import MagctlError
+from magctl.studies.paper_statistics import Cause, verdict  # the studies import Cause from here, with claim
 
 STEPS = ("compute", "draw", "summarise")
 """The functions every study module defines."""
@@ -106,37 +107,12 @@ class PaperRow:
             self.cause = ""
 
 
-@dataclass(frozen=True)
-class Cause:
-    """Why a claim is not reproduced: a sentence built from the numbers it cites, and the check of those
-    numbers that makes the sentence true in this run (``holds``).
-
-    A cause whose check fails is not printed as an explanation: :meth:`text` then reports the claim as
-    unexplained and shows what was checked, so a report can never carry an explanation its own numbers
-    contradict.
-    """
-
-    sentence: str
-    holds: bool
-
-    def text(self) -> str:
-        if self.holds:
-            return self.sentence
-        return f"{UNEXPLAINED} the computed cause does not hold in this run ({self.sentence})"
-
-
-UNEXPLAINED = "unexplained:"
-"""How a claim's cause starts when its own check fails (:class:`Cause`)."""
-
-
 def claim(section: str, quantity: str, paper: str, magctl: str, model: str, *, holds: bool,
           cause: Cause, opposite: bool = False, note: str = "", p_paper: float | None = None,
           ordering: bool = False) -> PaperRow:
     """A claim of the paper with its verdict by :func:`magctl.studies.paper_statistics.verdict`: reproduced when
     ``holds``; otherwise judged by ``p_paper``, the probability of the paper's ten-trial observation under
     magctl's model (``ordering``: the claim ranks two controllers), with its computed ``cause``."""
-    from magctl.studies.paper_statistics import verdict
-
     if not isinstance(cause, Cause):
         raise MagctlError(f"paper claim {quantity!r}: the cause must be a computed Cause, got {type(cause).__name__}")
     v = verdict(holds, p_paper, ordering=ordering, opposite=opposite)

@@ -17,9 +17,9 @@ from magctl.control.arrangement import arrangement
 from magctl.control.assembly_planner import AssemblyPlanner, GreedyPlanner, PassPlanner, PlanLimits
 from magctl.control.pass_model import pass_map
 from magctl.core.errors import MagctlError
+from magctl.core.units import UM
 from magctl.loops import geometry
 
-UM = 1e-6
 R = 105 * UM
 
 

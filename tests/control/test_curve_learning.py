@@ -9,15 +9,15 @@ from test_push import ideal_loop
 
 from magctl.control.curve_learning import CurveLearningLaw, curve_learning_law
 from magctl.control.learning import side_push_law
-from magctl.control.push.common import ExpSideModel, LinSideModel, side_model
 from magctl.control.push.side import REPOSITION, SETTLE, SidePushTask
+from magctl.control.side_models import ExpSideModel, LinSideModel, side_model
 from magctl.control.status import Status
 from magctl.core.errors import MagctlError
 from magctl.core.simulation import simulate
+from magctl.core.units import UM
 from magctl.stability import iteration as S
 from magctl.stability.switched import ScaledSideModel
 
-UM = 1e-6
 MIN_GAP = 370 * UM   # the paper's bound: the law's properties below are stated there (docs/push-control.md §6)
 
 

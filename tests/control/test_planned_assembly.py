@@ -8,11 +8,11 @@ import pytest
 from magctl.control.status import Status
 from magctl.core import simulate
 from magctl.core.errors import MagctlError
+from magctl.core.units import UM
 from magctl.loops import Experiment, controller, push_loop
 from magctl.rig.runtime import Runtime
 from magctl.rig.sim import SimRig
 
-UM = 1e-6
 REC = ["controller/task.status", "controller/task.attempt", "controller/task.phase", "controller/task.gap",
        "plant/spheres.spheres", "plant/spheres.contact", "plant/robot.position", "controller/task.correction"]
 

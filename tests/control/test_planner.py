@@ -2,14 +2,15 @@
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
-from magctl.control.planner import KEEP_OUT_M, Planner, PlanningError, plan_path, wavefront
+from magctl.control.planner import Planner, PlanningError, plan_path, planner_defaults, wavefront
 from magctl.control.servo import Servo
 from magctl.core import Constant, Diagram, simulate
 from magctl.stability.servo import KinematicRobot
 
+KEEP_OUT_M = planner_defaults().keep_out   # models/push.toml [plan] reposition_clearance_um
 BOUNDS = (0.0, 0.0, 4.8e-3, 3.6e-3)
 
 
@@ -20,8 +21,16 @@ def _min_distance_dense(path, centres, n=200):
     return np.min(np.linalg.norm(pts[:, None, :] - centres[None], axis=2))
 
 
-def test_keep_out_is_paper_value():
-    assert KEEP_OUT_M == pytest.approx(650e-6)  # paper §VI-B
+def test_defaults_are_the_files_values_bit_for_bit():
+    """models/push.toml: the keep-out is [plan] reposition_clearance_um (paper §VI-B), the cell and the block's
+    tolerances [planner]; each the same double as the literal the code had (a changed bit can change the grid)."""
+    d = planner_defaults()
+    assert (d.keep_out, d.cell, d.waypoint_tol, d.replan_tol) == (650e-6, 25e-6, 50e-6, 15e-6)
+    block = Planner(bounds=BOUNDS)
+    assert (block.keep_out, block.cell, block.waypoint_tol, block.replan_tol) == (650e-6, 25e-6, 50e-6, 15e-6)
+    assert np.array_equal(plan_path([0.5e-3, 1.8e-3], [4.2e-3, 1.8e-3], [[2.4e-3, 1.8e-3]], bounds=BOUNDS),
+                          plan_path([0.5e-3, 1.8e-3], [4.2e-3, 1.8e-3], [[2.4e-3, 1.8e-3]], bounds=BOUNDS,
+                                    keep_out=650e-6, cell=25e-6))
 
 
 def test_wavefront_counts_8_connected_steps():
@@ -57,10 +66,44 @@ def test_wavefront_equals_a_plain_breadth_first_search_on_random_grids():
         assert (wavefront(free, goal) == ref).all()
 
 
+def _reachable_with_margin(start, goal, centres, margin, step=10e-6):
+    """Independent of the planner: a path from ``start`` to ``goal`` that keeps ``KEEP_OUT_M + margin`` from every
+    centre and ``margin`` inside ``BOUNDS``, looked for on a ``step`` grid of its own (its nodes with that clearance,
+    8-connected components by scipy.ndimage.label); start and goal must have that clearance and join their nearest
+    nodes. A path found here keeps ``KEEP_OUT_M + margin − step/√2`` (less a sagitta of 0.04 µm) everywhere."""
+    from scipy import ndimage
+
+    x0, y0, x1, y1 = BOUNDS
+    xs = np.arange(x0 + margin, x1 - margin + step / 2, step)
+    ys = np.arange(y0 + margin, y1 - margin + step / 2, step)
+    x, y = np.meshgrid(xs, ys)
+    free = np.ones(x.shape, dtype=bool)
+    for cx, cy in centres:
+        free &= np.hypot(x - cx, y - cy) >= KEEP_OUT_M + margin
+    labels, _ = ndimage.label(free, structure=np.ones((3, 3)))
+
+    def component(p):
+        clear = np.hypot(*(centres - p).T).min() >= KEEP_OUT_M + margin
+        inside = x0 + margin <= p[0] <= x1 - margin and y0 + margin <= p[1] <= y1 - margin
+        return labels[np.abs(ys - p[1]).argmin(), np.abs(xs - p[0]).argmin()] if clear and inside else 0
+
+    a = component(start)
+    return bool(a) and a == component(goal)
+
+
+UNREACHABLE_MARGIN = 2 * planner_defaults().cell
+"""A path clearing the keep-out by this (less the check's 7 µm grid) passes the planner's grid, whose cells keep
+half a diagonal more and lie half a diagonal off the path: 50 µm > 2 x 17.7 µm. The planner must find such a path."""
+
+
 @settings(max_examples=25, deadline=None)
 @given(st.lists(st.tuples(st.floats(0.8e-3, 4.0e-3), st.floats(0.3e-3, 3.3e-3)), min_size=1, max_size=3),
        st.floats(0.1e-3, 0.5e-3), st.floats(0.2e-3, 3.4e-3), st.floats(4.3e-3, 4.7e-3), st.floats(0.2e-3, 3.4e-3))
+@example([(2.4e-3, 0.6e-3), (2.4e-3, 1.8e-3), (2.4e-3, 3.0e-3)], 0.3e-3, 1.8e-3, 4.5e-3, 1.8e-3)  # a wall: unreachable
+@example([(2.4e-3, 0.6e-3), (2.4e-3, 2.6e-3)], 0.3e-3, 1.8e-3, 4.5e-3, 1.8e-3)  # a 700 µm gap between two discs
 def test_path_never_enters_inflated_spheres(spheres, sx, sy, gx, gy):
+    """A path keeps out of every inflated sphere and inside the workspace; "unreachable" only where no path clears
+    the keep-out by :data:`UNREACHABLE_MARGIN` (checked on a grid of the test's own)."""
     centres = np.array(spheres)
     start, goal = np.array([sx, sy]), np.array([gx, gy])
     assume(np.linalg.norm(centres - start, axis=1).min() > KEEP_OUT_M)
@@ -69,6 +112,8 @@ def test_path_never_enters_inflated_spheres(spheres, sx, sy, gx, gy):
         path = plan_path(start, goal, centres, bounds=BOUNDS)
     except PlanningError as err:
         assert "unreachable" in str(err)
+        assert not _reachable_with_margin(start, goal, centres, UNREACHABLE_MARGIN), \
+            "the planner calls the goal unreachable, but a path clearing the keep-out by 50 µm exists"
         return
     np.testing.assert_allclose(path[0], start)
     np.testing.assert_allclose(path[-1], goal)

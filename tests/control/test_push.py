@@ -23,6 +23,7 @@ from magctl.control.status import Status
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.simulation import simulate
+from magctl.core.units import UM
 from magctl.loops import Scene, closed_loop, controller, geometry, plant
 from magctl.plant.standin import KinematicRobot, StandinSpheres, StandinTracker, StraightToTarget, standin_params
 from magctl.stability import iteration as S
@@ -31,7 +32,6 @@ CONVERGED, ATTEMPT_LIMIT, TRACKING_LOST = Status.CONVERGED, Status.ATTEMPT_LIMIT
 RUNNING = Status.RUNNING
 SPHERE_LOST, STALLED = Status.SPHERE_LOST, Status.STALLED
 
-UM = 1e-6
 CONVERGED, ATTEMPT_LIMIT = Status.CONVERGED, Status.ATTEMPT_LIMIT
 EXACT = {"arrive_tol": 0.1 * UM}  # the ideal servo lands the robot exactly on its targets
 

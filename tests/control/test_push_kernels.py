@@ -15,18 +15,19 @@ import dataclasses
 import numpy as np
 import pytest
 from reference import reference_of
-from test_push import EXACT, UM, ideal_loop, rig_loop
+from test_push import EXACT, ideal_loop, rig_loop
 
 from magctl.control.learning import front_push_law
 from magctl.control.phases import FINISHED, FRONT_PHASE_OFFSET, SidePhase
 from magctl.control.push.assembly import AssemblyTask, FrontAssemblyTask, FrontThenSideAssemblyTask
-from magctl.control.push.common import TabulatedSideModel, side_model
 from magctl.control.push.front import FrontPushTask
 from magctl.control.push.side import SidePushTask
 from magctl.control.servo import Servo
+from magctl.control.side_models import TabulatedSideModel, side_model
 from magctl.core.block import STREAM, flat_state_vars, state_get
 from magctl.core.diagram import Diagram
 from magctl.core.simulation import simulate
+from magctl.core.units import UM
 from magctl.loops import PUSH_TASKS, controller
 
 RTOL = 1e-12

@@ -9,8 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from magctl.control.push.kernels import TaskParams
-from magctl.control.push.params import AssemblyParams, DirtParams, FrontParams, SideParams
+from magctl.control.push_params import AssemblyParams, DirtParams, FrontParams, SideParams, TaskParams
 from magctl.core.errors import MagctlError
 
 PUSH_TOML = tomllib.loads((Path(__file__).parents[2] / "models" / "push.toml").read_text())

@@ -4,10 +4,9 @@ import numpy as np
 import pytest
 
 from magctl.config import load_model
-from magctl.control.push.common import SIDE_MODELS, ExpSideModel, LinSideModel, side_model
+from magctl.control.side_models import SIDE_MODELS, ExpSideModel, LinSideModel, side_model
 from magctl.core.errors import MagctlError
-
-UM = 1e-6
+from magctl.core.units import UM
 
 
 @pytest.mark.parametrize("gap_um", [400.0, 500.0, 600.0])
@@ -38,6 +37,24 @@ def test_fitted_models_come_from_push_toml():
     assert lin.gap(ds0) == pytest.approx(fit.about_gap, rel=1e-12)          # touches F there …
     assert lin.slope_ == pytest.approx(-1 / (fit.rate * ds0), rel=1e-12)   # … with F's slope
     assert exp.name == "exp-fit" and lin.name == "lin-fit"
+
+
+def test_the_papers_models_are_push_toml_paper_side_bit_for_bit(tmp_path, monkeypatch):
+    """Eq 22/23 as printed are models/push.toml [paper_side] (with their sources), read as the very doubles the
+    constants were (1755 * UM, 0.009042 / UM, −5.29, 621 * UM); a changed file changes the models."""
+    assert (ExpSideModel().amplitude, ExpSideModel().rate) == (1755 * UM, 0.009042 / UM)
+    assert (LinSideModel().slope_, LinSideModel().intercept) == (-5.29, 621 * UM)
+    assert side_model("exp") == ExpSideModel() and side_model("lin") == LinSideModel()
+    sources = load_model("push").paper_side.sources
+    assert all(sources[k].startswith("paper eq 2") for k in ("amplitude", "rate", "slope", "intercept"))
+    from magctl.config import models_dir
+
+    text = (models_dir() / "push.toml").read_text(encoding="utf-8")
+    changed = text.replace("amplitude_um = { value = 1755.0,", "amplitude_um = { value = 1000.0,")
+    assert changed != text
+    (tmp_path / "push.toml").write_text(changed, encoding="utf-8")
+    monkeypatch.setenv("MAGCTL_MODELS", str(tmp_path))
+    assert side_model("exp").amplitude == 1000 * UM and side_model("exp-fit").amplitude != 1000 * UM
 
 
 def test_unknown_model_lists_the_known_ones():

@@ -27,10 +27,10 @@ import pytest
 import magctl
 from magctl.core.block import STREAM, SUBSTATE, Block
 from magctl.core.random import TrialStreams
+from magctl.core.units import UM
 
 BATCH = 3
 STEPS = 4
-UM = 1e-6
 
 
 # --- discovery ----------------------------------------------------------------------------------------

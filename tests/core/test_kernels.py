@@ -20,6 +20,7 @@ from magctl.core.block import STREAM, flat_state_vars, state_get
 from magctl.core.compiled import NotCompilable
 from magctl.core.diagram import Diagram
 from magctl.core.simulation import simulate
+from magctl.core.units import UM
 
 STEPS = 40
 RTOL = 1e-12
@@ -123,18 +124,17 @@ def test_standin_spheres_kernel_side_pass_release_and_separation():
     pushed into each other."""
     from magctl.plant.standin import StandinSpheres
 
-    um = 1e-6
     spheres = [[1.4e-3, 1.5e-3], [1.62e-3, 1.5e-3], [2.0e-3, 1.9e-3]]
 
     def make(scale):
-        return StandinSpheres("spheres", spheres, 250 * um, release_mean=300 * um, release_std=75 * um,
-                              side_range=600 * um, sphere_radius=105 * um, start_robot=(1.0e-3, 1.5e-3),
+        return StandinSpheres("spheres", spheres, 250 * UM, release_mean=300 * UM, release_std=75 * UM,
+                              side_range=600 * UM, sphere_radius=105 * UM, start_robot=(1.0e-3, 1.5e-3),
                               side_scale=scale)
 
     def robot(rng, k):     # ahead along +x, then back, then aside; each trial a little off the line
         x = 1.0e-3 + 1e-4 * k if k < 20 else (2.9e-3 - 1e-4 * (k - 20) if k < 30 else 1.9e-3)
         y = 1.5e-3 + (0.0 if k < 30 else 1e-4 * (k - 30))
-        return np.array([[x, y + 10 * um * b] for b in range(BATCH)])
+        return np.array([[x, y + 10 * UM * b] for b in range(BATCH)])
 
     block = make(1.3)
     compare_engines(block, {"position": robot})

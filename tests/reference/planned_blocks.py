@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from magctl.control.phases import START
-from magctl.control.push.planned import MAX_WAYPOINTS, PASS, REPOSITION, SETTLE, WAYPOINT_TOL, PlannedAssemblyTask
+from magctl.control.push.planned import MAX_WAYPOINTS, PASS, REPOSITION, SETTLE, PlannedAssemblyTask
 from magctl.control.status import Status
 from reference.push_blocks import PushFrame
 
@@ -70,7 +70,7 @@ class RefPlannedAssembly(PushFrame, PlannedAssemblyTask):
         idx = np.minimum(new["waypoint"], MAX_WAYPOINTS - 1)
         wp = new["waypoints"][rows, idx]
         last = new["waypoint"] >= new["n_waypoints"] - 1
-        tol = np.where(last, self.arrive_tol, WAYPOINT_TOL)
+        tol = np.where(last, self.arrive_tol, self.waypoint_tol)
         at_wp = ok & (ph == REPOSITION) & (distance(r, np.nan_to_num(wp)) < tol)
         new["waypoint"] = np.where(at_wp & ~last, new["waypoint"] + 1, new["waypoint"])
         self._enter(new, at_wp & last, PASS)

@@ -19,7 +19,8 @@ import copy
 
 import numpy as np
 
-from magctl.control.curve_learning import COST_RISE_TOL, HALVINGS, CurveLearningLaw
+from magctl.control.curve_learning import CurveLearningLaw
+from magctl.control.kernels import COST_RISE_TOL, HALVINGS
 from magctl.control.learning import LearningLaw
 from magctl.control.phases import FINISHED, FRONT_PHASE_OFFSET, START, AssemblyStage
 from magctl.control.push.assembly import AssemblyTask, FrontThenSideAssemblyTask

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from rig_helpers import ROOT
 
@@ -68,13 +70,23 @@ def test_a_binary_parameter_file_is_one_line(models):
         load_model("rig")
 
 
+SHIPPED = {"camera", "coils", "fluid", "front_release", "identify", "materials", "pass_map", "push", "rig", "robot",
+           "robot_geometry", "servo", "sphere", "wall_resistance"}
+"""The parameter files models/ holds, by name: a file missing, or one added without a line here, fails below."""
+
+
 def test_the_shipped_files_pass():
-    """Every parameter file shipped in models/ loads and passes its checks; the ones the rig reads are all there
-    (a missing one fails here, it is not skipped)."""
+    """Exactly the parameter files :data:`SHIPPED` are in models/ (a missing one fails here, it is not skipped),
+    every file magctl's code loads by name is one of them, and each loads and passes its checks."""
     from magctl.config import models_dir
 
-    shipped = sorted(p.stem for p in models_dir().glob("*.toml"))
-    assert {"rig", "coils", "servo", "robot", "sphere", "camera", "fluid"} <= set(shipped)
-    for name in shipped:
+    shipped = {p.stem for p in models_dir().glob("*.toml")}
+    assert sorted(SHIPPED - shipped) == [], "parameter files missing from models/"
+    assert sorted(shipped - SHIPPED) == [], "parameter files in models/ this test does not know: add them to SHIPPED"
+    code = "\n".join(p.read_text(encoding="utf-8") for p in (ROOT / "magctl").rglob("*.py"))
+    loaded = set(re.findall(r"load_model\(\s*[\"'](\w+)[\"']", code))
+    assert {"push", "rig", "servo", "sphere"} <= loaded                   # the search finds the code's loads …
+    assert sorted(loaded - SHIPPED) == [], "magctl loads parameter files models/ does not ship"   # … all shipped
+    for name in sorted(SHIPPED):
         load_model(name)
     load_coils()

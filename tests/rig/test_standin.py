@@ -12,6 +12,7 @@ from magctl import FRAME_PERIOD_S as T
 from magctl.config import load_model
 from magctl.core.random import TrialStreams
 from magctl.core.simulation import simulate
+from magctl.core.units import UM
 from magctl.loops import Scene, plant
 from magctl.plant.robot import load_robot, steady_speed
 from magctl.plant.standin import (
@@ -22,8 +23,6 @@ from magctl.plant.standin import (
     StraightToTarget,
     standin_params,
 )
-
-UM = 1e-6
 
 
 def run(block, path, seed=0, batch=1):

@@ -7,10 +7,10 @@ from reference.push_blocks import best_delta, choose, numpy_form
 from scipy.stats import norm
 
 from magctl.core.errors import MagctlError
+from magctl.core.units import UM
 from magctl.stability import front_bound as B
 from magctl.stability.iteration import ReleaseMap
 
-UM = 1e-6
 EPS = 75 * UM
 GOAL = 750 * UM
 

@@ -12,8 +12,9 @@ from hypothesis import strategies as st
 from scipy.stats import norm
 
 from magctl.cli import build_parser
+from magctl.cli.stability_reports import front_report, side_report
 from magctl.control.learning import front_push_law, side_push_law
-from magctl.control.push.common import ExpSideModel, LinSideModel, side_model
+from magctl.control.side_models import ExpSideModel, LinSideModel, side_model
 from magctl.core.errors import MagctlError
 from magctl.core.simulation import simulate
 from magctl.core.units import UM
@@ -206,9 +207,9 @@ def test_cli_side(capsys):
 
 def test_cli_errors_are_magctl_errors():
     with pytest.raises(MagctlError, match="--kc"):
-        S.front_report(float("nan"))
+        front_report(float("nan"))
     with pytest.raises(MagctlError, match="--min-gap-um"):
-        S.side_report(0.9, "lin", min_gap_um=-1)
+        side_report(0.9, "lin", min_gap_um=-1)
 
 
 @pytest.mark.skipif(importlib.util.find_spec("magctl.cli.stability") is None,
@@ -222,7 +223,7 @@ def test_through_magctl_main(capsys):
 
 
 def test_tabulated_plant_reproduces_eq_22_and_rejects_bad_tables():
-    from magctl.control.push.common import TabulatedSideModel
+    from magctl.control.side_models import TabulatedSideModel
 
     exp = ExpSideModel()
     g = np.linspace(300, 900, 7) * UM
@@ -234,7 +235,7 @@ def test_tabulated_plant_reproduces_eq_22_and_rejects_bad_tables():
     with pytest.raises(MagctlError, match="decreasing"):
         TabulatedSideModel((1e-4, 2e-4), (1e-5, 2e-5))
     with pytest.raises(MagctlError, match="--plant"):
-        S.side_report(0.9, "lin", plant="cfd")
+        side_report(0.9, "lin", plant="cfd")
 
 
 def test_the_stable_gain_ranges_are_where_python_controls_poles_lie_inside_the_unit_circle():

@@ -7,17 +7,18 @@ import numpy as np
 import pytest
 
 from magctl.cli import build_parser
+from magctl.cli.stability_reports import side_report
 from magctl.control.learning import LearningLaw, side_push_law
 from magctl.control.push.side import SidePushTask
 from magctl.control.status import Status
 from magctl.core.diagram import Diagram
 from magctl.core.errors import MagctlError
 from magctl.core.simulation import simulate
+from magctl.core.units import UM
 from magctl.plant.standin import KinematicRobot, StandinSpheres, StandinTracker, StraightToTarget, standin_params
 from magctl.stability import iteration as S
 from magctl.stability import switched as W
 
-UM = 1e-6
 RATIOS = np.round(np.arange(0.05, 3.51, 0.05), 2)
 """ρ grid of the boundary checks (step 0.05)."""
 GRID_KS = (0.0, 0.5, 0.9, 1.5)
@@ -190,4 +191,4 @@ def test_command_reports_three_labelled_analyses(capsys):
 
 def test_command_rejects_bad_plant_scales():
     with pytest.raises(MagctlError, match="--plant-gap-scale"):
-        S.side_report(0.9, "lin", plant_gap_scale=0.0)
+        side_report(0.9, "lin", plant_gap_scale=0.0)

@@ -7,14 +7,14 @@ enough to hold for any seed yet able to fail if the mechanism behind them breaks
 import numpy as np
 import pytest
 
-from magctl.control.push.common import task_defaults
+from magctl.control.push_params import task_defaults
 from magctl.control.status import Status
+from magctl.core.units import UM
 from magctl.loops import Experiment, Variability, experiment_controller
 from magctl.studies.trials import run_push_trials
 
 CONVERGED, ATTEMPT_LIMIT = Status.CONVERGED, Status.ATTEMPT_LIMIT
 
-UM = 1e-6
 TRIALS = 8
 
 

@@ -4,10 +4,9 @@ import pytest
 
 from magctl.config import load_model
 from magctl.core.errors import MagctlError
+from magctl.core.units import UM
 from magctl.loops import Experiment, experiment_controller
 from magctl.studies.conditions import conditioned
-
-UM = 1e-6
 
 
 def test_paper_conditions_set_the_papers_servo_models_bounds_and_release():

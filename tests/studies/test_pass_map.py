@@ -7,10 +7,9 @@ import pytest
 
 from magctl.control.pass_model import PassMap, pass_map
 from magctl.core.errors import MagctlError
+from magctl.core.units import UM
 from magctl.plant.fluid.scenarios import sidepush_curve
 from magctl.studies import pass_map as PM
-
-UM = 1e-6
 
 
 def test_stored_map_is_what_the_plant_gives_now():

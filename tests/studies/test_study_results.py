@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
+from magctl.core.units import UM
 from magctl.studies import runner as studies
 
-UM = 1e-6
 FRAME_S = 1 / 30
 
 

@@ -8,11 +8,7 @@ Each task is a block at the camera rate with inputs ``robot_est`` (2,) m,
 """
 
 from magctl.control.push.assembly import AssemblyTask, FrontAssemblyTask
-from magctl.control.push.common import ExpSideModel, LinSideModel, side_model
 from magctl.control.push.front import FrontPushTask
 from magctl.control.push.side import SidePushTask
 
-__all__ = [
-    "AssemblyTask", "ExpSideModel", "FrontAssemblyTask", "FrontPushTask", "LinSideModel", "SidePushTask",
-    "side_model",
-]
+__all__ = ["AssemblyTask", "FrontAssemblyTask", "FrontPushTask", "SidePushTask"]

@@ -21,8 +21,8 @@ from magctl import FRAME_PERIOD_S
 from magctl.control.phases import FINISHED, SIDE_PHASE_OFFSET, AssemblyStage
 from magctl.control.push.common import curve_dummies, sphere_radii
 from magctl.control.push.front import FrontAssemblyTask
-from magctl.control.push.params import AssemblyParams, CommonParams
 from magctl.control.push.side import SidePushTask
+from magctl.control.push_params import AssemblyParams, CommonParams
 from magctl.core.block import Block, StateVar, substate
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
@@ -38,7 +38,7 @@ class AssemblyTask(SidePushTask):
         ``R_1``, ``R_2`` (m); 105 µm for the 210 µm spheres (§II).
     **kw
         Everything :class:`SidePushTask` takes (``law``, ``fixed_gap``, ``params``) and every field of
-        :class:`~magctl.control.push.params.AssemblyParams` — ``[side]`` under ``[assembly]``: ``theta_n`` (the
+        :class:`~magctl.control.push_params.AssemblyParams` — ``[side]`` under ``[assembly]``: ``theta_n`` (the
         adjusted line's angle, rad; the paper's experiment used 30°, §VI-C), ``eps_as`` (``ε_as`` of eq 21, m),
         ``ks`` …; ``goal`` is not used.
     """

@@ -1,211 +1,32 @@
-"""Shared pieces of the push tasks: side-push models (eq 22, 23), status codes, geometry.
+"""Shared pieces of the push tasks: the mix-in every task is (:class:`PushTask`: ports, common state, parameters,
+the kernels' packed parameters), its status codes, the spheres' radii and the kernels' unused-law dummies.
 
-Everything is SI (metres). The paper writes eq 22 and eq 23 in µm; the
-constants below are theirs, converted.
+What the tasks share with blocks below them lives below them: the side-push models ``F`` of eq 22/23 in
+:mod:`magctl.control.side_models`, the parameter records of ``models/push.toml`` in :mod:`magctl.control.push_params`.
+Everything is SI (metres).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
 
 from magctl.config import load_model
+from magctl.control.curve_learning import CurveLearningLaw
+from magctl.control.learning import LearningLaw
 from magctl.control.phases import START
-from magctl.control.push.params import RECORDS, PushParams
+from magctl.control.push_params import LAW_CURVE, LAW_INTEGRATOR, LAW_RELEASE, PushParams
+from magctl.control.release_model import ReleasePolicyLaw
 from magctl.control.status import Status
 from magctl.core.errors import MagctlError
-from magctl.core.units import UM
 
 RUNNING, CONVERGED, ATTEMPT_LIMIT = Status.RUNNING, Status.CONVERGED, Status.ATTEMPT_LIMIT
 TRACKING_LOST, SPHERE_LOST, STALLED = Status.TRACKING_LOST, Status.SPHERE_LOST, Status.STALLED
-
-
-
-# --- side-push models: gap D_g ↔ displacement D_s -----------------------------------------------
-@dataclass(frozen=True)
-class ExpSideModel:
-    """Eq 22: ``F(D_s) = −ln(D_s / A) / k``, i.e. ``D_s = A·exp(−k·D_g)``.
-
-    Attributes
-    ----------
-    amplitude : float
-        ``A`` = 1755 µm (paper eq 22, fit of the Fig 6 simulation, R² = 0.9971).
-    rate : float
-        ``k`` = 0.009042 /µm (paper eq 22).
-    """
-
-    amplitude: float = 1755 * UM
-    rate: float = 0.009042 / UM
-    name: str = "exp"
-
-    def gap(self, ds):
-        """``F(D_s)``: the gap that gives displacement ``D_s`` (m); ``D_s`` ≤ 0 maps to an infinite gap."""
-        ds = np.asarray(ds, dtype=float)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(ds > 0, -np.log(np.where(ds > 0, ds, 1.0) / self.amplitude) / self.rate, np.inf)
-
-    def displacement(self, dg):
-        """``F⁻¹(D_g)``: displacement of a sphere passed at gap ``D_g`` (m)."""
-        return self.amplitude * np.exp(-self.rate * np.asarray(dg, dtype=float))
-
-    def slope(self, ds):
-        """``dF/dD_s = −1/(k·D_s)``."""
-        return -1.0 / (self.rate * np.asarray(ds, dtype=float))
-
-    def linearised(self, gap: float, name: str = "lin") -> LinSideModel:
-        """The tangent of ``F`` at the gap ``gap`` (m), as eq 23 linearises eq 22 (§VI-B).
-
-        At ``D_s0 = A·exp(−k·gap)``: ``F_lin(D_s) = gap + 1/k − D_s/(k·D_s0)``. The paper
-        says "about D_s = 500 µm", which lies in the contact region; read as the gap it gives,
-        for eq 22 itself, ``−5.80·D_s + 611 µm`` beside the printed ``−5.29·D_s + 621 µm``
-        (docs/push-control.md §4.2).
-        """
-        ds0 = float(self.displacement(gap))
-        return LinSideModel(slope_=-1.0 / (self.rate * ds0), intercept=float(gap) + 1.0 / self.rate, name=name)
-
-
-@dataclass(frozen=True)
-class LinSideModel:
-    """Eq 23: ``F_lin(D_s) = −5.29·D_s + 621 µm`` (affine; slope dimensionless).
-
-    Attributes
-    ----------
-    slope_ : float
-        −5.29 (paper eq 23).
-    intercept : float
-        621 µm (paper eq 23).
-    """
-
-    slope_: float = -5.29
-    intercept: float = 621 * UM
-    name: str = "lin"
-
-    def gap(self, ds):
-        return self.intercept + self.slope_ * np.asarray(ds, dtype=float)
-
-    def displacement(self, dg):
-        return (np.asarray(dg, dtype=float) - self.intercept) / self.slope_
-
-    def slope(self, ds):
-        return np.full_like(np.asarray(ds, dtype=float), self.slope_)
-
-
-@dataclass(frozen=True)
-class TabulatedSideModel:
-    """``D_s(D_g)`` from a table (e.g. the fluid model's Fig 6 curve), log-linear between points.
-
-    Beyond the table the end segments' exponential rates are extended. ``gap`` is the
-    exact inverse and ``slope`` is ``dF/dD_s`` of the segment in use.
-
-    Parameters
-    ----------
-    gaps, displacements : array_like
-        Increasing gaps and the (positive, decreasing) displacements they give (m).
-    """
-
-    gaps: tuple
-    displacements: tuple
-    name: str = "table"
-
-    def __post_init__(self):
-        g = np.asarray(self.gaps, dtype=float)
-        d = np.asarray(self.displacements, dtype=float)
-        if g.ndim != 1 or g.size < 2 or g.shape != d.shape:
-            raise MagctlError("side-push table needs at least two (gap, displacement) pairs of equal length")
-        if np.any(np.diff(g) <= 0) or np.any(d <= 0) or np.any(np.diff(d) >= 0):
-            raise MagctlError("side-push table: gaps must increase and displacements be positive and decreasing")
-        object.__setattr__(self, "gaps", tuple(g))
-        object.__setattr__(self, "displacements", tuple(d))
-
-    def _tab(self):
-        g = np.asarray(self.gaps)
-        ld = np.log(np.asarray(self.displacements))
-        return g, ld, np.diff(ld) / np.diff(g)
-
-    def displacement(self, dg):
-        g, ld, rate = self._tab()
-        dg = np.asarray(dg, dtype=float)
-        k = np.clip(np.searchsorted(g, dg) - 1, 0, g.size - 2)
-        return np.exp(ld[k] + rate[k] * (dg - g[k]))
-
-    def gap(self, ds):
-        g, ld, rate = self._tab()
-        ds = np.asarray(ds, dtype=float)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = np.log(np.where(ds > 0, ds, 1.0))
-            k = np.clip(np.searchsorted(-ld, -x) - 1, 0, g.size - 2)
-            return np.where(ds > 0, g[k] + (x - ld[k]) / rate[k], np.inf)
-
-    def slope(self, ds):
-        g, ld, rate = self._tab()
-        ds = np.asarray(ds, dtype=float)
-        k = np.clip(np.searchsorted(-ld, -np.log(ds)) - 1, 0, g.size - 2)
-        return 1.0 / (rate[k] * ds)
-
-
-SIDE_MODELS = {
-    "lin": "eq 23 as printed (fitted to the paper's Fig 6 simulation)",
-    "exp": "eq 22 as printed (fitted to the paper's Fig 6 simulation)",
-    "lin-fit": "eq 23's form refitted to magctl's Fig 6 curve (models/push.toml [side_fit])",
-    "exp-fit": "eq 22's form refitted to magctl's Fig 6 curve (models/push.toml [side_fit])",
-}
-"""The side-push models by name: the paper's eq 22/23 and the same forms fitted to magctl's plant."""
-
-
-def fitted_side_model() -> ExpSideModel:
-    """Eq 22's form fitted to magctl's own Fig 6 curve, as the paper fitted its simulation (§VI-B).
-
-    ``A`` and ``k`` come from ``models/push.toml`` ``[side_fit]``, which the ``sidepush-curve``
-    study regenerates (and a test checks against it).
-    """
-    fit = load_model("push").side_fit
-    return ExpSideModel(amplitude=float(fit.amplitude), rate=float(fit.rate), name="exp-fit")
-
-
-def side_model(name: str):
-    """A model of :data:`SIDE_MODELS`: ``"exp"`` → eq 22, ``"lin"`` → eq 23 (as printed);
-    ``"exp-fit"`` / ``"lin-fit"`` → the same forms fitted to magctl's Fig 6 curve, the linear one
-    the tangent of the exponential at ``[side_fit] about_gap`` (as eq 23 linearises eq 22)."""
-    if name == "exp":
-        return ExpSideModel()
-    if name == "lin":
-        return LinSideModel()
-    if name == "exp-fit":
-        return fitted_side_model()
-    if name == "lin-fit":
-        return fitted_side_model().linearised(float(load_model("push").side_fit.about_gap), name="lin-fit")
-    raise MagctlError(f"side-push model {name!r} is not known; use one of {', '.join(SIDE_MODELS)}")
-
-
-# --- parameters: models/push.toml, through the records of magctl.control.push.params -------------------
-def task_parameters(table: str) -> dict[str, tuple[Any, str]]:
-    """The parameters of the record named after ``models/push.toml`` table ``table`` (``"front"``, ``"side"``,
-    ``"assembly"``, ``"plan"``, ``"common"``) as keyword → (SI default, SI unit)."""
-    return RECORDS[table].spec()
-
-
-def task_defaults(table: str) -> dict:
-    """Keyword defaults (SI) of a push task (see :func:`task_parameters`)."""
-    return RECORDS[table].defaults()
-
-
-def with_defaults(table: str, **given) -> dict:
-    """``given`` with every None replaced by its :func:`task_defaults` value."""
-    defaults = task_defaults(table)
-    return {k: defaults[k] if v is None else v for k, v in given.items()}
 
 
 def sphere_radii() -> tuple[float, float]:
     """``(R_1, R_2)`` of eq 21 (m): the sphere radius of ``models/sphere.toml`` for both."""
     r = float(load_model("sphere").sphere.radius)
     return r, r
-
-
-def goal_distance(table: str) -> float:
-    """Default goal distance of a task (m): how far beyond the sphere, away from the robot (§VI)."""
-    return float(load_model("push")[table].goal_distance)
 
 
 # --- the attempt-level state machine shared by every push task -----------------------------------
@@ -224,7 +45,7 @@ class PushTask:
     """
 
     PARAMS: type[PushParams]
-    """The task's parameter record (:mod:`magctl.control.push.params`)."""
+    """The task's parameter record (:mod:`magctl.control.push_params`)."""
 
     def __getattr__(self, name: str):
         """A parameter of the task's record: ``task.eps`` is ``task.params.eps``."""
@@ -283,26 +104,19 @@ class PushTask:
                 substate("law", self.law.state_vars(), "the learning law's state"))
 
     def _kernel_params(self, **derived) -> tuple:
-        """``(p, gain)``: the kernels' :class:`~magctl.control.push.kernels.TaskParams` — the record's fields by
+        """``(p, gain)``: the kernels' :class:`~magctl.control.push_params.TaskParams` — the record's fields by
         name, the spheres, the law's kind and ``derived`` (what the task computes) — and the integrator law's gain
         (a dummy 0 for the other laws)."""
-        from magctl.control.push import kernels as k
-
         idx = self.sphere_indices
         law = self._law_kind()
         p = self.params.packed(i0=idx[0], i1=idx[-1], pair=len(idx) > 1, law=law, **derived)
-        gain = self.law.gain if law == k.LAW_INTEGRATOR else 0.0
+        gain = self.law.gain if law == LAW_INTEGRATOR else 0.0
         return p, np.atleast_1d(np.asarray(gain, dtype=float)).copy()
 
     def _law_kind(self) -> int:
-        """The kernels' code of the task's law (:data:`magctl.control.push.kernels.LAW_INTEGRATOR` …)."""
-        from magctl.control.curve_learning import CurveLearningLaw
-        from magctl.control.learning import LearningLaw
-        from magctl.control.push import kernels as k
-        from magctl.control.release_model import ReleasePolicyLaw
-
-        return {LearningLaw: k.LAW_INTEGRATOR, CurveLearningLaw: k.LAW_CURVE,
-                ReleasePolicyLaw: k.LAW_RELEASE}[type(self.law)]
+        """The kernels' code of the task's law (:data:`magctl.control.push_params.LAW_INTEGRATOR` …)."""
+        return {LearningLaw: LAW_INTEGRATOR, CurveLearningLaw: LAW_CURVE,
+                ReleasePolicyLaw: LAW_RELEASE}[type(self.law)]
 
     def _check_law(self, what: str, name: str, accepted: tuple[type, ...]) -> None:
         """Refuse a law whose kind the task's kernels do not run (``accepted``: the law classes they do)."""

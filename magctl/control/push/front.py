@@ -21,14 +21,8 @@ import numpy as np
 from magctl import FRAME_PERIOD_S
 from magctl.control.learning import LearningLaw, front_push_law
 from magctl.control.phases import FINISHED, FrontPhase
-from magctl.control.push.common import (
-    PushTask,
-    goal_distance,
-    release_dummies,
-    sphere_radii,
-    with_defaults,
-)
-from magctl.control.push.params import FrontParams
+from magctl.control.push.common import PushTask, release_dummies, sphere_radii
+from magctl.control.push_params import LAW_RELEASE, FrontParams, goal_distance, with_defaults
 from magctl.control.release_model import ReleasePolicyLaw, release_policy_law
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
@@ -51,10 +45,10 @@ class FrontPushTask(PushTask, Block):
     n_spheres, sphere : int
         Width of the ``spheres_est`` port and which sphere to push.
     params : FrontParams, optional
-        The task's parameters (:class:`~magctl.control.push.params.FrontParams`, ``models/push.toml``
+        The task's parameters (:class:`~magctl.control.push_params.FrontParams`, ``models/push.toml``
         ``[common]`` and ``[front]``); by default the file's.
     **overrides
-        Any field of :class:`~magctl.control.push.params.FrontParams` (``None`` keeps the value): ``kc`` and
+        Any field of :class:`~magctl.control.push_params.FrontParams` (``None`` keeps the value): ``kc`` and
         ``delta0`` (``K_c``, ``δ(0)`` of eq 13), ``learning`` (``"eq13"``, or ``"release"`` — the controller that
         models its own release, :class:`~magctl.control.release_model.ReleasePolicyLaw`, docs/push-control.md
         §7), ``eps`` (``ε_p`` of eq 12), ``push_tol`` (eq 11), ``max_attempts``, ``contact``, ``approach``,
@@ -93,7 +87,7 @@ class FrontPushTask(PushTask, Block):
         from magctl.control.push import kernels as k
         from magctl.core.kernel import Kernel
 
-        if self._law_kind() == k.LAW_RELEASE:
+        if self._law_kind() == LAW_RELEASE:
             return Kernel(step=k.release_front_step,
                           params=(*self._front_kernel_params(), *self.law.policy.kernel_tables()))
         return Kernel(step=k.front_step, params=self._front_kernel_with_dummies())

@@ -11,22 +11,21 @@ task's own step on a trial that is running, tracked and has its spheres, then :f
 The frames take a task's 15 entries with the law's first entry in the 8th place: ``law.x`` of the eq 13/18
 integrator, ``law.x`` (``δ``) of the release-model law, whose ``law.neighbours`` comes as ``nb``, or ``law.theta``
 of the curve-learning law, whose ``law.cov``, ``push_out`` and ``push_out_n`` come as three more arrays. Which law
-the task has is ``p.law`` (:data:`LAW_INTEGRATOR`, :data:`LAW_CURVE`, :data:`LAW_RELEASE`); a task without the
-others' arrays is given small dummies, never read.
+the task has is ``p.law`` (:data:`~magctl.control.push_params.LAW_INTEGRATOR`, ``LAW_CURVE``, ``LAW_RELEASE``); a
+task without the others' arrays is given small dummies, never read.
 
-Parameters come as a :class:`TaskParams` ``p`` read by field name (the task's record,
-:mod:`magctl.control.push.params`, plus what it derives), the integrator's gain (length 1, or one per trial), for
+Parameters come as a :class:`~magctl.control.push_params.TaskParams` ``p`` read by field name (the task's record,
+:mod:`magctl.control.push_params`, plus what it derives), the integrator's gain (length 1, or one per trial), for
 the side push the tabulated model's arrays and the curve law's :class:`~magctl.control.kernels.CurveParams`
 ``cp``, for the front push the release law's tables. Side-push models (``F`` of eq 17) are a kind code:
-:data:`MODEL_EXP` (eq 22, ``p.m0`` = A, ``p.m1`` = k), :data:`MODEL_LIN` (eq 23, intercept, slope) or
-:data:`MODEL_TABLE` (gaps, log displacements, rates). Status codes and phases are :mod:`magctl.control.status`'s
-and :mod:`magctl.control.phases`'s.
+:data:`~magctl.control.push_params.MODEL_EXP` (eq 22, ``p.m0`` = A, ``p.m1`` = k), ``MODEL_LIN`` (eq 23,
+intercept, slope) or ``MODEL_TABLE`` (gaps, log displacements, rates). Status codes and phases are
+:mod:`magctl.control.status`'s and :mod:`magctl.control.phases`'s.
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numba
 
@@ -50,6 +49,7 @@ from magctl.control.phases import (
     FrontPhase,
     SidePhase,
 )
+from magctl.control.push_params import LAW_CURVE, LAW_RELEASE, MODEL_EXP, MODEL_LIN
 from magctl.control.status import Status
 
 jit = numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
@@ -63,67 +63,6 @@ F_RETRACT, F_SETTLE = int(FrontPhase.RETRACT), int(FrontPhase.SETTLE)
 S_REPOSITION, S_PASS, S_SETTLE = int(SidePhase.REPOSITION), int(SidePhase.PASS), int(SidePhase.SETTLE)
 DIRT_SIDE, DIRT_FRONT = int(DirtStage.SIDE), int(DirtStage.FRONT)
 ASSEMBLY_FRONT, ASSEMBLY_SIDE = int(AssemblyStage.FRONT), int(AssemblyStage.SIDE)
-
-MODEL_EXP, MODEL_LIN, MODEL_TABLE = 0, 1, 2
-"""``TaskParams.model``: the side push's ``F`` of eq 17 — eq 22 (``m0`` = A, ``m1`` = k), eq 23 (``m0`` = intercept,
-``m1`` = slope) or the tabulated model."""
-LAW_INTEGRATOR, LAW_CURVE, LAW_RELEASE = 0, 1, 2
-"""``TaskParams.law``: eq 13/18 (:class:`~magctl.control.learning.LearningLaw`), the curve-learning law, the
-release-model law."""
-
-
-class TaskParams(NamedTuple):
-    """A push task's parameters as its kernels read them, by name (numba passes a named tuple by value).
-
-    The names are the task's own parameters (:mod:`magctl.control.push.params`, one record per ``models/push.toml``
-    table) where the kernels read one, and the values the task derives from its blocks below them; a kernel reads
-    only the fields of its task, the others keep these defaults."""
-
-    # every push task ([common], and the task's ε, attempt limit and keep-out)
-    eps: float = 0.0
-    clearance: float = 0.0
-    arrive_tol: float = 0.0
-    travel_speed: float = 0.0
-    workspace: float = 0.0
-    max_attempts: int = 0
-    settle_frames: int = 0
-    max_lost_frames: int = 0
-    phase_timeout_frames: int = 0
-    # which spheres: the pushed one, and for an assembly the fixed one, their radii and ε_as (eq 21)
-    i0: int = 0
-    i1: int = 0
-    pair: bool = False
-    r0: float = 0.0
-    r1: float = 0.0
-    eps_as: float = 0.0
-    # front push ([front])
-    push_tol: float = 0.0
-    contact: float = 0.0
-    approach: float = 0.0
-    retract: float = 0.0
-    push_speed: float = 0.0
-    # side push ([side], [assembly] θ_n, the model of eq 17, the learning law and its dirt response)
-    min_gap: float = 0.0
-    d_max: float = 0.0
-    behind: float = 0.0
-    ahead: float = 0.0
-    pass_speed: float = 0.0
-    fixed: bool = False
-    fixed_gap: float = 0.0
-    theta_n: float = 0.0
-    model: int = MODEL_EXP
-    m0: float = 0.0
-    m1: float = 0.0
-    law: int = LAW_INTEGRATOR
-    iterations: int = 0
-    push_out_weight: float = 0.0
-    push_out_min: float = 0.0
-    dirt_mobility: float = 0.0
-    dirt_passes: float = 0.0
-    prior_at_min_gap: float = 0.0
-    max_fronts: int = 0
-    front_first: bool = False
-
 
 AROUND_STEP = math.pi / 4
 TWO_PI = 2 * math.pi

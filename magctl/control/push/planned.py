@@ -34,7 +34,7 @@ from magctl.config import load_model
 from magctl.control.arrangement import arrangement as make_arrangement
 from magctl.control.assembly_planner import PassPlanner, PlanLimits
 from magctl.control.phases import FINISHED, START, SidePhase
-from magctl.control.planner import KEEP_OUT_M, PlanningError, plan_path
+from magctl.control.planner import PlanningError, plan_path, planner_defaults
 from magctl.control.push.common import PushTask
 from magctl.control.push.params import PlannedParams
 from magctl.control.status import Status
@@ -45,8 +45,6 @@ from magctl.core.ports import Port
 REPOSITION, PASS, SETTLE = int(SidePhase.REPOSITION), int(SidePhase.PASS), int(SidePhase.SETTLE)
 MAX_WAYPOINTS = 24
 """Waypoints kept for one repositioning path (the wavefront path after shortening has a handful)."""
-WAYPOINT_TOL = 50e-6
-"""The robot counts as past an intermediate waypoint within 50 µm (the pass start needs ``arrive_tol``)."""
 PLAN_FRAMES = 1
 """Frames from the frame that requests a plan to the first that uses it (``plan_frames``): 1, the next frame."""
 
@@ -101,6 +99,11 @@ class PlannedAssemblyTask(PushTask, Block):
         self.sphere_indices = tuple(range(n_spheres))
         self.law = PassPlanner(self.target, f"{name}_planner", planner=planner)
         self.cell = float(load_model("push").plan.reposition_cell)
+        planner = planner_defaults()
+        self.planner_keep_out = planner.keep_out   # the paper's 650 µm, [plan] reposition_clearance_um
+        # the robot counts as past an intermediate waypoint within this ([planner] waypoint_tol_um; the pass start
+        # needs arrive_tol)
+        self.waypoint_tol = planner.waypoint_tol
         self.law_limits = PlanLimits.default()
         self.bounds = self.law_limits.field
         ins, outs = self._ports(n_spheres)
@@ -139,7 +142,7 @@ class PlannedAssemblyTask(PushTask, Block):
         shape = np.array([self.target.eps_as, np.cos(self.target.bend / 2)])
         return Kernel(step=planned_frame, event="plan_due",
                       params=(self.params.packed(), area, self.target.bonds, self.target.contact.copy(), shape,
-                              WAYPOINT_TOL, self.plan_frames))
+                              self.waypoint_tol, self.plan_frames))
 
     def handle_event(self, state, u):
         """Plan the next pass (the :class:`~magctl.control.assembly_planner.PassPlanner` block: IPOPT on the pass
@@ -186,7 +189,7 @@ class PlannedAssemblyTask(PushTask, Block):
         x0, y0, x1, y1 = self.bounds
         pad = 2 * self.cell   # the pass ends may lie on the field's edge: the grid reaches past it
         bounds = (x0 - pad, y0 - pad, x1 + pad, y1 + pad)
-        keep_outs = dict.fromkeys((self.clearance, min(self.clearance, KEEP_OUT_M), self.law_limits.min_gap))
+        keep_outs = dict.fromkeys((self.clearance, min(self.clearance, self.planner_keep_out), self.law_limits.min_gap))
         for keep_out in keep_outs:
             try:
                 path = plan_path(robot, start, spheres, bounds=bounds, keep_out=keep_out, cell=self.cell)

@@ -41,17 +41,10 @@ from magctl import FRAME_PERIOD_S
 from magctl.control.curve_learning import CurveLearningLaw, curve_learning_law
 from magctl.control.learning import LearningLaw, side_push_law
 from magctl.control.phases import FINISHED, DirtStage, SidePhase
-from magctl.control.push.common import (
-    SIDE_MODELS,
-    ExpSideModel,
-    LinSideModel,
-    PushTask,
-    TabulatedSideModel,
-    curve_dummies,
-    side_model,
-)
+from magctl.control.push.common import PushTask, curve_dummies
 from magctl.control.push.front import FrontPushTask
-from magctl.control.push.params import CommonParams, DirtParams, SideParams
+from magctl.control.push_params import MODEL_EXP, MODEL_LIN, MODEL_TABLE, CommonParams, DirtParams, SideParams
+from magctl.control.side_models import SIDE_MODELS, ExpSideModel, LinSideModel, TabulatedSideModel, side_model
 from magctl.core.block import Block
 from magctl.core.checks import check_positive
 from magctl.core.errors import MagctlError
@@ -78,7 +71,7 @@ class SidePushTask(PushTask, Block):
     n_spheres, sphere : int
         Width of the ``spheres_est`` port and which sphere to push.
     params : SideParams, optional
-        The task's parameters (:class:`~magctl.control.push.params.SideParams`, ``models/push.toml``
+        The task's parameters (:class:`~magctl.control.push_params.SideParams`, ``models/push.toml``
         ``[common]`` and ``[side]``); by default the file's.
     **overrides
         Any field of the record (``None`` keeps the value): ``ks`` (``K_s`` of eq 18); ``model`` (``F`` of
@@ -163,19 +156,18 @@ class SidePushTask(PushTask, Block):
 
     def _side_kernel_params(self) -> tuple:
         """``(p, gain, gaps, log displacements, rates, cp)``: the task's
-        :class:`~magctl.control.push.kernels.TaskParams` (the model as a kind code and its coefficients), the
+        :class:`~magctl.control.push_params.TaskParams` (the model as a kind code and its coefficients), the
         integrator's gain, the tabulated model's arrays and the curve law's parameters (zeros with eq 18)."""
         from magctl.control import kernels as law_kernels
-        from magctl.control.push import kernels as k
 
         m = self.model
         table = (np.zeros(2), np.zeros(2), np.zeros(1))
         if type(m) is ExpSideModel:
-            kind, m0, m1 = k.MODEL_EXP, m.amplitude, m.rate
+            kind, m0, m1 = MODEL_EXP, m.amplitude, m.rate
         elif type(m) is LinSideModel:
-            kind, m0, m1 = k.MODEL_LIN, m.intercept, m.slope_
+            kind, m0, m1 = MODEL_LIN, m.intercept, m.slope_
         else:  # a TabulatedSideModel: the constructor takes no other kind
-            kind, m0, m1 = k.MODEL_TABLE, 0.0, 0.0
+            kind, m0, m1 = MODEL_TABLE, 0.0, 0.0
             table = tuple(np.ascontiguousarray(a, dtype=float) for a in m._tab())
         radii = getattr(self, "radii", (0.0, 0.0))
         curve = {}

@@ -45,15 +45,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from magctl.core.errors import MagctlError, ParameterError
+from magctl.core.units import UM
 from magctl.plant.fluid.domain import Domain
 from magctl.plant.fluid.flow import RobotFlow, flow_defaults
 from magctl.plant.fluid.geometry import RobotGeometry
 
 CACHE_VERSION = 1
 """Bumped whenever a change of this module changes the maps it would compute."""
-
-UM = 1e-6
-"""gmsh works in micrometres (OpenCASCADE's absolute tolerance is 1e-7 of the model unit)."""
 
 FACES = ("x_min", "x_max", "y_min", "y_max", "z_min", "z_max")
 
@@ -205,7 +203,7 @@ def box_mesh(geometry: RobotGeometry, domain: Domain, spec: MeshSpec = MeshSpec(
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("box")
         occ = gmsh.model.occ
-        s = 1.0 / UM
+        s = 1.0 / UM   # gmsh works in micrometres (OpenCASCADE's absolute tolerance is 1e-7 of the model unit)
         box = occ.addBox(x0 * s, y0 * s, z0 * s, (x1 - x0) * s, (y1 - y0) * s, (z1 - z0) * s)
         if robot:
             pts = [occ.addPoint(x * s, y * s, 0.0) for x, y in geometry.outline]

@@ -10,6 +10,7 @@ import pytest
 from reference import reference_of
 
 import magctl.loops
+from magctl.core.units import UM
 from magctl.plant.fluid import wall_drag
 from magctl.plant.fluid.bispherical import stagnation_flow
 from magctl.plant.fluid.params import sphere_params
@@ -17,7 +18,6 @@ from magctl.plant.sphere import Spheres
 from magctl.plant.sphere_kernel import accurate_state, wall_functions
 from magctl.studies.release_calibration import in_task_release
 
-UM = 1e-6
 MODES = ("paper", "accurate")
 
 
