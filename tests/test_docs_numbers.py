@@ -36,6 +36,16 @@ def test_the_readme_quotes_the_reproduce_times_of_its_results_file():
     assert f"{spaced(r['cold']['wall_s'])} s\ncold" in text or f"{spaced(r['cold']['wall_s'])} s cold" in text
 
 
+def test_the_readme_quotes_the_first_result_benchmark():
+    text = " ".join((ROOT / "README.md").read_text().split())
+    name = "2026-12-05-b4c86ff046.json"
+    assert f"benchmarks/results/{name}" in text
+    r = results(name)["first_result"]
+    first = next(s for s in r["steps"] if s["step"] != "magctl --help")
+    assert f"compiles magctl's kernels once ({first['wall_s']:.0f} s)" in text
+    assert f"took {r['total_s']:.0f} s with empty compile caches" in text
+
+
 def test_the_rig_guide_quotes_the_live_views_benchmark():
     text = " ".join((ROOT / "docs" / "rig.md").read_text().split())
     name = "2026-12-05-06361b5949.json"
