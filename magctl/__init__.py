@@ -5,7 +5,7 @@ analysis of the push loops, batched closed-loop simulation, and deployment on
 a rig through a hardware adapter.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 FRAME_RATE_HZ = 30.0
 """Camera frame rate; the base rate of every diagram (paper §II)."""
