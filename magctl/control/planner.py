@@ -59,7 +59,7 @@ def planner_defaults() -> PlannerDefaults:
     """The keep-out, cell side and block tolerances of ``models/push.toml`` (read on each call).
 
     The keep-out is the loaded SI value of ``[plan] reposition_clearance_um``, the same number as
-    :class:`~magctl.control.push.params.PlannedParams` ``clearance``. The ``[planner]`` values are the file's µm
+    :class:`~magctl.control.push_params.PlannedParams` ``clearance``. The ``[planner]`` values are the file's µm
     divided by :data:`~magctl.core.units.UM_PER_M`, the double nearest the length (``25 / 1e6 == 25e-6``): the
     loader's ``25 * 1e-6`` is one bit below it, and the grid's cell count ``floor((xmax − xmin) / h)`` can turn on
     that bit.

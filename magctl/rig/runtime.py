@@ -466,7 +466,8 @@ class Runtime:
                 if writer is not None or self.monitor is not None:
                     doc = (writer.event if writer is not None else event_document)(
                         ticks, obs, cmd_raw, cmd, out_doc, timing, activation, control=control)
-                    self._monitor("run_frame", doc, self._status(ticks + 1))
+                    if self.monitor is not None:
+                        self._monitor("run_frame", doc, self._status(ticks + 1))
                 self._last_cmd = cmd
                 pending_skips = 0
                 ticks += 1
@@ -541,7 +542,8 @@ class Runtime:
         if writer is not None or self.monitor is not None:
             doc = (writer.event if writer is not None else event_document)(
                 tick, obs, None, cmd, outputs, timing, activation, control=control, paused=True)
-            self._monitor("run_frame", doc, self._status(tick + 1))
+            if self.monitor is not None:
+                self._monitor("run_frame", doc, self._status(tick + 1))
 
     def _monitor(self, method: str, *docs) -> None:
         """Hand documents to the monitor. A monitor that fails is dropped with one warning: what a run shows must

@@ -36,7 +36,7 @@ from magctl.control.assembly_planner import PassPlanner, PlanLimits
 from magctl.control.phases import FINISHED, START, SidePhase
 from magctl.control.planner import PlanningError, plan_path, planner_defaults
 from magctl.control.push.common import PushTask
-from magctl.control.push.params import PlannedParams
+from magctl.control.push_params import PlannedParams
 from magctl.control.status import Status
 from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
@@ -62,7 +62,7 @@ class PlannedAssemblyTask(PushTask, Block):
         Passes optimised on the pass map with IPOPT, or the paper's method one sphere at a time
         (:data:`~magctl.control.assembly_planner.PLANNERS`).
     params : PlannedParams, optional
-        The task's parameters (:class:`~magctl.control.push.params.PlannedParams`); by default the file's.
+        The task's parameters (:class:`~magctl.control.push_params.PlannedParams`); by default the file's.
     **overrides
         Any field of the record (``None`` keeps the value): ``eps_as`` (``ε_as`` of eq 21, ``[assembly]``),
         ``max_attempts`` (passes before the task gives up, ``[plan] max_passes``), ``clearance`` (the
