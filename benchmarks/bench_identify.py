@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 TIME_TARGET_S = 30.0
 SEEDS = (3, 5, 7)
 """Seeds of the simulated rig: 3 is the round-trip test's; the others show how far one experiment's depth strays."""
-RIG = {("fluid.toml", "domain", "depth_mm"): 0.95, ("robot.toml", "robot", "slip_efficiency_1"): 0.58,
+RIG = {("fluid.toml", "domain", "depth_mm"): 0.95, ("robot.toml", "robot", "slip_efficiency_1"): 0.9,
        ("sphere.toml", "variability", "mobility_ratio"): 0.8, ("camera.toml", "camera", "latency_frames"): 3,
        ("camera.toml", "camera", "position_noise_px"): 0.6}
 

@@ -293,6 +293,18 @@ def load_file(path: str | os.PathLike) -> Params:
     return params
 
 
+def parse_params(text: str, where: str) -> Params:
+    """Parse and validate the text of one parameter file (a copy kept elsewhere, e.g. in a run log); ``where``
+    names it in errors, and its file name picks the file's type rules as :func:`load_file` does."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ParameterError(f"{where}: not valid TOML: {err}") from None
+    params = _parse_table(where, data)
+    check_rules(Path(where), data)
+    return params
+
+
 def load_model(name: str) -> Params:
     """Load ``models/<name>.toml`` (e.g. ``load_model("sphere")``)."""
     return load_file(models_dir() / f"{name}.toml")

@@ -97,3 +97,14 @@ def test_a_missing_name_is_caught():
     assert resolves("magctl.rig.log.read_log") and not resolves("magctl.rig.log.no_such_thing")
     assert not resolves("magctl.no_such_module")
     assert len(QUOTED) > 50
+
+
+def test_the_release_maps_counts_are_the_ones_its_file_holds():
+    import tomllib
+
+    text = " ".join((ROOT / "docs" / "push-control.md").read_text().split())
+    with open(ROOT / "models" / "front_release.toml", "rb") as fh:
+        prov = {k: v["value"] for k, v in tomllib.load(fh)["provenance"].items()}
+    assert (f"{spaced(prov['attempts_count'])} attempts, mean release {prov['release_mean_um']:.2f} ± "
+            f"{prov['release_std_um']:.2f} µm, contact in {100 * prov['p_contact_later_1']:.0f} % of the attempts "
+            f"after the first") in text

@@ -70,7 +70,8 @@ SAME_COST = 1e-6
 absolute): IPOPT's ``tol`` of 1e-6 leaves the same optimum reached from two starts this far apart."""
 @dataclass(frozen=True)
 class PlanLimits:
-    """The bounds every planned pass keeps (metres), from ``models/push.toml`` ``[plan]`` and the camera field."""
+    """The bounds every planned pass keeps (metres), from ``models/push.toml`` ``[plan]`` and the camera field
+    (shrunk by ``[common] field_margin_um``)."""
 
     min_gap: float
     end_clearance: float
@@ -83,7 +84,7 @@ class PlanLimits:
     def default(cls) -> PlanLimits:
         push, cam = load_model("push"), load_model("camera").camera
         p = push.plan
-        m = float(p.field_margin)
+        m = float(push.common.field_margin)
         w, h = float(cam.width * cam.pixel_size), float(cam.height * cam.pixel_size)
         return cls(float(push.side.min_gap) + float(p.gap_margin), float(p.end_clearance), float(p.min_length),
                    float(p.max_length), (m, m, w - m, h - m), float(p.length_weight))

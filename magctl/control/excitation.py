@@ -104,9 +104,9 @@ class ExcitationParams:
         unknown = sorted(set(given) - set(cls.__dataclass_fields__))
         if unknown:
             raise MagctlError(f"identify: unknown setting(s) {', '.join(unknown)}")
-        e = load_model("identify").experiment
+        e, common = load_model("identify").experiment, load_model("push").common
         defaults = {"hold": e.hold, "pause": e.pause, "segment": e.segment, "min_segment": e.min_segment,
-                    "side_max": e.side_max, "clearance": e.clearance, "field_margin": e.field_margin,
+                    "side_max": e.side_max, "clearance": common.clearance, "field_margin": common.field_margin,
                     "frequencies": e.frequencies, "amplitudes": e.b_osc, "static_field": load_drive().static_field,
                     "max_lost_frames": e.max_lost}
         values = {k: defaults[k] if given.get(k) is None else given[k] for k in defaults}

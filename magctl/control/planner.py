@@ -13,8 +13,8 @@ A start inside a keep-out disc first escapes radially to its edge (the
 robot has just pushed the sphere); a goal inside one, outside the workspace or
 cut off from the start raises :class:`PlanningError`.
 
-The defaults are read from ``models/push.toml`` by :func:`planner_defaults`: the keep-out is ``[plan]
-reposition_clearance_um``, the cell side and the :class:`Planner` block's tolerances are ``[planner]``.
+The defaults are read from ``models/push.toml`` by :func:`planner_defaults`: the keep-out is ``[common]
+clearance_um``, the cell side and the :class:`Planner` block's tolerances are ``[planner]``.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ class PlannerDefaults:
     """The planner's defaults (m), from ``models/push.toml``: :func:`planner_defaults`."""
 
     keep_out: float
-    """Keep-out distance from a sphere centre while repositioning: ``[plan] reposition_clearance_um``
+    """Keep-out distance from a sphere centre while repositioning: ``[common] clearance_um``
     (650 µm, paper §VI-B)."""
     cell: float
     """Grid cell side: ``[planner] cell_um``."""
@@ -58,7 +58,7 @@ class PlannerDefaults:
 def planner_defaults() -> PlannerDefaults:
     """The keep-out, cell side and block tolerances of ``models/push.toml`` (read on each call).
 
-    The keep-out is the loaded SI value of ``[plan] reposition_clearance_um``, the same number as
+    The keep-out is the loaded SI value of ``[common] clearance_um``, the same number as
     :class:`~magctl.control.push_params.PlannedParams` ``clearance``. The ``[planner]`` values are the file's µm
     divided by :data:`~magctl.core.units.UM_PER_M`, the double nearest the length (``25 / 1e6 == 25e-6``): the
     loader's ``25 * 1e-6`` is one bit below it, and the grid's cell count ``floor((xmax − xmin) / h)`` can turn on
@@ -66,7 +66,7 @@ def planner_defaults() -> PlannerDefaults:
     """
     push = load_model("push")
     raw = push.planner.raw
-    return PlannerDefaults(keep_out=float(push.plan.reposition_clearance), cell=raw["cell_um"] / UM_PER_M,
+    return PlannerDefaults(keep_out=float(push.common.clearance), cell=raw["cell_um"] / UM_PER_M,
                            waypoint_tol=raw["waypoint_tol_um"] / UM_PER_M, replan_tol=raw["replan_tol_um"] / UM_PER_M)
 
 

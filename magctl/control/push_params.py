@@ -260,7 +260,7 @@ class FrontParams(CommonParams):
     contact: float = _from("front")
     approach: float = _from("front")
     retract: float = _from("front")
-    clearance: float = _from("front", check="nonnegative")
+    clearance: float = _from("common", check="nonnegative")
     push_speed: float = _from("front")
 
 
@@ -299,7 +299,7 @@ class PlannedParams(CommonParams):
     (docs/push-control.md §8); its attempt limit is ``max_passes`` and its keep-out the repositioning clearance."""
 
     max_attempts: int = _from("plan", "max_passes", check="count")
-    clearance: float = _from("plan", "reposition_clearance", check="nonnegative")
+    clearance: float = _from("common", check="nonnegative")
     pass_speed: float = _from("side")
     eps_as: float = _from("assembly", check="nonnegative")
 

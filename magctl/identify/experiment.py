@@ -19,8 +19,9 @@ the previous one left the robot and the sphere:
 
 The plan holds no positions: the side pushes' goals are the task's defaults, resolved from each run's first
 observation, and the front pushes' goals are resolved by :func:`run_experiment` from the previous run's last one.
-It runs on any rig whose scene the sweep can start from (the robot at least ``clearance_um`` from the sphere,
-``field_margin_um`` inside the field, with room for the squares: ``magctl rig serve-sim``'s default scene).
+It runs on any rig whose scene the sweep can start from (the robot at least ``models/push.toml [common]
+clearance_um`` from the sphere, ``field_margin_um`` inside the field, with room for the squares: ``magctl rig
+serve-sim``'s default scene).
 :func:`run_experiment` runs the plan through the code path
 of ``magctl rig run`` (:func:`magctl.rig.runtime.open_rig`, :class:`magctl.rig.runtime.Runtime`), one run log
 per run, ``NN-name.jsonl``; it stops at the first run that ends otherwise than its spec expects.

@@ -23,9 +23,10 @@ import numpy as np
 
 from magctl.config import Params, load_model, require
 from magctl.core.errors import ParameterError
+from magctl.plant.outline import robot_outline
 
-ROBOT_KEYS = ("length", "width", "thickness", "fill_fraction", "magnetization", "film_gap", "pitch_drag_ratio",
-              "break_angle", "slip_efficiency", "step_cv")
+ROBOT_KEYS = ("fill_fraction", "magnetization", "film_gap", "pitch_drag_ratio", "break_angle", "slip_efficiency",
+              "step_cv")
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,8 @@ class StickSlipParams:
     Attributes
     ----------
     length, width, thickness : float
-        Body ``ℓ × w × t``, m (paper §II: 480 × 310 × 130 µm).
+        Body ``ℓ × w × t``, m: ``ℓ`` along the heading (paper §II: 310 × 480 × 130 µm; the robot's outline,
+        ``models/robot_geometry.toml``).
     fill_fraction : float
         ``φ``: fraction of the bounding box the star shape fills.
     magnetization : float
@@ -86,7 +88,8 @@ class StickSlipParams:
 
 
 def load_robot(name: str = "robot", fluid: str = "fluid") -> StickSlipParams:
-    """Read ``models/<name>.toml`` ``[robot]`` and the fluid viscosity ``µ = ν ρ`` from ``models/<fluid>.toml``."""
+    """Read ``models/<name>.toml`` ``[robot]``, the body's size from the robot's outline (``robot_outline()``) and
+    the fluid viscosity ``µ = ν ρ`` from ``models/<fluid>.toml``."""
     p = load_model(name)
     if "robot" not in p or not isinstance(p.robot, Params):
         raise ParameterError(f"{p._path}: missing [robot] table")
@@ -97,7 +100,9 @@ def load_robot(name: str = "robot", fluid: str = "fluid") -> StickSlipParams:
             raise ParameterError(f"{p._path}:robot.{k}: value {v!r} must be {'≥ 0' if k == 'step_cv' else '> 0'}")
     f = load_model(fluid).fluid
     require(f, "viscosity", "density")
-    return StickSlipParams(**vals, viscosity=float(f.viscosity * f.density))
+    body = robot_outline()
+    return StickSlipParams(length=body.length, width=body.width, thickness=body.thickness, **vals,
+                           viscosity=float(f.viscosity * f.density))
 
 
 def heading_rate(p: StickSlipParams, b_xy) -> np.ndarray:

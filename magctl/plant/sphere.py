@@ -46,11 +46,12 @@ from magctl.core.ports import Port
 from magctl.plant.fluid import params as fluid_params
 from magctl.plant.fluid.domain import Domain
 from magctl.plant.fluid.flow import RobotFlow, robot_flow
-from magctl.plant.fluid.geometry import Polygon, RobotGeometry
+from magctl.plant.fluid.geometry import RobotGeometry
 from magctl.plant.fluid.lubrication import edge_curvatures, film_area, film_laws
 from magctl.plant.fluid.params import GRAVITY, SphereParams, fluid_viscosity, sphere_params
 from magctl.plant.fluid.surface import pull_off_range
 from magctl.plant.fluid.wall_drag import mobility, normal_factors, wall_table
+from magctl.plant.outline import Polygon
 
 InitialPositions = np.ndarray | Callable[[int, object], np.ndarray]
 

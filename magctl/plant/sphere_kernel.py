@@ -412,7 +412,7 @@ def sphere_frame(xy, gap, mult, pos, vel, turn, n_sub, tau, flat, gx, gy, dgx, d
     points, forces, eps, viscosity, height
         The flow's far-field point forces (``RobotFlow``), for spheres off the map.
     x0, y0, dx, dy, ab2, y1, area, log_coef
-        Footprint edges (:class:`~magctl.plant.fluid.geometry.Polygon`), the face film's ``A`` and the edge
+        Footprint edges (:class:`~magctl.plant.outline.Polygon`), the face film's ``A`` and the edge
         law's ``aC`` per edge (:func:`~magctl.plant.fluid.lubrication.film_laws`).
     sink_rate, held_rate : float
         ``W_b/ζ`` and ``(W_b + P)/ζ`` of eq 8–9 [m/s]; the adhesion ``P`` acts within

@@ -49,6 +49,7 @@ from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import MagctlError
 from magctl.core.kernel import Kernel
 from magctl.core.ports import Port
+from magctl.plant.fluid.params import sphere_params
 from magctl.plant.robot import ROBOT_INPUTS
 
 __all__ = ["FieldGait", "KinematicRobot", "StandinParams", "StandinSpheres", "StandinTracker", "StraightToTarget",
@@ -85,11 +86,13 @@ class StandinParams:
 
 
 def standin_params() -> StandinParams:
-    """The stand-in's parameters: ``models/rig.toml`` ``[standin]`` and ``models/push.toml`` ``[release]``."""
+    """The stand-in's parameters: ``models/rig.toml`` ``[standin]``, ``models/push.toml`` ``[release]`` and the
+    sphere radius of ``models/sphere.toml``."""
     sd = load_model("rig").standin
     release = load_model("push").release
-    return StandinParams(contact_distance=float(sd.robot_contact_radius + sd.sphere_radius),
-                         sphere_radius=float(sd.sphere_radius), side_range=float(sd.side_range),
+    radius = sphere_params().radius
+    return StandinParams(contact_distance=float(sd.robot_contact_radius + radius),
+                         sphere_radius=float(radius), side_range=float(sd.side_range),
                          workspace_half=float(sd.workspace_half), release_mean=float(release.mean),
                          release_std=float(release.std))
 

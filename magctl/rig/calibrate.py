@@ -59,6 +59,8 @@ from scipy import ndimage, optimize, special
 
 from magctl.config import read_toml
 from magctl.core.errors import MagctlError
+from magctl.plant.outline import RobotOutline
+from magctl.sensing.camera import robot_sdf, seen_shapes
 
 SETTLE_TAUS = 12.0
 """Heading time constants to wait after a field step: a 120° step settles to 1e-5 rad (tan(e/2) ∝ e^{−t/τ})."""
@@ -102,7 +104,7 @@ class Blob:
     centre : (2,) ndarray
         Centroid (column j, row i), px.
     elongation : float
-        √(λ₁/λ₂) of its second moments (1 for a disc, 1.55 for the 480 × 310 µm robot).
+        √(λ₁/λ₂) of its second moments (1 for a disc, about 1.5 for the 310 × 480 µm robot).
     box : tuple of slices
         Bounding box (rows, columns).
     border : bool
@@ -204,22 +206,31 @@ def disc_diameter(seg: Segmentation, blob: Blob) -> float | None:
 
 @dataclass(frozen=True)
 class RobotPose:
-    """The robot's blob in a frame: centroid (column j, row i) px and heading in the image (rad, from +j towards
-    +i), ``front`` the distance (px) the middle of its extent lies ahead of the centroid (the notch's sign)."""
+    """The robot's blob in a frame: its reference point (column j, row i) px, its heading in the image (rad, from +j
+    towards +i) and ``margin``, the pixels by which the outline at this heading covers the blob better than turned
+    by half a turn (how sure the front is the front)."""
 
     centre: np.ndarray
     heading: float
-    front: float
+    margin: float
 
 
-def robot_pose(seg: Segmentation, robot_area_px: float) -> RobotPose | None:
+def robot_pose(seg: Segmentation, robot_area_px: float, outline_px: RobotOutline | None = None) -> RobotPose | None:
     """The robot's pose in the image, or None when no blob looks like it (elongated, not a disc, 0.4–2.5× the
     expected area ``robot_area_px``, inside the frame).
 
-    Axis: the principal axis of the darkness ``max(background − I, 0)`` over the blob grown by 3 px (the robot is
-    symmetric about its long axis, so that is its heading's line). Sign: the blob's extent along the axis is
-    symmetric about the body's middle while the notch moves the centroid backwards.
+    ``outline_px`` is the robot's outline in pixels (default the robot's,
+    :func:`magctl.plant.outline.robot_outline`, at the pixel size that gives ``robot_area_px``).
+
+    Line: the major principal axis of the darkness ``max(background − I, 0)`` over the blob grown by 3 px, turned
+    back by the outline's own (:attr:`~magctl.plant.outline.RobotOutline.major_axis`, π/2: the robot is wider than
+    long); the robot is mirror symmetric about its heading, so that is the heading's line. Sense: the outline is
+    laid over the blob, its centroid on the blob's, at both headings of the line; its front notch, deeper than
+    the rear one, makes one cover the blob better (a mirrored image changes nothing: the outline is symmetric).
     """
+    if outline_px is None:
+        robot = seen_shapes().robot
+        outline_px = robot.scaled(math.sqrt(robot_area_px / robot.area))
     cands = [b for b in seg.blobs if not b.border and b.elongation > 1.2 and 0.4 <= b.area / robot_area_px <= 2.5]
     if not cands:
         return None
@@ -233,11 +244,16 @@ def robot_pose(seg: Segmentation, robot_area_px: float) -> RobotPose | None:
     cj, ci = (dark * xx).sum() / m, (dark * yy).sum() / m
     dx, dy = xx - cj, yy - ci
     mxx, myy, mxy = (dark * dx * dx).sum() / m, (dark * dy * dy).sum() / m, (dark * dx * dy).sum() / m
-    axis = 0.5 * math.atan2(2.0 * mxy, mxx - myy)
-    proj = (dx[mask] * math.cos(axis) + dy[mask] * math.sin(axis))
-    front = 0.5 * (proj.max() + proj.min())
-    heading = axis if front >= 0 else axis + math.pi
-    return RobotPose(np.array([cj, ci]), float(_wrap(heading)), float(abs(front)))
+    line = 0.5 * math.atan2(2.0 * mxy, mxx - myy) - outline_px.major_axis
+    covered = []
+    for heading in (line, line + math.pi):
+        c, s = math.cos(heading), math.sin(heading)
+        gx, gy = outline_px.centroid
+        origin = np.array([cj - (c * gx - s * gy), ci - (s * gx + c * gy)])
+        covered.append((int(np.count_nonzero(mask & (robot_sdf(xx, yy, origin, heading, outline_px) < 0))),
+                        heading, origin))
+    (best, heading, origin), (other, _, _) = sorted(covered, key=lambda t: -t[0])
+    return RobotPose(origin, float(_wrap(heading)), float(best - other))
 
 
 # --- driving the rig ------------------------------------------------------------------------------------------
@@ -315,11 +331,7 @@ class _Setting:
 
 
 def _robot_area_px(pixel_size: float) -> float:
-    from magctl.sensing.camera import camera_params
-
-    r = camera_params().render
-    notch = 0.5 * math.pi * r.robot_notch_radius**2
-    return (r.robot_length * r.robot_width - notch) / pixel_size**2
+    return seen_shapes().robot.area / pixel_size**2
 
 
 def _settle_frames(field_T: float, period: float, settle_taus: float) -> int:
@@ -343,11 +355,12 @@ def _measure(session: RigSession, setting: _Setting, settle: int, frames: int, r
         if pose is None:
             raise CalibrationError(
                 f"{what}: robot not found in frame {frame.number} (no dark elongated blob of about "
-                f"{robot_area:.0f} px, the 480 × 310 µm robot at the lab's pixel size, inside the frame; "
+                f"{robot_area:.0f} px, the robot's outline at the lab's pixel size, inside the frame; "
                 f"{len(seg.blobs)} dark blobs)")
-        if pose.front < 1.0:
+        if pose.margin < max(4.0, 0.01 * robot_area):
             raise CalibrationError(f"{what}: cannot tell the robot's front from its back in frame {frame.number} "
-                                   f"(notch offset {pose.front:.2f} px < 1 px: too few pixels across the robot?)")
+                                   f"(its outline covers the blob by {pose.margin:.0f} px more one way than the "
+                                   f"other, under 1 % of its {robot_area:.0f} px: too few pixels across the robot?)")
         setting.poses.append(pose)
         setting.headings.append(pose.heading)
         if sphere_px is not None:

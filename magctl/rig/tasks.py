@@ -13,7 +13,8 @@ Options are the controller's: for the push tasks every parameter of ``models/pus
 the task uses (``eps_um``, ``clearance_um``, ``kc``, ``max_attempts`` …) plus ``goal``, for
 every task but ``identify`` ``servo`` (a setting of ``models/servo.toml``) and ``speed_max``; for
 ``identify`` (the open-loop speed sweep of :mod:`magctl.control.excitation`) its times and distances
-(``hold_s``, ``pause_s``, ``segment_s``, ``side_max_um``, ``clearance_um``; ``models/identify.toml``).
+(``hold_s``, ``pause_s``, ``segment_s``, ``side_max_um``: ``models/identify.toml``; ``clearance_um``:
+``models/push.toml [common]``).
 A length, speed or time is given with its unit in the key (``goal_um``, ``push_speed_um_s``; any unit suffix of
 :data:`magctl.config.UNITS` of the right kind); an unknown key is an error. The resolved options
 (every parameter, SI, in ``_m``/``_m_s``/``_rad``/``_s``-suffixed keys so that they round-trip exactly)
@@ -514,7 +515,7 @@ def _identify(first_obs: Observation, options: dict, params: Params) -> Task:
     """The open-loop speed sweep for identification (:mod:`magctl.control.excitation`): squares driven over a grid
     of field frequencies and rocking amplitudes, from where the robot is, away from the nearest sphere; ``done``
     after the last segment, ``failed`` on a safety stop (a sphere within ``clearance``, the field's edge within
-    ``models/identify.toml`` ``field_margin_um``)."""
+    ``models/push.toml`` ``[common] field_margin_um``)."""
     record, logged = _excitation_params(options)
     robot = np.asarray(first_obs.robot_est, dtype=float)
     spheres = np.asarray(first_obs.spheres_est, dtype=float).reshape(-1, 2)

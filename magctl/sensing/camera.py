@@ -6,9 +6,9 @@ Two modes share the sampling and latency model:
   would report: the robot position and each sphere centre, plus noise
   ``σ_px`` (pixels) and rounded to the pixel grid, and the robot heading with
   noise ``σ_θ``.
-* ``"images"`` renders a grayscale frame (640 × 480 by default) of the robot
-  outline and the spheres with optical blur and sensor noise
-  (:func:`render_frame`), for the particle-filter tracker.
+* ``"images"`` renders a grayscale frame (640 × 480 by default) of the robot's
+  outline (:mod:`magctl.plant.outline`) and the spheres with optical blur and
+  sensor noise (:func:`render_frame`), for the particle-filter tracker.
 
 A frame sampled at step ``k`` is delivered at step ``k + latency`` (the image
 processing lag, §VI-A). Before the first frame arrives, when the frame is
@@ -28,15 +28,21 @@ no kernel and runs in Python.
 
 from __future__ import annotations
 
+import os
+from dataclasses import dataclass
+from functools import lru_cache
+
 import numpy as np
 from scipy import ndimage
 
 from magctl import FRAME_PERIOD_S
-from magctl.config import Params, load_model
+from magctl.config import Params, load_model, models_dir
 from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import ParameterError
 from magctl.core.kernel import Kernel
 from magctl.core.ports import DIMENSIONLESS, Port
+from magctl.plant.fluid.params import sphere_params
+from magctl.plant.outline import RobotOutline, robot_outline
 
 MODES = ("positions", "images")
 
@@ -65,25 +71,38 @@ def outside_view(points, span: tuple[float, float]) -> np.ndarray:
 
 
 # --- rendering --------------------------------------------------------------------------------
-def _box_sdf(px, py, half_l, half_w):
-    qx, qy = np.abs(px) - half_l, np.abs(py) - half_w
-    outside = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))
-    return outside + np.minimum(np.maximum(qx, qy), 0.0)
+@dataclass(frozen=True)
+class SeenShapes:
+    """What the camera sees, in m: the robot's outline (:func:`magctl.plant.outline.robot_outline`) and the
+    spheres' radius (``models/sphere.toml``), the plant's own statements of them."""
+
+    robot: RobotOutline
+    sphere_radius: float
 
 
-def robot_sdf(x, y, position, heading, length, width, notch):
-    """Signed distance (m, negative inside) to the robot outline.
+@lru_cache(maxsize=8)
+def _shapes_of(folder: str, stamps: tuple) -> SeenShapes:
+    return SeenShapes(robot_outline(), float(sphere_params().radius))
 
-    A ``length × width`` rectangle along ``heading`` with a disc of radius ``notch``
-    cut from the centre of its front edge: a simplified outline of the star-shaped
-    robot with its concave front face (paper §II, Fig. 1).
-    """
+
+def seen_shapes() -> SeenShapes:
+    """:class:`SeenShapes` of the current parameter set, read once per version of its files."""
+    folder = models_dir()
+    stamps = []
+    for name in ("robot_geometry.toml", "sphere.toml"):
+        try:
+            stamps.append(os.stat(folder / name).st_mtime_ns)
+        except OSError:
+            stamps.append(-1)   # the loaders name the missing file
+    return _shapes_of(str(folder), tuple(stamps))
+
+
+def robot_sdf(x, y, position, heading, outline: RobotOutline):
+    """Signed distance (negative inside) from points ``(x, y)`` to the robot's outline at ``position`` turned to
+    ``heading``; lengths in the outline's units (m, or pixels for :meth:`RobotOutline.scaled` ones)."""
     c, s = np.cos(heading), np.sin(heading)
-    dx, dy = x - position[0], y - position[1]
-    px, py = c * dx + s * dy, -s * dx + c * dy
-    body = _box_sdf(px, py, length / 2, width / 2)
-    cut = np.hypot(px - length / 2, py) - notch
-    return np.maximum(body, -cut)
+    dx, dy = np.asarray(x) - position[0], np.asarray(y) - position[1]
+    return outline.signed_distance(c * dx + s * dy, -s * dx + c * dy)
 
 
 def _coverage(sdf, pixel):
@@ -91,7 +110,7 @@ def _coverage(sdf, pixel):
 
 
 def render_frame(position, heading, spheres, render: Params, *, pixel: float, width: int, height: int,
-                 noise: np.ndarray | None = None) -> np.ndarray:
+                 noise: np.ndarray | None = None, shapes: SeenShapes | None = None) -> np.ndarray:
     """One grayscale frame (height × width, values in [0, 1]) of the robot and the spheres.
 
     Objects are drawn with anti-aliased edges (area coverage from the signed
@@ -107,7 +126,11 @@ def render_frame(position, heading, spheres, render: Params, *, pixel: float, wi
         The ``[render]`` table of ``models/camera.toml``.
     noise : (height, width) array, optional
         Standard normal draws; no noise when None.
+    shapes : SeenShapes, optional
+        The robot's outline and the sphere radius; default :func:`seen_shapes`.
     """
+    shapes = seen_shapes() if shapes is None else shapes
+    radius = shapes.sphere_radius
     img = np.full((height, width), render.background)
     margin = 4 * max(render.blur_sigma, 1.0) + 2
 
@@ -123,12 +146,10 @@ def render_frame(position, heading, spheres, render: Params, *, pixel: float, wi
         win += cov * (level - win)
 
     for sx, sy in np.asarray(spheres, dtype=float).reshape(-1, 2):
-        paint(sx, sy, render.sphere_radius,
-              lambda x, y, sx=sx, sy=sy: np.hypot(x - sx, y - sy) - render.sphere_radius, render.sphere_level)
+        paint(sx, sy, radius, lambda x, y, sx=sx, sy=sy: np.hypot(x - sx, y - sy) - radius, render.sphere_level)
     pos = np.asarray(position, dtype=float)
-    reach = np.hypot(render.robot_length, render.robot_width) / 2
-    dims = (render.robot_length, render.robot_width, render.robot_notch_radius)
-    paint(pos[0], pos[1], reach, lambda x, y: robot_sdf(x, y, pos, heading, *dims), render.robot_level)
+    paint(pos[0], pos[1], shapes.robot.reach, lambda x, y: robot_sdf(x, y, pos, heading, shapes.robot),
+          render.robot_level)
     if render.blur_sigma > 0:
         img = ndimage.gaussian_filter(img, render.blur_sigma, mode="nearest")
     if noise is not None:
@@ -177,6 +198,7 @@ class Camera(Block):
         params = camera_params() if params is None else params
         cam = params.camera
         self.params = params
+        self.shapes = seen_shapes()
         self.mode = mode
         self.n_spheres = int(n_spheres)
         self.latency = int(cam.latency if latency_frames is None else latency_frames)
@@ -310,7 +332,7 @@ class Camera(Block):
             if rng is not None and self.params.render.noise_sigma > 0:
                 noise = rng.large("standard_normal", b, (self.height, self.width), at=state["k"])
             frames[b] = render_frame(pos[b], head[b], sph[b], self.params.render, pixel=self.pixel,
-                                     width=self.width, height=self.height, noise=noise)
+                                     width=self.width, height=self.height, noise=noise, shapes=self.shapes)
             if not delivered[b]:
                 frames[b] = self.params.render.background
         return frames

@@ -1,8 +1,8 @@
 """Particle filters on the image gradient for the robot pose and the spheres (paper §II, ref [21]).
 
 Each object has a contour model: points ``c_k`` on its outline with outward
-normals ``n_k`` (a circle of the sphere radius; the robot's rectangle with its
-concave front notch, as rendered by :func:`magctl.sensing.camera.robot_sdf`). A
+normals ``n_k`` (a circle of the sphere radius; the robot's own outline,
+:mod:`magctl.plant.outline`, as :func:`magctl.sensing.camera.render_frame` draws it). A
 dark object on a bright background has an image gradient pointing outward
 across its edge, so a particle (pose hypothesis) is scored by the mean edge
 strength along its contour::
@@ -34,7 +34,8 @@ from scipy import ndimage
 
 from magctl.config import Params
 from magctl.core.errors import MagctlError
-from magctl.sensing.camera import render_frame, robot_sdf
+from magctl.plant.outline import RobotOutline
+from magctl.sensing.camera import SeenShapes, render_frame, robot_sdf, seen_shapes
 
 
 class DetectionError(MagctlError):
@@ -48,31 +49,19 @@ def sphere_contour(radius: float, k: int = 24) -> tuple[np.ndarray, np.ndarray]:
     return radius * n, n
 
 
-def robot_contour(length: float, width: float, notch: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
-    """Outline points (K, 2) of the robot in its own frame (x along the heading) and outward normals."""
-    hl, hw = length / 2, width / 2
+def robot_contour(outline: RobotOutline, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points (K, 2) on the robot's outline in its own frame (x along the heading), about ``spacing`` apart on each
+    edge, and their outward normals; in the outline's units."""
+    v = outline.vertices
     pts, nrm = [], []
-
-    def edge(p0, p1, normal):
-        m = max(2, int(np.hypot(*(np.subtract(p1, p0))) / spacing))
+    for p0, p1 in zip(v, np.roll(v, -1, axis=0), strict=True):
+        d = p1 - p0
+        length = float(np.hypot(*d))
+        m = max(1, int(round(length / spacing)))
         t = (np.arange(m) + 0.5) / m
-        for ti in t:
-            p = (1 - ti) * np.asarray(p0) + ti * np.asarray(p1)
-            pts.append(p)
-            nrm.append(normal)
-
-    edge((-hl, -hw), (hl, -hw), (0, -1))
-    edge((-hl, hw), (hl, hw), (0, 1))
-    edge((-hl, -hw), (-hl, hw), (-1, 0))
-    edge((hl, -hw), (hl, -notch), (1, 0))
-    edge((hl, notch), (hl, hw), (1, 0))
-    # the notch: a half circle centred on the front edge; outward (out of the body) points to its centre
-    m = max(4, int(np.pi * notch / spacing))
-    for a in np.linspace(np.pi / 2, 3 * np.pi / 2, m + 2)[1:-1]:
-        d = np.array([np.cos(a), np.sin(a)])
-        pts.append(np.array([hl, 0.0]) + notch * d)
-        nrm.append(-d)
-    return np.asarray(pts, dtype=float), np.asarray(nrm, dtype=float)
+        pts.append(p0 + t[:, None] * d)
+        nrm.append(np.broadcast_to(np.array([d[1], -d[0]]) / length, (m, 2)))   # outward of a counter-clockwise loop
+    return np.vstack(pts), np.vstack(nrm)
 
 
 def systematic_resample(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -147,26 +136,29 @@ class _ObjectFilter:
         return np.where(n_seen >= MIN_SEEN * px.shape[1], score, 0.0)
 
     def _turn_check(self, image, new, score):
-        """Score the estimate ``new`` half-turned and slid along its axis by up to half the outline's reach; if one
-        of those poses scores higher than ``new``, move ``new`` and the whole cloud there. Returns the estimate's
-        score.
+        """Score the estimate ``new`` as it is and half-turned, slid along its axis by up to half the outline's
+        reach; if one of those poses scores higher than ``new``, move ``new`` and the whole cloud there. Returns the
+        estimate's score.
 
-        The outline is symmetric under a half turn but for the notch: a cloud that settled on a turned pose (one
+        The outline is symmetric under a half turn but for its notches: a cloud that settled on a turned pose (one
         that matched the part of the robot in view as it entered the frame) sits in a local maximum of the score
-        that particle diffusion does not leave."""
+        that particle diffusion does not leave; and a robot that moved along its axis further than the particles
+        spread (frames without an image) is better matched by the estimate slid than by the estimate turned."""
         c, s = np.cos(new[2]), np.sin(new[2])
         slide = np.arange(-np.floor(self.reach / 2), np.floor(self.reach / 2) + 1, 2.0)
-        poses = np.stack([new[0] + slide * c, new[1] + slide * s, np.full(slide.size, new[2] + np.pi)], axis=1)
-        turned = self.scores(image, poses)
-        k = int(np.argmax(turned))
-        if turned[k] <= score:
+        turns = np.repeat([0.0, np.pi], slide.size)
+        along = np.tile(slide, 2)
+        poses = np.stack([new[0] + along * c, new[1] + along * s, new[2] + turns], axis=1)
+        scores = self.scores(image, poses)
+        k = int(np.argmax(scores))
+        if scores[k] <= score:
             return score
         self.particles[:, 0] += poses[k, 0] - new[0]
         self.particles[:, 1] += poses[k, 1] - new[1]
-        self.particles[:, 2] += np.pi
+        self.particles[:, 2] += turns[k]
         new[:2] = poses[k, :2]
         new[2] = np.arctan2(np.sin(poses[k, 2]), np.cos(poses[k, 2]))
-        return float(turned[k])
+        return float(scores[k])
 
     def step(self, image, valid, threshold):
         """Predict, weight on ``image`` (if valid), estimate, resample; returns the estimate's score."""
@@ -222,15 +214,17 @@ class ImageTracker:
     """
 
     def __init__(self, params: Params, *, n_spheres: int, pixel: float, dt: float, init_robot=None,
-                 init_heading: float = 0.0, init_spheres=None, seed=0):
+                 init_heading: float = 0.0, init_spheres=None, seed=0, shapes: SeenShapes | None = None):
         r, tr = params.render, params.tracker
         self.render, self.pixel, self.n_spheres, self.dt = r, float(pixel), int(n_spheres), float(dt)
+        self.shapes = seen_shapes() if shapes is None else shapes
+        self.outline_px = self.shapes.robot.scaled(1.0 / self.pixel)
         self.threshold = float(tr.edge_threshold)
         rng = np.random.default_rng(seed)
         n = int(tr.particles)
         sig, sig_h = float(tr.particle_position_sigma), float(tr.particle_heading_sigma)
-        rpts, rnrm = robot_contour(r.robot_length / pixel, r.robot_width / pixel, r.robot_notch_radius / pixel, 3.0)
-        spts, snrm = sphere_contour(r.sphere_radius / pixel)
+        rpts, rnrm = robot_contour(self.outline_px, 3.0)
+        spts, snrm = sphere_contour(self.shapes.sphere_radius / pixel)
         tau = 0.04
         self.robot = _ObjectFilter(rpts, rnrm, True, n, sig, sig_h, tau, rng)
         self.spheres = [_ObjectFilter(spts, snrm, False, n, sig, 0.0, tau, rng) for _ in range(self.n_spheres)]
@@ -244,10 +238,10 @@ class ImageTracker:
 
     def _calibrate(self):
         """Reference edge scores: each model scored at its true pose on a clean rendered frame."""
-        r, s = self.render, self.pixel
-        size = int(2 * (r.robot_length + 4 * r.sphere_radius) / s) + 20
+        r, s, robot = self.render, self.pixel, self.shapes.robot
+        size = int(2 * (max(robot.length, robot.width) + 4 * self.shapes.sphere_radius) / s) + 20
         clean = render_frame(np.array([size / 2 * s, size / 2 * s]), 0.0, np.array([[size / 2 * s, 0.2 * size * s]]),
-                             r, pixel=s, width=size, height=size)
+                             r, pixel=s, width=size, height=size, shapes=self.shapes)
         self.robot.s_ref = float(self.robot.scores(clean, np.array([[size / 2, size / 2, 0.0]]))[0])
         ref = float(self.spheres[0].scores(clean, np.array([[size / 2, 0.2 * size, 0.0]]))[0]) if self.spheres \
             else 1.0
@@ -260,33 +254,47 @@ class ImageTracker:
             f.reset(p[0], p[1], 0.0)
         self.started = True
 
-    def detect(self, image) -> None:
-        """Initialise from dark blobs: the darkest large blob is the robot, sphere-sized blobs are spheres."""
+    def _robot_blob(self, image):
+        """The robot's blob (the largest robot-dark one, at least a quarter of the robot's area) and the best-scoring
+        pose near it, or ``(None, reason)``.
+
+        The blob's major axis turned back by the outline's own (:attr:`RobotOutline.major_axis`) is the heading's
+        line; both senses and offsets of up to 6 px from the blob's centroid are scored (the notches move the
+        centroid off the body's origin, and a robot partly out of view has its blob cut by the frame)."""
         r = self.render
-        dark = image < 0.5 * (r.background + r.sphere_level)
         very_dark = image < 0.5 * (r.sphere_level + r.robot_level)
         lab, n = ndimage.label(very_dark)
         if n == 0:
-            raise DetectionError("no robot-dark blob in the first frame")
+            return None, "no robot-dark blob"
         sizes = ndimage.sum_labels(very_dark, lab, np.arange(1, n + 1))
-        robot_area = r.robot_length * r.robot_width / self.pixel**2
+        robot_area = self.shapes.robot.area / self.pixel**2
         if sizes.max() < 0.25 * robot_area:  # a speck has no axis (its covariance is NaN): it is not the robot
-            raise DetectionError(f"the largest robot-dark blob in the first frame has {int(sizes.max())} pixels, "
-                                 f"under a quarter of the robot's {robot_area:.0f}")
-        robot_lab = 1 + int(np.argmax(sizes))
-        ii, jj = np.nonzero(lab == robot_lab)
+            return None, (f"the largest robot-dark blob has {int(sizes.max())} pixels, under a quarter of the "
+                          f"robot's {robot_area:.0f}")
+        blob = lab == 1 + int(np.argmax(sizes))
+        ii, jj = np.nonzero(blob)
         cy, cx = ii.mean(), jj.mean()
         cov = np.cov(np.stack([jj - cx, ii - cy]))
         evals, evecs = np.linalg.eigh(cov)
         axis = evecs[:, 1]
-        theta = np.arctan2(axis[1], axis[0])
-        # the notch makes the centroid sit behind the body centre: try both directions and offsets
+        theta = np.arctan2(axis[1], axis[0]) - self.shapes.robot.major_axis   # the blob's major axis → the heading
         cands = np.array([[cx + dx, cy + dy, th] for th in (theta, theta + np.pi) for dx in np.arange(-6, 7, 2)
                           for dy in np.arange(-6, 7, 2)])
-        best = cands[int(np.argmax(self.robot.scores(image, cands)))]
-        grown = ndimage.binary_dilation(lab == robot_lab, iterations=3)
+        scores = self.robot.scores(image, cands)
+        k = int(np.argmax(scores))
+        return blob, (cands[k], float(scores[k]))
+
+    def detect(self, image) -> None:
+        """Initialise from dark blobs: the darkest large blob is the robot, sphere-sized blobs are spheres."""
+        r = self.render
+        dark = image < 0.5 * (r.background + r.sphere_level)
+        blob, found_robot = self._robot_blob(image)
+        if blob is None:
+            raise DetectionError(f"{found_robot} in the first frame")
+        best = found_robot[0]
+        grown = ndimage.binary_dilation(blob, iterations=3)
         slab, sn = ndimage.label(dark & ~grown)
-        area = np.pi * (r.sphere_radius / self.pixel) ** 2
+        area = np.pi * (self.shapes.sphere_radius / self.pixel) ** 2
         found = []
         if sn:
             sizes = ndimage.sum_labels(dark, slab, np.arange(1, sn + 1))
@@ -297,14 +305,25 @@ class ImageTracker:
         found.sort()
         self._start(best[:2], float(best[2]), np.asarray(found).reshape(-1, 2))
 
+    def _reacquire(self, image) -> bool:
+        """The particles missed the robot in this frame (it turned or moved further than they spread, or came back
+        into view somewhere else): where a robot-dark blob shows a pose that scores at least the detection
+        threshold, the cloud starts again there, as at detection, and the robot counts as found in this frame."""
+        blob, found = self._robot_blob(image)
+        if blob is None or found[1] < self.threshold:
+            return False
+        pose = found[0]
+        self.robot.reset(pose[0], pose[1], pose[2])
+        self.robot.velocity = np.zeros(2)
+        self.robot.missed = self.robot.searched = 0
+        return True
+
     def _robot_occluder(self):
         """Which pixel points the robot (at this frame's estimate) hides: inside its outline or on its blurred edge.
         A sphere pushed into the robot's notch is half hidden; its visible arc is what its filter scores."""
-        r, s = self.render, self.pixel
         x, y, heading = self.robot.estimate
-        dims = (r.robot_length / s, r.robot_width / s, r.robot_notch_radius / s)
-        centre = np.array([x, y])
-        return lambda px, py: robot_sdf(px, py, centre, heading, *dims) < OCCLUSION_MARGIN_PX
+        centre, outline = np.array([x, y]), self.outline_px
+        return lambda px, py: robot_sdf(px, py, centre, heading, outline) < OCCLUSION_MARGIN_PX
 
     def step(self, image: np.ndarray, valid: bool):
         """Track one frame: the robot first, then the spheres with the part the robot hides left out. Returns
@@ -314,6 +333,8 @@ class ImageTracker:
                 return np.zeros(2), 0.0, np.zeros(2), np.zeros((self.n_spheres, 2)), False
             self.detect(image)
         found = bool(valid and self.robot.step(image, valid, self.threshold) >= self.threshold)
+        if valid and not found:
+            found = self._reacquire(image)
         occluder = self._robot_occluder()
         for f in self.spheres:
             f.occluder = occluder

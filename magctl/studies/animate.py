@@ -19,13 +19,8 @@ from PIL import Image
 
 from magctl.core.errors import MagctlError
 from magctl.core.units import UM_PER_M
-
-SPHERE_RADIUS_M = 105e-6
-"""Radius of the 210 µm polystyrene spheres (paper §II)."""
-
-ROBOT_LENGTH_M = 310e-6
-ROBOT_WIDTH_M = 480e-6
-"""Planar size of the star-shaped Mag-µBot, 310 × 480 µm (paper §II); length along the heading."""
+from magctl.plant.fluid.params import sphere_params
+from magctl.plant.outline import robot_outline
 
 MAX_FRAMES = 150
 """Default cap on frames per GIF: keeps files small whatever the trajectory length."""
@@ -33,34 +28,6 @@ MAX_FRAMES = 150
 
 class AnimationError(MagctlError, ValueError):
     """Trajectories or options handed to :func:`animate_push` are malformed; the message names the argument."""
-
-
-def star_outline(length: float = ROBOT_LENGTH_M, width: float = ROBOT_WIDTH_M, waist: float = 0.5) -> np.ndarray:
-    """A four-pointed star in the robot frame (+x = heading), tips at the corners of ``length × width``.
-
-    The two front tips and the indented vertex between them form the concave
-    forward face that captures spheres (paper §II, Fig 1).
-
-    Parameters
-    ----------
-    length, width : float
-        Extent along and across the heading, in m.
-    waist : float
-        Inner vertices sit at this fraction of the half extents (0 < waist < 1).
-
-    Returns
-    -------
-    ndarray, shape (8, 2)
-        Vertices in m, counter-clockwise.
-    """
-    if not (length > 0 and width > 0 and 0 < waist < 1):
-        raise AnimationError(f"star outline needs length > 0, width > 0 and 0 < waist < 1, "
-                             f"got {length}, {width}, {waist}")
-    a, b = length / 2, width / 2
-    return np.array([
-        [a, b], [0.0, waist * b], [-a, b], [-waist * a, 0.0],
-        [-a, -b], [0.0, -waist * b], [a, -b], [waist * a, 0.0],
-    ])
 
 
 def frame_indices(n_steps: int, stride: int) -> np.ndarray:
@@ -109,7 +76,7 @@ def _validate(t, robot_xy, robot_heading, spheres_xy, goal, outline, fps, stride
     if goal is not None:
         shape = (2,) if np.ndim(goal) == 1 else (n, 2)
         goal = np.broadcast_to(_array("goal", goal, shape, f"(2,) or (T, 2) = ({n}, 2) in m"), (n, 2))
-    outline = star_outline() if outline is None else _array("outline", outline, (None, 2), "(P, 2) in m")
+    outline = robot_outline().vertices if outline is None else _array("outline", outline, (None, 2), "(P, 2) in m")
     if len(outline) < 3:
         raise AnimationError(f"outline needs at least 3 vertices, got {len(outline)}")
     for name, arr in (("robot_xy", robot_xy), ("spheres_xy", spheres_xy), ("goal", goal), ("outline", outline)):
@@ -139,7 +106,7 @@ def _extent(robot_xy, spheres_xy, goal, outline, radius, margin=80e-6):
 
 def animate_push(t, robot_xy, robot_heading, spheres_xy, path, *, goal=None, outline=None, fps: float = 15,
                  stride: int | None = None, trail: bool = True, title: str | None = None,
-                 sphere_radius: float = SPHERE_RADIUS_M, max_frames: int = MAX_FRAMES, size_px: int = 360) -> Path:
+                 sphere_radius: float | None = None, max_frames: int = MAX_FRAMES, size_px: int = 360) -> Path:
     """Write a GIF of one push trial.
 
     Parameters
@@ -157,7 +124,8 @@ def animate_push(t, robot_xy, robot_heading, spheres_xy, path, *, goal=None, out
     goal : array, shape (2,) or (T, 2), optional
         Goal of the pushed sphere in m, drawn as a cross.
     outline : array, shape (P, 2), optional
-        Robot outline in the robot frame, m; default :func:`star_outline`.
+        Robot outline in the robot frame, m; default the robot's own
+        (:func:`magctl.plant.outline.robot_outline`, 310 µm along the heading, 480 µm across).
     fps : float
         Playback frame rate.
     stride : int, optional
@@ -167,8 +135,8 @@ def animate_push(t, robot_xy, robot_heading, spheres_xy, path, *, goal=None, out
         Draw the robot's path so far.
     title : str, optional
         Text above the plot.
-    sphere_radius : float
-        Sphere radius in m (paper: 105 µm).
+    sphere_radius : float, optional
+        Sphere radius in m; default ``models/sphere.toml`` (the paper's 105 µm).
     max_frames : int
         Cap on frames when ``stride`` is not given.
     size_px : int
@@ -181,6 +149,9 @@ def animate_push(t, robot_xy, robot_heading, spheres_xy, path, *, goal=None, out
     """
     t, robot_xy, robot_heading, spheres_xy, goal, outline = _validate(
         t, robot_xy, robot_heading, spheres_xy, goal, outline, fps, stride)
+    sphere_radius = sphere_params().radius if sphere_radius is None else sphere_radius
+    if not (isinstance(sphere_radius, (int, float)) and math.isfinite(sphere_radius) and 0 < sphere_radius < 0.1):
+        raise AnimationError(f"sphere_radius must be a positive length in metres, got {sphere_radius!r}")
     stride = int(stride) if stride is not None else default_stride(t, fps, max_frames)
     frames = frame_indices(len(t), stride)
     path = Path(path)

@@ -39,10 +39,13 @@ def conditioned(exp, conditions: str):
     if conditions == "magctl":
         return exp
     push = load_model("push")
-    paper = push.paper_conditions      # models/push.toml [paper_conditions]: §IV-D bound, §VI clearance, servo
+    paper = push.paper_conditions      # models/push.toml [paper_conditions]: §IV-D bound, servo
     names = task_fields(exp.kind)
     task = dict(exp.task)
-    task.update({k: float(getattr(paper, k)) for k in ("min_gap", "clearance") if k in names})
+    if "min_gap" in names:
+        task["min_gap"] = float(paper.min_gap)
+    if "clearance" in names:
+        task["clearance"] = float(push.common.clearance)     # §VI's 650 µm, [common] clearance_um
     task["servo"] = str(paper.servo)
     if isinstance(task.get("model"), str):      # the default model is already the printed eq 23
         task["model"] = PAPER_MODELS.get(task["model"], task["model"])

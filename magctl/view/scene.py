@@ -1,9 +1,10 @@
 """What the page draws, from a run's own documents: the scene's fixed part and the error of each attempt.
 
-The fixed part comes from the start document alone — the camera field and the robot's and spheres' outlines from
-the run's own ``camera.toml`` (the text in ``models_toml``, so a log drawn years later is drawn with the geometry
-it ran with), the goal, its ε band and the contact threshold from the resolved task options, the coil ratings from
-the logged limits — so the live page and the replay page of one run draw the same picture.
+The fixed part comes from the start document alone — the camera field from the run's own ``camera.toml``, the
+robot's outline from its ``robot_geometry.toml`` and the sphere radius from its ``sphere.toml`` (the texts in
+``models_toml``, so a log drawn years later is drawn with the geometry it ran with), the goal, its ε band and the
+contact threshold from the resolved task options, the coil ratings from the logged limits — so the live page and
+the replay page of one run draw the same picture.
 
 The error per attempt is the distance from the goal to the nearest sphere at the frame where the task's
 ``attempt`` output steps (the end of that attempt), the quantity the push laws (eq 13-20) drive below ε. The
@@ -18,16 +19,17 @@ import math
 import tomllib
 from typing import Any
 
-from magctl.config import models_dir
+from magctl.config import Params, models_dir, parse_params
 from magctl.control.status import STATUS_NAMES
+from magctl.core.errors import ParameterError
+from magctl.plant.outline import RobotOutline
 from magctl.rig.log import task_phases
 
-_CAMERA_KEYS = {"camera": ("width_px", "height_px", "pixel_size_um"),
-                "render": ("robot_length_um", "robot_width_um", "robot_notch_radius_um", "sphere_radius_um")}
+_CAMERA_KEYS = {"camera": ("width_px", "height_px", "pixel_size_um")}
 
 
 def _camera_table(models_toml: dict[str, str] | None) -> dict[str, float]:
-    """The field and outline values of the run's camera.toml (the shipped file when the log carries none)."""
+    """The field values of the run's camera.toml (the shipped file when the log carries none)."""
     text = (models_toml or {}).get("camera.toml")
     if not isinstance(text, str):
         text = (models_dir() / "camera.toml").read_text("utf-8")
@@ -45,6 +47,32 @@ def _camera_table(models_toml: dict[str, str] | None) -> dict[str, float]:
                 raise ValueError(f"camera.toml: [{table}] {key} is missing or not a positive number")
             out[key] = float(value)
     return out
+
+
+def _logged_params(models_toml: dict[str, str] | None, name: str) -> Params:
+    """The run's own parameter file ``name`` (the shipped one when the log carries none)."""
+    text = (models_toml or {}).get(name)
+    if not isinstance(text, str):
+        text = (models_dir() / name).read_text("utf-8")
+    try:
+        return parse_params(text, name)
+    except ParameterError as err:
+        raise ValueError(str(err)) from None
+
+
+def _shapes(models_toml: dict[str, str] | None) -> dict[str, Any]:
+    """The robot's outline (body frame, m, counter-clockwise) and the sphere radius the run was simulated or tracked
+    with."""
+    try:
+        robot = RobotOutline.from_params(_logged_params(models_toml, "robot_geometry.toml"))
+        radius = float(_logged_params(models_toml, "sphere.toml").sphere.radius)
+    except (ParameterError, AttributeError) as err:
+        raise ValueError(f"the run's robot or sphere geometry: {err}") from None
+    if not (math.isfinite(radius) and radius > 0):
+        raise ValueError(f"sphere.toml: [sphere] radius {radius!r} is not a positive number")
+    return {"robot": {"length_m": robot.length, "width_m": robot.width,
+                      "outline_m": [[float(x), float(y)] for x, y in robot.vertices]},
+            "sphere_radius_m": radius}
 
 
 def _finite(x) -> float | None:
@@ -74,9 +102,7 @@ def scene_of(start: dict[str, Any], n_spheres: int | None = None) -> dict[str, A
         "uid": start.get("uid"), "task": task, "seed": start.get("seed"), "period_s": start.get("period_s"),
         # pixel centres span [0, (W−1)·s] (magctl.sensing.camera.view_span)
         "field_m": [(cam["width_px"] - 1) * pixel, (cam["height_px"] - 1) * pixel], "pixel_m": pixel,
-        "robot": {"length_m": cam["robot_length_um"] * 1e-6, "width_m": cam["robot_width_um"] * 1e-6,
-                  "notch_m": cam["robot_notch_radius_um"] * 1e-6},
-        "sphere_radius_m": cam["sphere_radius_um"] * 1e-6, "n_spheres": n,
+        **_shapes(start.get("models_toml")), "n_spheres": n,
         "goal_m": _point(options.get("goal_m")), "target_m": _point(options.get("target_m")),
         "eps_m": _finite(options.get("eps_m")), "contact_m": contact, "contact_label": contact_label,
         "coil_names": list(limits.get("coil_names") or []),

@@ -17,6 +17,7 @@ from magctl.plant.robot import load_robot, steady_speed
 from magctl.sensing.camera import field_of_view
 
 E = load_model("identify").experiment
+COMMON = load_model("push").common   # the clearance and field margin the sweep keeps
 B0 = load_drive().static_field
 W, H = field_of_view()
 ROBOT = np.array([1.0e-3, 1.8e-3])
@@ -154,19 +155,19 @@ def test_theta0_points_away_from_the_nearest_sphere_and_the_square_turns_away_fr
     robot = np.array([2.4e-3, 1.8e-3])
     near = robot + np.array([0.0, 1.0e-3])           # nearest, straight "up": θ0 points down
     other = robot + np.array([1.2e-3, -0.4e-3])      # to the right: the square must go left (clockwise from -y)
-    theta0, turn = square_start(robot, [other, near], E.side_max, E.clearance, E.field_margin)
+    theta0, turn = square_start(robot, [other, near], E.side_max, COMMON.clearance, COMMON.field_margin)
     assert math.cos(theta0 + math.pi / 2) == pytest.approx(1.0)
     assert turn == -1.0                              # θ0 - 90° from -y is -x
     mirrored = [2 * robot[0] - other[0], other[1]]   # the same, to the left: the square goes right
-    theta0, turn = square_start(robot, [mirrored, near], E.side_max, E.clearance, E.field_margin)
+    theta0, turn = square_start(robot, [mirrored, near], E.side_max, COMMON.clearance, COMMON.field_margin)
     assert turn == 1.0
-    # the default scene: squares from the robot stay E.field_margin inside the field and E.clearance off the sphere
-    theta0, turn = square_start(ROBOT, [SPHERE], E.side_max, E.clearance, E.field_margin)
+    # the default scene: squares from the robot stay the field margin inside the field and the clearance off the sphere
+    theta0, turn = square_start(ROBOT, [SPHERE], E.side_max, COMMON.clearance, COMMON.field_margin)
     u0 = np.array([math.cos(theta0), math.sin(theta0)])
     u1 = np.array([math.cos(theta0 + turn * math.pi / 2), math.sin(theta0 + turn * math.pi / 2)])
     corners = ROBOT + E.side_max * np.array([u0, u0 + u1, u1])
-    assert inside_field(corners, E.field_margin).all()
-    assert np.hypot(*(corners - SPHERE).T).min() >= E.clearance
+    assert inside_field(corners, COMMON.field_margin).all()
+    assert np.hypot(*(corners - SPHERE).T).min() >= COMMON.clearance
 
 
 @pytest.mark.parametrize("where", ["sphere", "edge"])
@@ -174,9 +175,9 @@ def test_a_sphere_within_the_clearance_or_the_field_edge_stops_the_sweep(block, 
     segs = block.segments()
     k_stop = segs[2].start + 2  # while driving
     if where == "sphere":
-        bad = _obs(spheres=[ROBOT + np.array([0.0, 0.99 * E.clearance])])
+        bad = _obs(spheres=[ROBOT + np.array([0.0, 0.99 * COMMON.clearance])])
     else:
-        bad = _obs(robot=[0.99 * E.field_margin, H / 2], spheres=[[3.0e-3, 1.8e-3]])
+        bad = _obs(robot=[0.99 * COMMON.field_margin, H / 2], spheres=[[3.0e-3, 1.8e-3]])
     rows = _run(block, k_stop + 5, at=lambda k: bad if k >= k_stop else _obs())
     assert all(r["status"] == Status.RUNNING for r in rows[:k_stop])
     assert rows[k_stop - 1]["b_osc"] > 0
@@ -184,7 +185,8 @@ def test_a_sphere_within_the_clearance_or_the_field_edge_stops_the_sweep(block, 
         assert r["status"] == Status.STALLED and np.all(r["b_static"] == 0) and r["b_osc"] == 0 and r["freq"] == 0
         assert r["segment"] == -1
     # just outside the clearance and the margin the sweep goes on
-    ok = _obs(robot=[1.01 * E.field_margin, H / 2], spheres=[[1.01 * E.field_margin, H / 2 + 1.01 * E.clearance]])
+    margin, clearance = COMMON.field_margin, COMMON.clearance
+    ok = _obs(robot=[1.01 * margin, H / 2], spheres=[[1.01 * margin, H / 2 + 1.01 * clearance]])
     assert all(r["status"] == Status.RUNNING for r in _run(block, k_stop + 2, ok))
 
 

@@ -10,7 +10,7 @@ from magctl.control.servo import Servo
 from magctl.core import Constant, Diagram, simulate
 from magctl.stability.servo import KinematicRobot
 
-KEEP_OUT_M = planner_defaults().keep_out   # models/push.toml [plan] reposition_clearance_um
+KEEP_OUT_M = planner_defaults().keep_out   # models/push.toml [common] clearance_um
 BOUNDS = (0.0, 0.0, 4.8e-3, 3.6e-3)
 
 
@@ -22,7 +22,7 @@ def _min_distance_dense(path, centres, n=200):
 
 
 def test_defaults_are_the_files_values_bit_for_bit():
-    """models/push.toml: the keep-out is [plan] reposition_clearance_um (paper §VI-B), the cell and the block's
+    """models/push.toml: the keep-out is [common] clearance_um (paper §VI), the cell and the block's
     tolerances [planner]; each the same double as the literal the code had (a changed bit can change the grid)."""
     d = planner_defaults()
     assert (d.keep_out, d.cell, d.waypoint_tol, d.replan_tol) == (650e-6, 25e-6, 50e-6, 15e-6)

@@ -22,6 +22,7 @@ from magctl.rig.tasks import IDENTIFY_OUTCOMES, PUSH_OUTCOMES, check_options
 from magctl.sensing.camera import field_of_view, outside_view
 
 E = load_model("identify").experiment
+COMMON = load_model("push").common   # the field margin the sweep keeps
 PUSH = load_model("push")
 SCENE = load_model("rig").scene
 W, H = field_of_view()
@@ -65,7 +66,7 @@ def test_the_plans_geometry_stays_in_the_camera_field_from_the_default_scene():
     """The front pushes' goals and approach points, then the side passes round where they leave the sphere, each
     as planned from the default scene (every push reaching its goal)."""
     sphere = np.asarray(SCENE.robot_start, dtype=float) + np.array([SCENE.sphere_spacing, 0.0])
-    margin = E.field_margin
+    margin = COMMON.field_margin
     for s in plan():
         if s.push_length is None:
             continue
@@ -118,7 +119,7 @@ def test_one_sweep_on_the_physical_rig_ends_done_with_the_robot_back_near_its_st
     assert (log.stop["exit_status"], log.stop["reason"]) == IDENTIFY_OUTCOMES[Status.CONVERGED]
     robot = np.array([e["obs"]["robot_est_m"] for e in log.events])
     assert np.hypot(*(robot[-1] - robot[0])) <= E.side_max
-    assert _inside(robot, E.field_margin).all()
+    assert _inside(robot, COMMON.field_margin).all()
     segments = {int(e["outputs"]["segment"]) for e in log.events} - {-1}
     assert segments and segments == set(range(max(segments) + 1))
 

@@ -21,9 +21,9 @@ from magctl.identify.folder import copy_with
 
 pytestmark = pytest.mark.slow
 
-PHYSICS = {  # the rig's values; the shipped ones are 1.05 mm, 0.487, 1, 2 frames, 0.3 px
+PHYSICS = {  # the rig's values; the shipped ones are 1.05 mm, 0.754, 1, 2 frames, 0.3 px
     ("fluid.toml", "domain", "depth_mm"): 0.95,
-    ("robot.toml", "robot", "slip_efficiency_1"): 0.58,
+    ("robot.toml", "robot", "slip_efficiency_1"): 0.9,
     ("sphere.toml", "variability", "mobility_ratio"): 0.8,
     ("camera.toml", "camera", "latency_frames"): 3,
     ("camera.toml", "camera", "position_noise_px"): 0.6,

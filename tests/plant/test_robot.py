@@ -27,9 +27,9 @@ def raw(name, table):
 
 @pytest.fixture(scope="module")
 def phys():
-    r, f = raw("robot", "robot"), raw("fluid", "fluid")
+    r, f, body = raw("robot", "robot"), raw("fluid", "fluid"), raw("robot_geometry", "outline")
     mu = f["viscosity_cSt"] * 1e-6 * f["density_kg_m3"]
-    L, W, T = r["length_um"] * 1e-6, r["width_um"] * 1e-6, r["thickness_um"] * 1e-6
+    L, W, T = body["length_um"] * 1e-6, body["width_um"] * 1e-6, body["thickness_um"] * 1e-6
     phi = r["fill_fraction_1"]
     m = r["magnetization_kA_m"] * 1e3 * phi * L * W * T
     a2 = phi * L * W / np.pi

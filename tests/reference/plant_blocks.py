@@ -18,9 +18,9 @@ import numpy as np
 from magctl.core.batched import rows_times
 from magctl.plant.coils import CoilActuator
 from magctl.plant.drive import ActuatedRobot, Drive
-from magctl.plant.fluid.geometry import Polygon
 from magctl.plant.fluid.lubrication import film_gap
 from magctl.plant.fluid.wall_drag import accurate_coefficients
+from magctl.plant.outline import Polygon
 from magctl.plant.robot import StickSlipRobot, steady_speed
 from magctl.plant.sphere import Spheres, separate_spheres
 from magctl.plant.standin import (
@@ -160,7 +160,7 @@ class RefActuatedRobot(NumpyForm, ActuatedRobot):
 def push_out_of_outline(rel: np.ndarray, outline, radius: float, iterations: int = 3):
     """Move circle centres ``rel (..., 2)`` (robot frame) so circles of ``radius`` do not overlap ``outline``.
 
-    ``outline`` is a ``(V, 2)`` polygon or a :class:`~magctl.plant.fluid.geometry.Polygon`.
+    ``outline`` is a ``(V, 2)`` polygon or a :class:`~magctl.plant.outline.Polygon`.
     Returns the corrected centres and a bool array of which ones were in contact.
     Several passes settle a sphere wedged in the concave front face.
     """

@@ -101,11 +101,29 @@ def test_rendered_frame_shows_objects_where_they_are():
     assert (mass * jj).sum() / mass.sum() == pytest.approx(3.0e-3 / s - int(3.0e-3 / s), abs=0.05)
     area = mass.sum() / (p.render.background - p.render.sphere_level)
     assert area == pytest.approx(np.pi * (105e-6 / s) ** 2, rel=0.03)
-    # the robot: 480 × 310 µm minus the front notch half-disc (area from the paper's dimensions)
-    rwin = p.render.background - img[200 - 40:200 + 41, 160 - 50:160 + 51]
+    # the robot: its 310 × 480 µm box minus the circular segments of its concave front, flanks and rear
+    rwin = p.render.background - img[200 - 45:200 + 46, 160 - 45:160 + 46]
     robot_area = rwin.sum() / (p.render.background - p.render.robot_level)
-    expect = (480e-6 * 310e-6 - 0.5 * np.pi * p.render.robot_notch_radius**2) / s**2
-    assert robot_area == pytest.approx(expect, rel=0.03)
+    assert robot_area == pytest.approx(star_area_m2() / s**2, rel=0.03)
+
+
+def star_area_m2() -> float:
+    """The outline's area in closed form from models/robot_geometry.toml: the box minus four circular segments
+    (chord c, sagitta d: ρ = (c²/4 + d²)/2d, area ρ² acos(1 − d/ρ) − (ρ − d) c/2)."""
+    import tomllib
+
+    from magctl.config import models_dir
+
+    with open(models_dir() / "robot_geometry.toml", "rb") as fh:
+        o = {k: v["value"] * 1e-6 for k, v in tomllib.load(fh)["outline"].items() if k.endswith("_um")}
+
+    def segment(c, d):
+        rho = (c * c / 4 + d * d) / (2 * d)
+        return rho**2 * np.arccos(1 - d / rho) - (rho - d) * c / 2
+
+    length, width = o["length_um"], o["width_um"]
+    return (length * width - segment(o["front_notch_width_um"], o["front_notch_depth_um"])
+            - 2 * segment(length, o["side_notch_depth_um"]) - segment(width, o["rear_notch_depth_um"]))
 
 
 def test_images_mode_ports_and_drops():

@@ -7,7 +7,8 @@ import pytest
 from PIL import Image
 
 from magctl.core.errors import MagctlError
-from magctl.studies.animate import AnimationError, animate_push, star_outline
+from magctl.plant.outline import robot_outline
+from magctl.studies.animate import AnimationError, animate_push
 
 FRAME_S = 1 / 30
 
@@ -84,12 +85,14 @@ def test_no_spheres_is_allowed(tmp_path):
 
 
 def test_default_outline_is_the_papers_310_by_480_star():
-    star = star_outline()
+    star = robot_outline().vertices
     extent = star.max(axis=0) - star.min(axis=0)
     np.testing.assert_allclose(extent, [310e-6, 480e-6], rtol=1e-12)
-    # concave front face: the vertex straight ahead is behind the front tips
-    (ahead,) = star[(star[:, 1] == 0) & (star[:, 0] > 0)]
-    assert 0 < ahead[0] < star[:, 0].max()
+    # concave front face: just behind the front edge, straight ahead is outside the robot, beside it inside
+    from matplotlib.path import Path as Outline
+
+    inside = Outline(star).contains_points([[star[:, 0].max() - 20e-6, 0.0], [star[:, 0].max() - 20e-6, 200e-6]])
+    assert list(inside) == [False, True]
 
 
 T = 20
@@ -125,6 +128,7 @@ def test_bad_input_is_named(tmp_path, change, message):
     assert not (tmp_path / "bad.gif").exists()
 
 
-def test_bad_star():
-    with pytest.raises(AnimationError, match="0 < waist < 1"):
-        star_outline(waist=1.5)
+def test_bad_sphere_radius(tmp_path):
+    with pytest.raises(AnimationError, match="sphere_radius must be a positive length in metres, got 105"):
+        animate_push(*GOOD, path=tmp_path / "r.gif", sphere_radius=105)
+    assert not (tmp_path / "r.gif").exists()

@@ -16,6 +16,7 @@ import time
 import urllib.error
 import urllib.request
 
+import numpy as np
 import pytest
 from view_helpers import ROOT, MagctlProcess
 
@@ -64,11 +65,16 @@ def ws_url(server) -> str:
 
 
 # --- the scene and the replay index ---------------------------------------------------------------------------
-def test_the_scene_comes_from_the_runs_own_camera_file(tmp_path):
+def test_the_scene_comes_from_the_runs_own_parameter_files(tmp_path):
     run = ReplayRun(side_push_log(tmp_path / "a.jsonl", ticks=30))
     scene = run.scene
     assert scene["field_m"] == pytest.approx(list(field_of_view()), rel=1e-12)
-    assert scene["robot"] == pytest.approx({"length_m": 480e-6, "width_m": 310e-6, "notch_m": 110e-6})
+    outline = np.array(scene["robot"]["outline_m"])
+    # the paper's 310 × 480 µm star, 310 µm along the heading (§II, §IV-D), its concave face ahead
+    assert np.ptp(outline, axis=0) == pytest.approx([310e-6, 480e-6], rel=1e-12)
+    assert (scene["robot"]["length_m"], scene["robot"]["width_m"]) == pytest.approx((310e-6, 480e-6))
+    front = outline[outline[:, 0] > 0]
+    assert front[np.abs(front[:, 1]) < 50e-6, 0].max() < 155e-6 - 60e-6
     assert scene["sphere_radius_m"] == pytest.approx(105e-6)
     opts = run.log.start["options"]
     assert scene["goal_m"] == opts["goal_m"] and scene["eps_m"] == opts["eps_m"]
@@ -82,6 +88,14 @@ def test_the_scene_comes_from_the_runs_own_camera_file(tmp_path):
     from magctl.view.scene import scene_of
 
     assert scene_of(start)["field_m"][0] == pytest.approx(1279 * 7.5e-6)
+    # … and with its own robot and sphere
+    start["models_toml"]["robot_geometry.toml"] = start["models_toml"]["robot_geometry.toml"].replace(
+        "length_um = { value = 310.0,", "length_um = { value = 400.0,")
+    start["models_toml"]["sphere.toml"] = start["models_toml"]["sphere.toml"].replace(
+        "radius_um = { value = 105.0,", "radius_um = { value = 50.0,")
+    other = scene_of(start)
+    assert np.ptp(np.array(other["robot"]["outline_m"])[:, 0]) == pytest.approx(400e-6)
+    assert other["sphere_radius_m"] == pytest.approx(50e-6)
 
 
 def test_attempt_rows_are_the_goal_distance_where_the_attempt_counter_steps(tmp_path):

@@ -100,7 +100,7 @@ class PlannedAssemblyTask(PushTask, Block):
         self.law = PassPlanner(self.target, f"{name}_planner", planner=planner)
         self.cell = float(load_model("push").plan.reposition_cell)
         planner = planner_defaults()
-        self.planner_keep_out = planner.keep_out   # the paper's 650 µm, [plan] reposition_clearance_um
+        self.planner_keep_out = planner.keep_out   # the paper's 650 µm, [common] clearance_um
         # the robot counts as past an intermediate waypoint within this ([planner] waypoint_tol_um; the pass start
         # needs arrive_tol)
         self.waypoint_tol = planner.waypoint_tol

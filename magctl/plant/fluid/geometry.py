@@ -1,9 +1,8 @@
-"""The star-shaped robot as a solid: outline, tilt and surface discretisation (paper §II, §IV-C).
+"""The star-shaped robot as a solid: its outline extruded, tilted and discretised (paper §II, §IV-C).
 
-Body frame: ``x`` forward, ``y`` left, ``z`` up from the glass. The outline is a
-``length × width`` star with a concave front face (the notch that captures
-spheres) and shallow concave flanks and rear, extruded to ``thickness`` and
-tilted by ``tilt`` about the edge that rests on the glass. The robot's reference
+Body frame: ``x`` forward, ``y`` left, ``z`` up from the glass. The outline is the robot's one
+(:mod:`magctl.plant.outline`), extruded to ``thickness`` and tilted by ``tilt`` about the edge
+that rests on the glass. The robot's reference
 point (its ``position`` port) is the centre of its footprint on the glass.
 """
 
@@ -16,114 +15,7 @@ import numpy as np
 
 from magctl.config import Params, load_model
 from magctl.core.errors import ParameterError
-
-
-def _arc(p0, p1, inward, sagitta, n, endpoint=False):
-    """Points from ``p0`` to ``p1`` (``p1`` only with ``endpoint``) bulging by ``sagitta`` along ``inward``."""
-    p0, p1, inward = (np.asarray(v, float) for v in (p0, p1, inward))
-    t = np.linspace(0.0, 1.0, n + 1 if endpoint else n, endpoint=endpoint)
-    chord = np.linalg.norm(p1 - p0)
-    line = p0 + t[:, None] * (p1 - p0)
-    if sagitta <= 0:
-        return line
-    rho = (chord**2 / 4 + sagitta**2) / (2 * sagitta)
-    offset = np.sqrt(np.maximum(rho**2 - (chord * (t - 0.5)) ** 2, 0.0)) - (rho - sagitta)
-    return line + offset[:, None] * inward
-
-
-def star_outline(length, width, front_notch_depth, front_notch_width, side_notch_depth, rear_notch_depth,
-                 arc_points=9) -> np.ndarray:
-    """Counter-clockwise outline ``(V, 2)`` [m] of the star robot in its body frame (x forward).
-
-    The front face has a circular concave notch of chord ``front_notch_width`` and
-    depth ``front_notch_depth``; flanks and rear are circular arcs of the given depths.
-    """
-    lx, wy = length / 2, width / 2
-    if not 0 < front_notch_width < width:
-        raise ParameterError(f"front notch width {front_notch_width * 1e6:.0f} µm must lie in (0, width)")
-    if not 0 <= front_notch_depth < length / 2:
-        raise ParameterError(f"front notch depth {front_notch_depth * 1e6:.0f} µm must lie in [0, length/2)")
-    cw = front_notch_width / 2
-    n = int(arc_points)
-    parts = [
-        np.array([[lx, -wy]]),
-        _arc([lx, -cw], [lx, cw], [-1, 0], front_notch_depth, n, endpoint=True),   # concave front face
-        _arc([lx, wy], [-lx, wy], [0, -1], side_notch_depth, n),          # left flank
-        _arc([-lx, wy], [-lx, -wy], [1, 0], rear_notch_depth, n),         # rear
-        _arc([-lx, -wy], [lx, -wy], [0, 1], side_notch_depth, n),         # right flank
-    ]
-    return np.vstack(parts)
-
-
-class Polygon:
-    """A closed polygon ``(V, 2)`` with its edge data computed once, for repeated point queries.
-
-    Queries take points as coordinate arrays ``x, y`` of any common shape and give the
-    same numbers as the array forms :func:`points_in_polygon` and :func:`polygon_distance`
-    (the same operations in the same order, only without rebuilding the edges per call).
-    """
-
-    def __init__(self, vertices: np.ndarray):
-        v = np.array(vertices, dtype=float)
-        if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3:
-            raise ParameterError(f"a polygon needs (V >= 3, 2) vertices, got shape {v.shape}")
-        v.setflags(write=False)
-        self.vertices = v
-        self.x0, self.y0 = v[:, 0], v[:, 1]
-        nxt = np.roll(v, -1, axis=0)
-        self.x1, self.y1 = nxt[:, 0], nxt[:, 1]
-        self.dx, self.dy = self.x1 - self.x0, self.y1 - self.y0     # edge vectors (also ab of the distance)
-        self.ab2 = self.dx * self.dx + self.dy * self.dy
-
-    def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Even-odd test of points ``(x, y)``."""
-        x, y = x[..., None], y[..., None]
-        crosses = (self.y0 > y) != (self.y1 > y)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xint = self.x0 + (y - self.y0) * self.dx / self.dy
-        return (crosses & (x < xint)).sum(axis=-1) % 2 == 1
-
-    def distance(self, x: np.ndarray, y: np.ndarray):
-        """Distance from points ``(x, y)`` to the boundary, and the nearest boundary point ``(nx, ny)``."""
-        shape = np.shape(x)
-        x, y = np.ravel(x)[:, None], np.ravel(y)[:, None]
-        apx, apy = x - self.x0, y - self.y0
-        t = np.minimum(np.maximum((apx * self.dx + apy * self.dy) / self.ab2, 0.0), 1.0)
-        px, py = self.x0 + t * self.dx, self.y0 + t * self.dy
-        ex, ey = x - px, y - py
-        d2 = ex * ex + ey * ey
-        # nearest edge of each point, gathered from the flattened (points × edges) tables
-        k = np.argmin(d2, axis=-1) + np.arange(0, d2.size, d2.shape[1])
-        dist = np.sqrt(d2.take(k))
-        return dist.reshape(shape), px.take(k).reshape(shape), py.take(k).reshape(shape)
-
-
-def _polygon(poly) -> Polygon:
-    return poly if isinstance(poly, Polygon) else Polygon(poly)
-
-
-def points_in_polygon(pts: np.ndarray, poly) -> np.ndarray:
-    """Even-odd test of points ``(..., 2)`` against a closed polygon ``(V, 2)`` or :class:`Polygon`."""
-    pts = np.asarray(pts, float)
-    return _polygon(poly).contains(pts[..., 0], pts[..., 1])
-
-
-def polygon_distance(pts: np.ndarray, poly):
-    """Distance from points ``(..., 2)`` to the polygon boundary and the nearest boundary point.
-
-    Parameters
-    ----------
-    pts : ndarray (..., 2)
-    poly : ndarray (V, 2) or Polygon
-
-    Returns
-    -------
-    dist : ndarray (...)
-    nearest : ndarray (..., 2)
-    """
-    pts = np.asarray(pts, float)
-    dist, nx, ny = _polygon(poly).distance(pts[..., 0], pts[..., 1])
-    return dist, np.stack([nx, ny], axis=-1)
+from magctl.plant.outline import RobotOutline, points_in_polygon, polygon_distance
 
 
 @dataclass(frozen=True)
@@ -185,11 +77,9 @@ class RobotGeometry:
     def from_params(cls, p: Params | None = None) -> RobotGeometry:
         """Build from ``models/robot_geometry.toml``."""
         p = p if p is not None else load_model("robot_geometry")
-        o = p.outline
-        outline = star_outline(o.length, o.width, o.front_notch_depth, o.front_notch_width, o.side_notch_depth,
-                               o.rear_notch_depth, int(o.arc_points))
+        o = RobotOutline.from_params(p)
         d = p.discretisation
-        return cls(outline, o.thickness, p.pose.tilt, p.pose.raised_edge, p.pose.clearance, d.panel_size,
+        return cls(np.array(o.vertices), o.thickness, p.pose.tilt, p.pose.raised_edge, p.pose.clearance, d.panel_size,
                    d.edge_size, d.grading, d.wall_ratio, d.gap_size)
 
     def refined(self, factor: float) -> RobotGeometry:

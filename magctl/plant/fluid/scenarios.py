@@ -200,7 +200,7 @@ def release_displacement(retract: float = 1.5e-3, speed: float = ROBOT_SPEED, ba
     if retract <= 0 or speed <= 0:
         raise ValueError("retract distance and speed must be positive")
     from magctl.core.random import TrialStreams
-    from magctl.plant.fluid.geometry import polygon_distance
+    from magctl.plant.outline import polygon_distance
 
     probe = _spheres(np.zeros((1, 2)), **block_kw)
     foot = probe.footprint
@@ -208,7 +208,7 @@ def release_displacement(retract: float = 1.5e-3, speed: float = ROBOT_SPEED, ba
     xs = np.linspace(0.0, foot[:, 0].max() + probe.radius, 4000)
     pts = np.column_stack([xs, np.zeros_like(xs)])
     dist, _ = polygon_distance(pts, foot)
-    from magctl.plant.fluid.geometry import points_in_polygon
+    from magctl.plant.outline import points_in_polygon
 
     ok = (~points_in_polygon(pts, foot)) & (dist >= probe.radius)
     x0 = xs[np.argmax(ok)]

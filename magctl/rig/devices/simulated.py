@@ -28,7 +28,7 @@ from magctl.config import Params, load_model
 from magctl.rig.devices.base import Camera, CoilSetpoint, DeviceError, Frame, command_of, to_gray
 from magctl.rig.interface import CoilMap
 from magctl.rig.plant import Scene, build_sim_plant
-from magctl.sensing.camera import camera_params, render_frame
+from magctl.sensing.camera import camera_params, render_frame, seen_shapes
 
 CoilOutputs = Callable[[float], CoilSetpoint]
 """What the coils carry at time t (s): the board's outputs, read at the board's own boundary."""
@@ -111,6 +111,7 @@ class SimCamera(Camera):
         self.period, self.name, self.brightness = float(period), name, brightness
         self.stops_after_frame = stops_after_frame
         self.params = camera_params()
+        self.shapes = seen_shapes()
         self.geometry = geometry if geometry is not None else PixelCalibration.identity()
         cam = self.params.camera
         self.width, self.height = int(cam.width), int(cam.height)
@@ -142,7 +143,7 @@ class SimCamera(Camera):
         spheres = g.to_pixels(w.spheres) * s if len(w.spheres) else np.zeros((0, 2))
         noise = self._rng.standard_normal((self.height, self.width), dtype=np.float32)
         img = render_frame(robot_px * s, heading, spheres, self.params.render, pixel=s, width=self.width,
-                           height=self.height, noise=noise)
+                           height=self.height, noise=noise, shapes=self.shapes)
         if self.brightness is not None:
             img = img * float(self.brightness(self.number))
         return np.clip(img, 0.0, 1.0)

@@ -247,8 +247,9 @@ class FrameTracker:
         r = self.params.render
         self.background = float(r.background)
         self.dark_level = float(r.background - 0.5 * (r.background - r.sphere_level))
-        robot_area = r.robot_length * r.robot_width / s**2
-        sphere_area = math.pi * (r.sphere_radius / s) ** 2 if self.n_spheres else robot_area
+        shapes = self.tracker.shapes
+        robot_area = shapes.robot.area / s**2
+        sphere_area = math.pi * (shapes.sphere_radius / s) ** 2 if self.n_spheres else robot_area
         self.min_dark_pixels = max(4, int(0.25 * min(robot_area, sphere_area)))
         self.last_number: int | None = None
         self.dropped = 0

@@ -27,18 +27,12 @@ function transformOf(scene, canvas) {
 function toCanvas(t, x, y) { return [t.ox + x * t.scale, t.oy - y * t.scale]; }
 
 function drawRobot(ctx, t, scene, pos, heading, outline) {
-  const L = scene.robot.length_m, W = scene.robot.width_m, r = Math.min(scene.robot.notch_m, W / 2);
   ctx.save();
   ctx.setTransform(t.scale, 0, 0, -t.scale, t.ox, t.oy);
   ctx.translate(pos[0], pos[1]);
   ctx.rotate(heading);
-  ctx.beginPath();
-  ctx.moveTo(-L / 2, W / 2);
-  ctx.lineTo(L / 2, W / 2);
-  ctx.lineTo(L / 2, r);
-  ctx.arc(L / 2, 0, r, Math.PI / 2, 3 * Math.PI / 2, false);   // the concave front face (paper Fig 1)
-  ctx.lineTo(L / 2, -W / 2);
-  ctx.lineTo(-L / 2, -W / 2);
+  ctx.beginPath();   // the run's own outline (magctl.plant.outline), its concave front face ahead (paper Fig 1)
+  scene.robot.outline_m.forEach(([x, y], i) => (i ? ctx.lineTo(x, y) : ctx.moveTo(x, y)));
   ctx.closePath();
   ctx.restore();
   if (outline) {   // over the camera frame: the tracked outline, the robot itself seen through it

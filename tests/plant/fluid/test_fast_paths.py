@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 from matplotlib.path import Path
 
 from magctl.core.errors import ParameterError
-from magctl.plant.fluid.geometry import Polygon, RobotGeometry
+from magctl.plant.fluid.geometry import RobotGeometry
+from magctl.plant.outline import Polygon
 from magctl.plant.sphere import Spheres
 
 GEOM = RobotGeometry.from_params()

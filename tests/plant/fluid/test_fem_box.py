@@ -152,7 +152,7 @@ def test_mesh_holds_the_same_robot_as_the_geometry(robot_box):
     verts = np.unique(mesh.mesh.facets[:, mesh.facets["body"]])
     # every robot-surface vertex lies on the solid's surface: inside a slightly grown body, outside a shrunk one
     b = g.to_body(p[:, verts].T)
-    from magctl.plant.fluid.geometry import polygon_distance
+    from magctl.plant.outline import polygon_distance
 
     dist, _ = polygon_distance(b[:, :2], g.outline)
     on_face = (np.abs(b[:, 2]) < 1e-9) | (np.abs(b[:, 2] - g.thickness) < 1e-9)

@@ -9,7 +9,8 @@ import pytest
 from magctl.plant.fluid import bem
 from magctl.plant.fluid.domain import Domain
 from magctl.plant.fluid.flow import RobotFlow, robot_flow
-from magctl.plant.fluid.geometry import RobotGeometry, points_in_polygon
+from magctl.plant.fluid.geometry import RobotGeometry
+from magctl.plant.outline import points_in_polygon
 
 MU = 20e-6 * 950.0   # 20 cSt x 950 kg/m3 (models/fluid.toml)
 H = 105.025e-6

@@ -88,7 +88,7 @@ def test_front_push_through_the_film_and_no_penetration():
     rel = res.outputs["spheres"][0, :, 0, 0] - robot_x
     front = s.footprint[:, 0].max()
     assert rel[-1] > front - 0.2 * R      # sphere ahead of the robot, captured by the concave face
-    from magctl.plant.fluid.geometry import points_in_polygon, polygon_distance
+    from magctl.plant.outline import points_in_polygon, polygon_distance
 
     rel_xy = res.outputs["spheres"][0, :, 0, :] - np.column_stack([robot_x, np.zeros_like(t)])
     dist, _ = polygon_distance(rel_xy, s.footprint)

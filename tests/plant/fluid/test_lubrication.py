@@ -14,7 +14,7 @@ from scipy.sparse.linalg import spsolve
 from magctl.config import load_model
 from magctl.core.errors import ParameterError
 from magctl.plant.fluid.bispherical import normal_translation
-from magctl.plant.fluid.geometry import RobotGeometry, star_outline
+from magctl.plant.fluid.geometry import RobotGeometry
 from magctl.plant.fluid.lubrication import (
     edge_curvatures,
     face_heights,
@@ -24,6 +24,7 @@ from magctl.plant.fluid.lubrication import (
     film_resistance,
     fit_edge_law,
 )
+from magctl.plant.outline import star_outline
 from magctl.plant.sphere import Spheres
 
 A = 105e-6
