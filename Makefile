@@ -26,7 +26,8 @@ demo: $(DEMO_STAMP)
 	$(BIN)/magctl reproduce --out out
 
 # the coil board's firmware is compiled for this computer in the tests: a C compiler (Debian's gcc when missing);
-# the view's pages are tested in a real headless browser: Debian's chromium when missing
+# the view's pages are tested in a real headless browser: Debian's chromium when missing; the suite runs on every
+# core (pytest-xdist): each test starts the servers, ports and folders it needs on its own
 test: $(DEV_STAMP)
 	@command -v cc >/dev/null 2>&1 || command -v gcc >/dev/null 2>&1 || \
 		(apt-get update -qq && apt-get install -y -qq gcc >/dev/null)
@@ -35,7 +36,7 @@ test: $(DEV_STAMP)
 	$(BIN)/ruff check magctl analysis tests benchmarks docs/notebooks
 	$(BIN)/mkdocs build --strict --quiet --site-dir site
 	PYTHON=$(PYTHON) BUILD_PY=$(BIN)/python .ci/wheel-check
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto
 
 wheel-check: $(DEV_STAMP)
 	PYTHON=$(PYTHON) BUILD_PY=$(BIN)/python .ci/wheel-check
