@@ -33,7 +33,7 @@ CANVAS = (560, round(560 * 0.78))
 MARGIN = 10
 ROBOT_RGB, SPHERE_RGB = (0xD9, 0x48, 0x0F), (0x19, 0x71, 0xC2)
 SCREENSHOTS = os.environ.get("MAGCTL_VIEW_SCREENSHOTS")
-"""A folder to copy the tests' screenshots into (docs/images for the docs' pictures); unset: tmp only."""
+"""A folder to copy the tests' screenshots into (docs/figures for the docs' pictures); unset: tmp only."""
 
 
 @pytest.fixture(scope="module")
