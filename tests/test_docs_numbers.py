@@ -108,3 +108,17 @@ def test_the_release_maps_counts_are_the_ones_its_file_holds():
     assert (f"{spaced(prov['attempts_count'])} attempts, mean release {prov['release_mean_um']:.2f} ± "
             f"{prov['release_std_um']:.2f} µm, contact in {100 * prov['p_contact_later_1']:.0f} % of the attempts "
             f"after the first") in text
+
+
+def test_the_identify_page_quotes_the_depths_of_its_results_file():
+    text = " ".join((ROOT / "docs" / "identify.md").read_text().split())
+    r = results("2026-12-05-effe8da146.json")["identify"]
+    shifts = ", ".join(f"{s:.3f}" for s in r["depth_shift_mm"][:-1]) + f" and {r['depth_shift_mm'][-1]:.3f} mm"
+    sigmas = ", ".join(f"{s:.1f}" for s in r["depth_shift_in_sigma"][:-1]) + f" and {r['depth_shift_in_sigma'][-1]:.1f}"
+    assert f"moved by {shifts} ({sigmas} times the larger of the two σ)" in text
+    seed5 = r["depth_by_seed"]["5"]
+    off = abs(seed5["value"] - 0.95) / seed5["uncertainty"]
+    assert f"Seed 5's {seed5['value']:.3f} ± {seed5['uncertainty']:.3f} mm lies {off:.0f}σ from the truth" in text
+    worst = {row["name"].split(", ")[-1]: row["value"] for row in r["rows"] if "worst of" in row["name"]}
+    assert f"met the 0.1 mm target on the one rig ({min(worst.values()):.3f} mm)" in text
+    assert f"missed it on the other ({max(worst.values()):.3f} mm)" in text
