@@ -25,7 +25,7 @@ from magctl.config import Params, load_model, require
 from magctl.core.errors import ParameterError
 from magctl.plant.outline import robot_outline
 
-ROBOT_KEYS = ("fill_fraction", "magnetization", "film_gap", "pitch_drag_ratio", "break_angle", "slip_efficiency",
+ROBOT_KEYS = ("magnetization", "film_gap", "pitch_drag_ratio", "break_angle", "slip_efficiency",
               "step_cv")
 
 
@@ -38,8 +38,8 @@ class StickSlipParams:
     length, width, thickness : float
         Body ``ℓ × w × t``, m: ``ℓ`` along the heading (paper §II: 310 × 480 × 130 µm; the robot's outline,
         ``models/robot_geometry.toml``).
-    fill_fraction : float
-        ``φ``: fraction of the bounding box the star shape fills.
+    footprint_area : float
+        ``A``: area of the star outline, m² (``RobotOutline.area``).
     magnetization : float
         ``M``, A/m.
     film_gap : float
@@ -59,7 +59,7 @@ class StickSlipParams:
     length: float
     width: float
     thickness: float
-    fill_fraction: float
+    footprint_area: float
     magnetization: float
     film_gap: float
     pitch_drag_ratio: float
@@ -70,13 +70,13 @@ class StickSlipParams:
 
     @property
     def moment(self) -> float:
-        """``m = M φ ℓ w t``, A·m²."""
-        return self.magnetization * self.fill_fraction * self.length * self.width * self.thickness
+        """``m = M A t``, A·m²: the whole body is the magnetic composite."""
+        return self.magnetization * self.footprint_area * self.thickness
 
     @property
     def disc_radius(self) -> float:
         """``a``: radius of the disc with the footprint's area, m."""
-        return float(np.sqrt(self.fill_fraction * self.length * self.width / np.pi))
+        return float(np.sqrt(self.footprint_area / np.pi))
 
     @property
     def turn_drag(self) -> float:
@@ -88,8 +88,8 @@ class StickSlipParams:
 
 
 def load_robot(name: str = "robot", fluid: str = "fluid") -> StickSlipParams:
-    """Read ``models/<name>.toml`` ``[robot]``, the body's size from the robot's outline (``robot_outline()``) and
-    the fluid viscosity ``µ = ν ρ`` from ``models/<fluid>.toml``."""
+    """Read ``models/<name>.toml`` ``[robot]``, the body's size and footprint area from the robot's outline
+    (``robot_outline()``) and the fluid viscosity ``µ = ν ρ`` from ``models/<fluid>.toml``."""
     p = load_model(name)
     if "robot" not in p or not isinstance(p.robot, Params):
         raise ParameterError(f"{p._path}: missing [robot] table")
@@ -101,8 +101,8 @@ def load_robot(name: str = "robot", fluid: str = "fluid") -> StickSlipParams:
     f = load_model(fluid).fluid
     require(f, "viscosity", "density")
     body = robot_outline()
-    return StickSlipParams(length=body.length, width=body.width, thickness=body.thickness, **vals,
-                           viscosity=float(f.viscosity * f.density))
+    return StickSlipParams(length=body.length, width=body.width, thickness=body.thickness, footprint_area=body.area,
+                           **vals, viscosity=float(f.viscosity * f.density))
 
 
 def heading_rate(p: StickSlipParams, b_xy) -> np.ndarray:

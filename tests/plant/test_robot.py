@@ -15,6 +15,7 @@ from magctl.config import models_dir
 from magctl.core import Diagram, simulate
 from magctl.core.errors import WiringError
 from magctl.core.random import TrialStreams
+from magctl.plant.outline import robot_outline
 from magctl.plant.robot import StickSlipRobot, load_robot
 
 H = 1.0 / 30.0
@@ -29,10 +30,10 @@ def raw(name, table):
 def phys():
     r, f, body = raw("robot", "robot"), raw("fluid", "fluid"), raw("robot_geometry", "outline")
     mu = f["viscosity_cSt"] * 1e-6 * f["density_kg_m3"]
-    L, W, T = body["length_um"] * 1e-6, body["width_um"] * 1e-6, body["thickness_um"] * 1e-6
-    phi = r["fill_fraction_1"]
-    m = r["magnetization_kA_m"] * 1e3 * phi * L * W * T
-    a2 = phi * L * W / np.pi
+    L, T = body["length_um"] * 1e-6, body["thickness_um"] * 1e-6
+    area = robot_outline().area              # checked against a pixel count in test_outline.py
+    m = r["magnetization_kA_m"] * 1e3 * area * T
+    a2 = area / np.pi
     zeta = np.pi * mu * a2**2 / (2 * r["film_gap_um"] * 1e-6)
     return {"mu": mu, "m": m, "zeta": zeta, "L": L, "c": r["pitch_drag_ratio_1"],
             "theta0": np.radians(r["break_angle_deg"]), "eta": r["slip_efficiency_1"]}
@@ -48,6 +49,15 @@ def run(robot, steps, bs, bo=0.0, f=0.0, batch=1, seed=0, state=None):
         st = robot.update(st, u)
     outs.append(robot.output(st, u))
     return {k: np.stack([o[k] for o in outs], axis=1) for k in outs[0]}, st
+
+
+def test_the_magnetization_keeps_the_calibrated_moment_per_filled_box():
+    """robot.toml's source: M is 100 kA/m times the outline's fill of its box (the drive was calibrated with 60 kA/m
+    over a 0.6 fill), so m/ζ ∝ M/φ, the heading rate and the rocking lag, are those of the calibration. An edit of
+    the outline fails here until M is restated."""
+    r, body = raw("robot", "robot"), raw("robot_geometry", "outline")
+    fill = robot_outline().area / (body["length_um"] * body["width_um"] * 1e-12)
+    assert r["magnetization_kA_m"] / fill == pytest.approx(60.0 / 0.6, rel=1e-12)
 
 
 def test_heading_follows_field_like_the_ode(phys):
