@@ -22,6 +22,7 @@ the dropped stretch — and recovery after. The numbers measured are printed
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -61,15 +62,23 @@ class Sequence:
         return len(self.heading)
 
 
+@functools.cache
+def outline_points() -> np.ndarray:
+    """Body-frame points of a ¼-px grid inside the robot's outline (pixels): its area, point by point."""
+    outline = seen_shapes().robot.scaled(1 / S)
+    g = np.arange(-outline.reach - 1, outline.reach + 1, 0.25)
+    xx, yy = np.meshgrid(g, g)
+    return np.stack([xx, yy], axis=-1)[robot_sdf(xx, yy, (0.0, 0.0), 0.0, outline) < 0]
+
+
 def visible_fraction(pos_px, heading) -> float:
     """Fraction of the robot's outline area inside the field (pixel areas ``[−½, W−½] × [−½, H−½]``)."""
-    outline = seen_shapes().robot.scaled(1 / S)
-    reach = outline.reach + 1
-    g = np.arange(-reach, reach, 0.25)
-    xx, yy = np.meshgrid(pos_px[0] + g, pos_px[1] + g)
-    inside = robot_sdf(xx, yy, pos_px, heading, outline) < 0
-    in_view = (xx >= -0.5) & (xx <= W - 0.5) & (yy >= -0.5) & (yy <= H - 0.5)
-    return np.count_nonzero(inside & in_view) / np.count_nonzero(inside)
+    body = outline_points()
+    c, s = np.cos(heading), np.sin(heading)
+    x = pos_px[0] + c * body[:, 0] - s * body[:, 1]        # the inverse of robot_sdf's turn into the body frame
+    y = pos_px[1] + s * body[:, 0] + c * body[:, 1]
+    in_view = (x >= -0.5) & (x <= W - 0.5) & (y >= -0.5) & (y <= H - 0.5)
+    return np.count_nonzero(in_view) / len(body)
 
 
 def drive() -> Sequence:
