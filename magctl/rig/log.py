@@ -143,31 +143,56 @@ SCHEMA: dict = {
                            "reason": {"type": "string"}, "n_events": {"type": "integer", "minimum": 0}}}},
     ],
 }
-_validators: dict = {}
+_checks: dict = {}
+_explainers: dict = {}
 
 
-def _schema_validator(kind):
-    """The validator of one document kind (the matching ``then`` branch of :data:`SCHEMA`; faster than
-    the whole schema on every frame)."""
-    if not _validators:
+def _branches() -> dict:
+    """Each document kind's sub-schema (the matching ``then`` branch of :data:`SCHEMA`), None: the whole schema."""
+    kinds = {None: SCHEMA}
+    for branch in SCHEMA["allOf"]:
+        kinds[branch["if"]["properties"]["doc"]["const"]] = {**branch["then"], "type": "object"}
+    return kinds
+
+
+def _check(kind):
+    """The compiled check of one document kind (``fastjsonschema``; its cost beside ``jsonschema``'s:
+    benchmarks/bench_runlog.py): raises ``JsonSchemaException`` on an invalid document. The schema keeps to
+    keywords whose meaning is the same in drafts 7 and 2020-12, so the draft-7 compiler checks it as written."""
+    if not _checks:
+        import fastjsonschema
+
+        for k, schema in _branches().items():
+            _checks[k] = fastjsonschema.compile({key: v for key, v in schema.items() if key != "$schema"})
+    return _checks.get(kind, _checks[None])
+
+
+def _explainer(kind):
+    """The ``jsonschema`` validator of one document kind: the field and the reason of a document the check
+    refused."""
+    if not _explainers:
         import jsonschema
 
         jsonschema.Draft202012Validator.check_schema(SCHEMA)
-        _validators[None] = jsonschema.Draft202012Validator(SCHEMA)
-        for branch in SCHEMA["allOf"]:
-            k = branch["if"]["properties"]["doc"]["const"]
-            _validators[k] = jsonschema.Draft202012Validator({**branch["then"], "type": "object"})
-    return _validators.get(kind, _validators[None])
+        _explainers.update({k: jsonschema.Draft202012Validator(v) for k, v in _branches().items()})
+    return _explainers.get(kind, _explainers[None])
 
 
 def schema_error(doc) -> str | None:
     """None when ``doc`` is a valid run-log document, else one line naming the field and the problem."""
     if not isinstance(doc, dict):
         return f"a document must be a JSON object, got {type(doc).__name__}"
-    v = _schema_validator(doc.get("doc") if isinstance(doc.get("doc"), str) else None)
-    if v.is_valid(doc):
+    import fastjsonschema
+
+    kind = doc.get("doc") if isinstance(doc.get("doc"), str) else None
+    try:
+        _check(kind)(doc)
         return None
-    err = min(v.iter_errors(doc), key=lambda e: len(list(e.absolute_path)))
+    except fastjsonschema.JsonSchemaException as refused:
+        errors = list(_explainer(kind).iter_errors(doc))
+        if not errors:            # the two readings of the schema differ: say what the check found
+            return f"{doc.get('doc', '?')} document: {refused.message}"
+    err = min(errors, key=lambda e: len(list(e.absolute_path)))
     where = ".".join(str(x) for x in err.absolute_path) or "document"
     msg = err.message if len(err.message) <= 160 else err.message[:157] + "..."
     return f"{doc.get('doc', '?')} document, {where}: {msg}"
