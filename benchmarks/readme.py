@@ -5,18 +5,21 @@
 writes the rows every named file's benchmarks give (``rows``: name, target, value, unit, verdict, note;
 each verdict computed by the benchmark from the figure it names) between docs/benchmarks.md's markers
 ``<!-- benchmarks:begin -->`` and ``<!-- benchmarks:end -->`` (``--into PAGE.md``: another page's), each row with
-the file and commit it came from. ``tests/test_readme_benchmarks.py`` checks that each page holds exactly this
+the file and commit it came from; a page with a line ``<!-- benchmarks:only NAME … -->`` before its table shows only
+those benchmarks' rows. ``tests/test_readme_benchmarks.py`` checks that each page holds exactly this
 table for the files it names, so no page can quote a number no committed file contains.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- benchmarks:begin -->", "<!-- benchmarks:end -->"
+ONLY = "<!-- benchmarks:only"
 
 
 def _value(row: dict) -> str:
@@ -28,15 +31,16 @@ def _value(row: dict) -> str:
     return f"{v:.3g} {row['unit']}"
 
 
-def render(files: list[Path]) -> str:
-    """The section between the markers for these results files (paths relative to the repository)."""
+def render(files: list[Path], only: list[str] | None = None) -> str:
+    """The section between the markers for these results files (paths relative to the repository); ``only``: the
+    benchmarks (names in the files, e.g. ``identify``) whose rows it shows, None: all."""
     lines = [BEGIN, "", "| benchmark | target | measured | verdict | results file (commit) | note |",
              "|---|---|---|---|---|---|"]
     for path in files:
         doc = json.loads((ROOT / path).read_text())
         meta = doc.get("meta", {})
         for name, result in doc.items():
-            if name == "meta" or not isinstance(result, dict):
+            if name == "meta" or not isinstance(result, dict) or (only is not None and name not in only):
                 continue
             for row in result.get("rows", ()):
                 verdict = "met" if row["met"] else "**missed**"
@@ -46,6 +50,13 @@ def render(files: list[Path]) -> str:
                              f"{row.get('note', '')} |")
     lines += ["", END]
     return "\n".join(lines)
+
+
+def named_only(readme: str) -> list[str] | None:
+    """The benchmarks a page's table is limited to: its line ``<!-- benchmarks:only NAME … -->`` before the table,
+    None without one."""
+    m = re.search(r"^" + re.escape(ONLY) + r"((?: [\w-]+)+) -->$", readme.split(BEGIN, 1)[0], flags=re.M)
+    return m.group(1).split() if m else None
 
 
 def named_files(readme: str) -> list[Path]:
@@ -78,7 +89,7 @@ def main(argv: list[str]) -> int:
         return 2
     head, rest = text.split(BEGIN, 1)
     tail = rest.split(END, 1)[1]
-    page.write_text(head + render(files) + tail)
+    page.write_text(head + render(files, named_only(text)) + tail)
     print(f"{target}: benchmark table from {', '.join(map(str, files))}", file=sys.stderr)
     return 0
 

@@ -112,7 +112,7 @@ def test_the_release_maps_counts_are_the_ones_its_file_holds():
 
 def test_the_identify_page_quotes_the_depths_of_its_results_file():
     text = " ".join((ROOT / "docs" / "identify.md").read_text().split())
-    r = results("2026-12-05-effe8da146.json")["identify"]
+    r = results("2026-12-05-08bf4ae18c.json")["identify"]
     shifts = ", ".join(f"{s:.3f}" for s in r["depth_shift_mm"][:-1]) + f" and {r['depth_shift_mm'][-1]:.3f} mm"
     sigmas = ", ".join(f"{s:.1f}" for s in r["depth_shift_in_sigma"][:-1]) + f" and {r['depth_shift_in_sigma'][-1]:.1f}"
     assert f"moved by {shifts} ({sigmas} times the larger of the two σ)" in text

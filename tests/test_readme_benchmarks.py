@@ -25,8 +25,9 @@ def test_the_benchmark_table_is_generated_from_committed_results(page):
     for f in files:
         assert (ROOT / f).is_file(), f"{f} is named by {page} but not in the repository"
     section = mod.BEGIN + text.split(mod.BEGIN, 1)[1].split(mod.END, 1)[0] + mod.END
-    assert section == mod.render(files), f"{page}'s benchmark table differs from its results files: " \
-                                         f"run python benchmarks/readme.py --into {page} " + " ".join(map(str, files))
+    assert section == mod.render(files, mod.named_only(text)), \
+        f"{page}'s benchmark table differs from its results files: run python benchmarks/readme.py --into {page} " \
+        + " ".join(map(str, files))
 
 
 def test_a_changed_number_is_caught(tmp_path):
@@ -44,3 +45,18 @@ def test_a_changed_number_is_caught(tmp_path):
         (tmp_path / f).write_bytes((ROOT / f).read_bytes())
     (tmp_path / files[0]).write_text(json.dumps(doc))
     assert mod.render(files) != original
+
+
+def test_a_page_limited_to_some_benchmarks_shows_their_rows_only():
+    import json
+
+    mod = _readme_module()
+    text = (ROOT / "docs" / "identify.md").read_text()
+    only = mod.named_only(text)
+    assert only == ["identify"]
+    (file,) = mod.named_files(text)
+    benches = [k for k, v in json.loads((ROOT / file).read_text()).items() if isinstance(v, dict) and v.get("rows")]
+    assert set(benches) > {"identify"}              # the file holds others, which the page leaves out
+    shown, every = mod.render([file], only), mod.render([file])
+    rows = [line for line in every.splitlines() if line.startswith("| ") and "`" in line]
+    assert 0 < sum(line in shown for line in rows) < len(rows)
