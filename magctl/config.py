@@ -265,6 +265,19 @@ def models_dir() -> Path:
     return data_dir("models")
 
 
+def model_versions(*names: str) -> tuple:
+    """The parameter folder and each named file's modification time (-1: missing, the loaders name it): a cache
+    key of what is read from those files, which changes when the folder is switched or a file is edited."""
+    folder = models_dir()
+    stamps = []
+    for name in names:
+        try:
+            stamps.append(os.stat(folder / name).st_mtime_ns)
+        except OSError:
+            stamps.append(-1)
+    return (str(folder), *stamps)
+
+
 def read_toml(path: str | os.PathLike, what: str = "parameter file", error=ParameterError) -> dict:
     """The TOML document at ``path``; a missing, unreadable or malformed file raises ``error`` in one line naming
     the file (``what`` says which kind of file was expected)."""

@@ -13,13 +13,12 @@ Body frame: ``x`` forward (the heading), ``y`` to the left. The outline is a ``l
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
 import numpy as np
 
-from magctl.config import Params, load_model, models_dir
+from magctl.config import Params, load_model, model_versions
 from magctl.core.errors import ParameterError
 
 
@@ -236,16 +235,11 @@ class RobotOutline:
 
 
 @lru_cache(maxsize=8)
-def _outline_of(path: str, mtime_ns: int) -> RobotOutline:
+def _outline_of(version: tuple) -> RobotOutline:
     return RobotOutline.from_params(load_model("robot_geometry"))
 
 
 def robot_outline() -> RobotOutline:
     """The outline of the current parameter set (``models_dir()/robot_geometry.toml``), read once per version of
     the file."""
-    path = models_dir() / "robot_geometry.toml"
-    try:
-        mtime = os.stat(path).st_mtime_ns
-    except OSError:
-        mtime = -1   # load_model names the missing file
-    return _outline_of(str(path), mtime)
+    return _outline_of(model_versions("robot_geometry.toml"))

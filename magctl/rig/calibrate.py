@@ -60,7 +60,7 @@ from scipy import ndimage, optimize, special
 from magctl.config import read_toml
 from magctl.core.errors import MagctlError
 from magctl.plant.outline import RobotOutline
-from magctl.sensing.camera import robot_sdf, seen_shapes
+from magctl.sensing.camera import principal_axis, robot_sdf, seen_shapes
 
 SETTLE_TAUS = 12.0
 """Heading time constants to wait after a field step: a 120° step settles to 1e-5 rad (tan(e/2) ∝ e^{−t/τ})."""
@@ -240,11 +240,8 @@ def robot_pose(seg: Segmentation, robot_area_px: float, outline_px: RobotOutline
     grown = ndimage.binary_dilation(mask, iterations=3)
     dark = np.clip(seg.background - seg.image[box], 0.0, None) * grown
     yy, xx = np.mgrid[box[0], box[1]].astype(float)
-    m = dark.sum()
-    cj, ci = (dark * xx).sum() / m, (dark * yy).sum() / m
-    dx, dy = xx - cj, yy - ci
-    mxx, myy, mxy = (dark * dx * dx).sum() / m, (dark * dy * dy).sum() / m, (dark * dx * dy).sum() / m
-    line = 0.5 * math.atan2(2.0 * mxy, mxx - myy) - outline_px.major_axis
+    cj, ci, axis = principal_axis(dark, xx, yy)
+    line = axis - outline_px.major_axis
     covered = []
     for heading in (line, line + math.pi):
         c, s = math.cos(heading), math.sin(heading)

@@ -28,7 +28,7 @@ no kernel and runs in Python.
 
 from __future__ import annotations
 
-import os
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -36,7 +36,7 @@ import numpy as np
 from scipy import ndimage
 
 from magctl import FRAME_PERIOD_S
-from magctl.config import Params, load_model, models_dir
+from magctl.config import Params, load_model, model_versions
 from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import ParameterError
 from magctl.core.kernel import Kernel
@@ -81,20 +81,13 @@ class SeenShapes:
 
 
 @lru_cache(maxsize=8)
-def _shapes_of(folder: str, stamps: tuple) -> SeenShapes:
+def _shapes_of(version: tuple) -> SeenShapes:
     return SeenShapes(robot_outline(), float(sphere_params().radius))
 
 
 def seen_shapes() -> SeenShapes:
     """:class:`SeenShapes` of the current parameter set, read once per version of its files."""
-    folder = models_dir()
-    stamps = []
-    for name in ("robot_geometry.toml", "sphere.toml"):
-        try:
-            stamps.append(os.stat(folder / name).st_mtime_ns)
-        except OSError:
-            stamps.append(-1)   # the loaders name the missing file
-    return _shapes_of(str(folder), tuple(stamps))
+    return _shapes_of(model_versions("robot_geometry.toml", "sphere.toml"))
 
 
 def robot_sdf(x, y, position, heading, outline: RobotOutline):
@@ -103,6 +96,18 @@ def robot_sdf(x, y, position, heading, outline: RobotOutline):
     c, s = np.cos(heading), np.sin(heading)
     dx, dy = np.asarray(x) - position[0], np.asarray(y) - position[1]
     return outline.signed_distance(c * dx + s * dy, -s * dx + c * dy)
+
+
+def principal_axis(weight, x, y) -> tuple[float, float, float]:
+    """Centroid ``(x̄, ȳ)`` of the weights ``weight`` at points ``(x, y)`` and the angle of their major principal
+    axis, ``½ atan2(2 m_xy, m_xx − m_yy)`` of the weighted second central moments (rad, mod π, from +x towards
+    +y): a blob's line in the image, whichever way its object faces."""
+    w = np.asarray(weight, dtype=float)
+    m = w.sum()
+    cx, cy = (w * x).sum() / m, (w * y).sum() / m
+    dx, dy = x - cx, y - cy
+    mxx, myy, mxy = (w * dx * dx).sum() / m, (w * dy * dy).sum() / m, (w * dx * dy).sum() / m
+    return float(cx), float(cy), 0.5 * math.atan2(2.0 * mxy, mxx - myy)
 
 
 def _coverage(sdf, pixel):

@@ -35,7 +35,7 @@ from scipy import ndimage
 from magctl.config import Params
 from magctl.core.errors import MagctlError
 from magctl.plant.outline import RobotOutline
-from magctl.sensing.camera import SeenShapes, render_frame, robot_sdf, seen_shapes
+from magctl.sensing.camera import SeenShapes, principal_axis, render_frame, robot_sdf, seen_shapes
 
 
 class DetectionError(MagctlError):
@@ -273,11 +273,8 @@ class ImageTracker:
                           f"robot's {robot_area:.0f}")
         blob = lab == 1 + int(np.argmax(sizes))
         ii, jj = np.nonzero(blob)
-        cy, cx = ii.mean(), jj.mean()
-        cov = np.cov(np.stack([jj - cx, ii - cy]))
-        evals, evecs = np.linalg.eigh(cov)
-        axis = evecs[:, 1]
-        theta = np.arctan2(axis[1], axis[0]) - self.shapes.robot.major_axis   # the blob's major axis → the heading
+        cx, cy, axis = principal_axis(np.ones(ii.size), jj, ii)
+        theta = axis - self.shapes.robot.major_axis   # the blob's major axis → the heading
         cands = np.array([[cx + dx, cy + dy, th] for th in (theta, theta + np.pi) for dx in np.arange(-6, 7, 2)
                           for dy in np.arange(-6, 7, 2)])
         scores = self.robot.scores(image, cands)

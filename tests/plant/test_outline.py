@@ -1,12 +1,17 @@
 """The robot's one outline (magctl.plant.outline): its area, centroid and principal axes against a pixel count of
 the same polygon by matplotlib's point-in-path test, its orientation against the paper, and its errors."""
 
+import os
+import shutil
+
 import numpy as np
 import pytest
 from matplotlib.path import Path
 
+from magctl.config import models_dir
 from magctl.core.errors import ParameterError
 from magctl.plant.outline import RobotOutline, robot_outline
+from magctl.sensing.camera import seen_shapes
 
 
 def grid_moments(vertices, step=1e-6):
@@ -67,3 +72,23 @@ def test_impossible_outlines_are_named(kw, word):
             "front_notch_width": 260e-6, "side_notch_depth": 30e-6, "rear_notch_depth": 30e-6} | kw
     with pytest.raises(ParameterError, match=word):
         RobotOutline(**args)
+
+
+def test_the_outline_and_what_the_camera_sees_follow_the_parameter_folder_and_its_edits(tmp_path, monkeypatch):
+    folder = tmp_path / "models"
+    shutil.copytree(models_dir(), folder)
+    shipped = robot_outline()
+    monkeypatch.setenv("MAGCTL_MODELS", str(folder))
+    assert robot_outline().length == shipped.length                  # another folder, the same values
+    geometry = folder / "robot_geometry.toml"
+    geometry.write_text(geometry.read_text().replace("length_um = { value = 310.0", "length_um = { value = 300.0"))
+    os.utime(geometry, ns=(0, 10**18))                               # a new version even on a coarse clock
+    assert robot_outline().length == pytest.approx(300e-6, rel=1e-12)
+    assert seen_shapes().robot.length == pytest.approx(300e-6, rel=1e-12)
+    sphere = folder / "sphere.toml"
+    assert seen_shapes().sphere_radius == pytest.approx(105e-6, rel=1e-12)
+    sphere.write_text(sphere.read_text().replace("radius_um = { value = 105.0", "radius_um = { value = 100.0"))
+    os.utime(sphere, ns=(0, 10**18))
+    assert seen_shapes().sphere_radius == pytest.approx(100e-6, rel=1e-12)
+    monkeypatch.delenv("MAGCTL_MODELS")
+    assert robot_outline().length == shipped.length

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from magctl.core import Constant, Diagram, Integrator, ParameterError, simulate
-from magctl.sensing.camera import Camera, camera_params, render_frame
+from magctl.sensing.camera import Camera, camera_params, principal_axis, render_frame
 
 T = 1.0 / 30.0
 
@@ -133,3 +133,20 @@ def test_images_mode_ports_and_drops():
     assert res["camera.image"].shape == (1, 3, 480, 640)
     np.testing.assert_array_equal(res["camera.valid"][0], [False, True, True])
     assert res["camera.image"][0, 2].min() < 0.3
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.3, 1.2, -0.7, np.pi / 2])
+def test_a_blobs_principal_axis_is_the_drawn_ellipses(angle):
+    """An ellipse 40 × 16 px drawn at a known angle and centre: the centroid to 0.1 px and the major axis to 0.5°
+    (mod π; the pixel grid's error), exactly as the points' mean and covariance's major eigenvector give them."""
+    yy, xx = np.mgrid[0:120, 0:140].astype(float)
+    c, s = np.cos(angle), np.sin(angle)
+    u, v = c * (xx - 71.3) + s * (yy - 58.6), -s * (xx - 71.3) + c * (yy - 58.6)
+    mask = (u / 40) ** 2 + (v / 16) ** 2 <= 1.0
+    cx, cy, axis = principal_axis(mask, xx, yy)
+    assert (cx, cy) == pytest.approx((71.3, 58.6), abs=0.1)
+    assert (cx, cy) == pytest.approx((xx[mask].mean(), yy[mask].mean()), abs=1e-9)
+    assert abs((axis - angle + np.pi / 2) % np.pi - np.pi / 2) < np.radians(0.5)
+    evals, evecs = np.linalg.eigh(np.cov(np.stack([xx[mask] - cx, yy[mask] - cy])))
+    ref = np.arctan2(evecs[1, 1], evecs[0, 1])
+    assert abs((axis - ref + np.pi / 2) % np.pi - np.pi / 2) < 1e-9
