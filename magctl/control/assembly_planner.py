@@ -57,6 +57,7 @@ from magctl.core.block import Block, StateVar
 from magctl.core.errors import MagctlError
 from magctl.core.ports import Port
 from magctl.core.units import MM
+from magctl.sensing.camera import field_of_view
 
 SIGMA = 10e-6
 """Scale of the bond errors in the objective (m): the objective is in units of (10 µm)²."""
@@ -70,8 +71,8 @@ SAME_COST = 1e-6
 absolute): IPOPT's ``tol`` of 1e-6 leaves the same optimum reached from two starts this far apart."""
 @dataclass(frozen=True)
 class PlanLimits:
-    """The bounds every planned pass keeps (metres), from ``models/push.toml`` ``[plan]`` and the camera field
-    (shrunk by ``[common] field_margin_um``)."""
+    """The bounds every planned pass keeps (metres), from ``models/push.toml`` ``[plan]`` and the camera's field of
+    view (:func:`~magctl.sensing.camera.field_of_view`, shrunk by ``[common] field_margin_um``)."""
 
     min_gap: float
     end_clearance: float
@@ -82,10 +83,10 @@ class PlanLimits:
 
     @classmethod
     def default(cls) -> PlanLimits:
-        push, cam = load_model("push"), load_model("camera").camera
+        push = load_model("push")
         p = push.plan
         m = float(push.common.field_margin)
-        w, h = float(cam.width * cam.pixel_size), float(cam.height * cam.pixel_size)
+        w, h = field_of_view()
         return cls(float(push.side.min_gap) + float(p.gap_margin), float(p.end_clearance), float(p.min_length),
                    float(p.max_length), (m, m, w - m, h - m), float(p.length_weight))
 
