@@ -86,12 +86,14 @@ class StandinParams:
 
 
 def standin_params() -> StandinParams:
-    """The stand-in's parameters: ``models/rig.toml`` ``[standin]``, ``models/push.toml`` ``[release]`` and the
-    sphere radius of ``models/sphere.toml``."""
+    """The stand-in's parameters: ``models/rig.toml`` ``[standin]``, ``models/push.toml`` ``[release]`` and
+    ``[front] contact_um`` (the push tasks' own release and contact distance) and the sphere radius of
+    ``models/sphere.toml``."""
     sd = load_model("rig").standin
-    release = load_model("push").release
+    push = load_model("push")
+    release = push.release
     radius = sphere_params().radius
-    return StandinParams(contact_distance=float(sd.robot_contact_radius + radius),
+    return StandinParams(contact_distance=float(push.front.contact),
                          sphere_radius=float(radius), side_range=float(sd.side_range),
                          workspace_half=float(sd.workspace_half), release_mean=float(release.mean),
                          release_std=float(release.std))
