@@ -30,7 +30,7 @@ from scipy.special import ndtr
 
 from magctl.control.curve_learning import curve_learning_law
 from magctl.control.learning import side_push_law
-from magctl.control.push_params import task_defaults
+from magctl.control.push_params import goal_distance, task_defaults
 from magctl.control.side_models import ExpSideModel
 from magctl.control.status import Status
 from magctl.core.units import UM
@@ -60,15 +60,13 @@ FRONT_TRIALS = 2000
 BY_TARGET = 10
 PLANT_SCALES = (0.3, 0.6, 1.0, 1.4, 2.0, 2.6, 3.0)
 GAP_SCALES = (0.7, 1.0, 1.5)
-GOAL_UM = 300.0
 
 
-def scale_grid(min_gap: float, eps: float) -> list[dict]:
-    """Attempt map from 300 µm against eq 22 scaled (ρ in displacement, a gap scale): attempts to ε_p of the curve
-    law and of eq 18 with K_s = 0.9 (both on eq 22 as their model), and the fewest attempts any contact-bounded
-    controller can take; None where a law does not get within ε_p in 30 attempts."""
+def scale_grid(min_gap: float, eps: float, e0: float) -> list[dict]:
+    """Attempt map from ``e0`` (the side push's goal distance, 300 µm) against eq 22 scaled (ρ in displacement, a
+    gap scale): attempts to ε_p of the curve law and of eq 18 with K_s = 0.9 (both on eq 22 as their model), and the
+    fewest attempts any contact-bounded controller can take; None where a law does not get within ε_p in 30 attempts."""
     rows = []
-    e0 = GOAL_UM * UM
     for gap_scale in GAP_SCALES:
         for rho in PLANT_SCALES:
             plant = ScaledSideModel(scale=rho, gap_scale=gap_scale)
@@ -226,7 +224,8 @@ def compute(ctx: StudyContext) -> Computed:
     d = task_defaults("side")
     results = {"trials_per_controller": n, "controllers": summaries, "clean_plant": side.PLANT.describe(),
                "dirty_plant": exps[f"{CURVE}, dirt"].variability.describe(), "trials_from_study": sources,
-               "baseline": best, "curve": CURVE, "scale_grid": scale_grid(d["min_gap"], d["eps"]),
+               "baseline": best, "curve": CURVE,
+               "scale_grid": scale_grid(d["min_gap"], d["eps"], goal_distance("side")),
                "curve_task": dict(task.task), "min_gap_um": d["min_gap"] / UM,
                "front_controllers": {label: controller_summary(r) for label, r in front_runs.items()},
                "assembly": {label: assembly_summary(r) for label, r in assembly_runs.items()},
