@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.core.units import UM_PER_M
-from magctl.plant.fluid.calibration import EQ22_A, EQ22_B, eq22
+from magctl.core.units import UM, UM_PER_M
+from magctl.plant.fluid.calibration import eq22, paper_side
 from magctl.plant.fluid.domain import Domain
 from magctl.plant.fluid.flow import robot_flow
 from magctl.plant.fluid.scenarios import contact_threshold, sidepush_curve, sidepush_fit
@@ -78,14 +78,14 @@ def domain_curve(domain: Domain) -> dict:
 def verdict(curves: list[dict]) -> dict:
     """The domain closest to the paper in decay rate b and contact threshold (equal weight, relative)."""
     def score(c):
-        return (abs(c["fit"]["b_per_um"] / (EQ22_B / UM_PER_M) - 1.0)
+        return (abs(c["fit"]["b_per_um"] / (paper_side()["rate"] / UM_PER_M) - 1.0)
                 + abs(c["contact_threshold_um"] / PAPER_THRESHOLD_UM - 1.0))
 
     best = min(curves, key=score)
     unbounded = next(c for c in curves if c["kind"] == "unbounded")
     return {"best": best["domain"], "best_b_per_um": best["fit"]["b_per_um"],
             "best_threshold_um": best["contact_threshold_um"], "best_drift_um": best["drift_near_threshold_um"],
-            "b_error": best["fit"]["b_per_um"] / (EQ22_B / UM_PER_M) - 1.0,
+            "b_error": best["fit"]["b_per_um"] / (paper_side()["rate"] / UM_PER_M) - 1.0,
             "unbounded_b_per_um": unbounded["fit"]["b_per_um"],
             "unbounded_threshold_um": unbounded["contact_threshold_um"]}
 
@@ -94,7 +94,9 @@ def compute(ctx: StudyContext) -> Computed:
     """Every layer domain, and the box domains with ``--fem``."""
     domains = list(LAYERS) + (list(BOXES) if ctx.fem else [])
     curves = [domain_curve(d) for d in ctx.progress(domains, "domains", total=len(domains))]
-    paper = {"a_um": EQ22_A * UM_PER_M, "b_per_um": EQ22_B / UM_PER_M, "contact_threshold_um": PAPER_THRESHOLD_UM,
+    eq22_printed = paper_side()
+    paper = {"a_um": eq22_printed["amplitude"] / UM, "b_per_um": eq22_printed["rate"] / UM_PER_M,
+             "contact_threshold_um": PAPER_THRESHOLD_UM,
              "at_um": {f"{g * UM_PER_M:.0f}": float(d * UM_PER_M) for g, d in zip(AT, eq22(AT), strict=True)}}
     results = {"domains": curves, "paper": paper, "verdict": verdict(curves), "fem": bool(ctx.fem)}
     return Computed(results, {"curves": curves})
@@ -128,7 +130,7 @@ def draw(computed: Computed, ctx: StudyContext) -> list:
             bx.plot(h, b, "o-", color=col, label=kind.replace("_", " "))
     unb = next(c for c in curves if c["kind"] == "unbounded")
     bx.axhline(unb["fit"]["b_per_um"], color="C0", label="unbounded")
-    bx.axhline(EQ22_B / UM_PER_M, color="k", lw=2.5, label="paper eq 22")
+    bx.axhline(paper_side()["rate"] / UM_PER_M, color="k", lw=2.5, label="paper eq 22")
     bx.set_xlabel("oil depth H (mm)")
     bx.set_ylabel("decay rate b (1/µm)")
     bx.legend(fontsize=8)
@@ -149,13 +151,14 @@ def summarise(computed: Computed) -> tuple[list[str], list[PaperRow]]:
                      f"threshold {c['contact_threshold_um']:.0f} µm "
                      f"({drift} {abs(c['drift_near_threshold_um']):.0f} µm)")
     p = r["paper"]["at_um"]
-    lines.append(f"- paper eq 22: b = {EQ22_B / UM_PER_M:.6f} /µm; D_s(370/500/650) = {p['370']:.1f} / "
+    lines.append(f"- paper eq 22: b = {paper_side()['rate'] / UM_PER_M:.6f} /µm; D_s(370/500/650) = {p['370']:.1f} / "
                  f"{p['500']:.1f} / {p['650']:.1f} µm; threshold ≈ 370 µm (pull-in)")
     lines.append(f"- closest to the paper: {v['best']} (b {v['b_error']:+.0%} from eq 22, threshold "
                  f"{v['best_threshold_um']:.0f} µm); the unbounded model predicts "
                  f"b = {v['unbounded_b_per_um']:.5f} /µm "
                  f"and a {v['unbounded_threshold_um']:.0f} µm threshold"
                  + ("" if r["fem"] else " (the COMSOL box itself runs with --fem)"))
-    paper = [PaperRow("Fig 6 decay rate b", f"{EQ22_B / UM_PER_M:.6f} /µm", f"{v['best_b_per_um']:.5f} /µm",
+    paper_b = paper_side()["rate"] / UM_PER_M
+    paper = [PaperRow("Fig 6 decay rate b", f"{paper_b:.6f} /µm", f"{v['best_b_per_um']:.5f} /µm",
                       f"closest domain: {v['best']}; unbounded {v['unbounded_b_per_um']:.5f} /µm")]
     return lines, paper

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from magctl.core.units import UM_PER_M
-from magctl.plant.fluid.calibration import EQ22_A, EQ22_B, FIG6_GAPS, eq22, eq23_gap
+from magctl.core.units import UM, UM_PER_M
+from magctl.plant.fluid.calibration import FIG6_GAPS, eq22, eq23_gap, paper_side
 from magctl.plant.fluid.domain import Domain
 from magctl.plant.fluid.flow import robot_flow
 from magctl.plant.fluid.params import sphere_params
@@ -51,7 +51,7 @@ def compute(ctx: StudyContext) -> Computed:
         "domain": Domain.from_params().label(),
         "drag_mode": sphere_params().drag_mode,
         "paper_drag_fit": {"a_um": pd_fit[0] * UM_PER_M, "b_per_um": pd_fit[1] / UM_PER_M, "r2": pd_fit[2]},
-        "paper": {"a_um": EQ22_A * UM_PER_M, "b_per_um": EQ22_B / UM_PER_M, "r2": PAPER_R2,
+        "paper": {"a_um": paper_side()["amplitude"] / UM, "b_per_um": paper_side()["rate"] / UM_PER_M, "r2": PAPER_R2,
                   "contact_threshold_um": PAPER_THRESHOLD * UM_PER_M},
         "against_eq22": {"gaps_um": (FIG6_GAPS * UM_PER_M).tolist(),
                          "displacement_um": (judged.displacement * UM_PER_M).tolist(),

@@ -14,16 +14,7 @@ import numpy as np
 
 from magctl.config import load_model
 from magctl.core.errors import MagctlError
-from magctl.core.units import UM
-
-
-def paper_side() -> dict[str, float]:
-    """Eq 22's ``amplitude`` ``A`` (m) and ``rate`` ``k`` (1/m), eq 23's ``slope`` and ``intercept`` (m), as printed:
-    ``models/push.toml`` ``[paper_side]``, converted from the file's µm as the constants were before they moved
-    there (``A = 1755 * UM``, ``k = 0.009042 / UM``, …), so every model is the same double as it was."""
-    raw = load_model("push").paper_side.raw
-    return {"amplitude": raw["amplitude_um"] * UM, "rate": raw["rate_per_um"] / UM,
-            "slope": float(raw["slope_1"]), "intercept": raw["intercept_um"] * UM}
+from magctl.plant.fluid.calibration import paper_side
 
 
 @dataclass(frozen=True)

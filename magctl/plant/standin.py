@@ -49,6 +49,7 @@ from magctl.core.block import Block, StateVar, rng_var
 from magctl.core.errors import MagctlError
 from magctl.core.kernel import Kernel
 from magctl.core.ports import Port
+from magctl.plant.fluid.calibration import paper_side
 from magctl.plant.fluid.params import sphere_params
 from magctl.plant.robot import ROBOT_INPUTS
 
@@ -298,14 +299,12 @@ class StandinSpheres(Block):
     ``releases`` () 1 (count), ``last_release`` () m.
     """
 
-    # eq 22: D_s = A exp(−k D_g)
-    SIDE_A = 1755e-6
-    SIDE_K = 0.009042e6
-
     def __init__(self, name: str, start, contact_distance: float, *, release_mean: float = 0.0,
                  release_std: float = 0.0, side_range: float = 0.0, sphere_radius: float = 0.0, start_robot=(0.0, 0.0),
                  side_scale=1.0, dt: float = FRAME_PERIOD_S):
         self.start = np.asarray(start, dtype=float).reshape(-1, 2)
+        eq22 = paper_side()                                  # D_s = A exp(−k D_g)
+        self.side_amplitude, self.side_rate = eq22["amplitude"], eq22["rate"]
         self.contact_distance = float(contact_distance)
         self.release_mean, self.release_std = float(release_mean), float(release_std)
         self.side_range = float(side_range)
@@ -354,9 +353,9 @@ class StandinSpheres(Block):
         from magctl.plant import standin_kernels as k
 
         n = self.start.shape[0]
-        params = (n, self.contact_distance, self.release_mean, self.release_std, self.side_range, self.SIDE_A,
-                  self.SIDE_K, np.array(self.side_scale, float).reshape(-1), 2.0 * self.sphere_radius,
-                  float(_STRAIGHT), np.zeros(max(n, 1), bool))
+        params = (n, self.contact_distance, self.release_mean, self.release_std, self.side_range,
+                  self.side_amplitude, self.side_rate, np.array(self.side_scale, float).reshape(-1),
+                  2.0 * self.sphere_radius, float(_STRAIGHT), np.zeros(max(n, 1), bool))
         return Kernel(output=k.standin_spheres_output, update=k.standin_spheres_update, params=params,
                       stream="rng")
 

@@ -366,8 +366,8 @@ class RefStandinSpheres(NumpyForm, StandinSpheres):
         lat = np.abs(dd[..., 0] * rel0[..., 1] - dd[..., 1] * rel0[..., 0])
         cross = (straight[:, None] & ~passed & (a0 > 0) & (a1 <= 0) & (lat > self.contact_distance)
                  & (lat < self.side_range))
-        amp = self.SIDE_A * (self.side_scale[:, None] if self.side_scale.ndim else self.side_scale)
-        s = s + (cross * amp * np.exp(-self.SIDE_K * lat))[..., None] * dd
+        amp = self.side_amplitude * (self.side_scale[:, None] if self.side_scale.ndim else self.side_scale)
+        s = s + (cross * amp * np.exp(-self.side_rate * lat))[..., None] * dd
         passed = passed | cross
 
         # 2. release: the sphere follows a robot that moves away from it

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from magctl.plant.fluid.calibration import EQ22_B
+from magctl.plant.fluid.calibration import paper_side
 from magctl.plant.fluid.domain import Domain
 from magctl.studies import runner as studies
 
@@ -34,7 +34,7 @@ def test_a_lid_screens_the_flow(result):
 
 def test_verdict_names_the_domain_closest_to_eq22(result):
     r = result.results
-    closest = min(r["domains"], key=lambda c: abs(c["fit"]["b_per_um"] - EQ22_B * 1e-6))
+    closest = min(r["domains"], key=lambda c: abs(c["fit"]["b_per_um"] - paper_side()["rate"] * 1e-6))
     assert r["verdict"]["best"] == closest["domain"]
     assert r["verdict"]["unbounded_b_per_um"] == r["domains"][0]["fit"]["b_per_um"]
     assert any("closest to the paper" in line for line in result.summary)

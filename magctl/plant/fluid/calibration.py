@@ -9,21 +9,34 @@ from __future__ import annotations
 
 import numpy as np
 
+from magctl.config import load_model
+from magctl.core.units import UM
+
 PAPER_RELEASE_EXPERIMENT = 300e-6
 """D_p,r measured in the paper (§IV-D: 300 ± 75 µm over five trials)."""
 PAPER_RELEASE_SIMULATION = 127e-6
 """D_p,r of the paper's COMSOL/ode23s simulation (§IV-D)."""
-EQ22_A, EQ22_B = 1755e-6, 0.009042e6
-"""eq 22 fit of the paper's simulated Fig 6: D_s = a exp(-b D_g), a [m], b [1/m]."""
 FIG6_GAPS = np.array([370e-6, 450e-6, 500e-6, 550e-6, 600e-6, 650e-6])
 """Side gaps at which the plant's Fig 6 is judged against eq 22 (the paper's 370 µm bound to its 650 µm plot edge)."""
 
 
+def paper_side() -> dict[str, float]:
+    """Eq 22's ``amplitude`` ``A`` (m) and ``rate`` ``k`` (1/m), eq 23's ``slope`` and ``intercept`` (m), as printed:
+    ``models/push.toml`` ``[paper_side]``, converted from the file's µm as the constants were before they moved
+    there (``A = 1755 * UM``, ``k = 0.009042 / UM``, …), so every model is the same double as it was."""
+    raw = load_model("push").paper_side.raw
+    return {"amplitude": raw["amplitude_um"] * UM, "rate": raw["rate_per_um"] / UM,
+            "slope": float(raw["slope_1"]), "intercept": raw["intercept_um"] * UM}
+
+
 def eq22(gaps):
-    """The paper's simulated side-push curve, eq 22 inverted: D_s = 1755 µm · exp(-0.009042/µm · D_g)."""
-    return EQ22_A * np.exp(-EQ22_B * np.asarray(gaps, float))
+    """The paper's simulated side-push curve, eq 22 inverted: D_s = A·exp(−k·D_g) (:func:`paper_side`: 1755 µm,
+    0.009042 /µm)."""
+    p = paper_side()
+    return p["amplitude"] * np.exp(-p["rate"] * np.asarray(gaps, float))
 
 
 def eq23_gap(ds):
-    """eq 23: D_g = -5.29 D_s + 621 µm (inputs and outputs in metres)."""
-    return -5.29 * np.asarray(ds, float) + 621e-6
+    """eq 23: D_g = slope·D_s + intercept (:func:`paper_side`: −5.29, 621 µm; inputs and outputs in metres)."""
+    p = paper_side()
+    return p["slope"] * np.asarray(ds, float) + p["intercept"]
