@@ -423,7 +423,8 @@ def _goto(first_obs: Observation, options: dict, params: Params) -> Task:
 
 @register_task("patrol")
 def _patrol(first_obs: Observation, options: dict, params: Params) -> Task:
-    """Drive round a square of side ``side`` (default 1 mm) starting at the robot, forever."""
+    """Drive round a square of side ``side`` (default 1 mm) from the robot (or ``origin``) towards the middle of the
+    camera field, first along y, then along x, forever."""
     values, logged = _resolved("patrol", options)
     side, origin = values.pop("side"), values.pop("origin")
     if side <= 0:
@@ -431,7 +432,8 @@ def _patrol(first_obs: Observation, options: dict, params: Params) -> Task:
     if origin is None:
         origin = np.asarray(first_obs.robot_est, dtype=float)
         logged["origin_m"] = origin.tolist()
-    square = origin + side * np.array([[0.0, 1.0], [-1.0, 1.0], [-1.0, 0.0], [0.0, 0.0]])
+    sx, sy = np.where(origin < 0.5 * np.asarray(field_of_view()), 1.0, -1.0)
+    square = origin + side * np.array([[0.0, sy], [sx, sy], [sx, 0.0], [0.0, 0.0]])
     check_in_field("patrol", {"waypoint": square})
     return Task("patrol", _build("patrol", values, 0, waypoints=square), logged,
                 outcomes={})

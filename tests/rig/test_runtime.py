@@ -145,7 +145,7 @@ def test_signals_stop_the_run_safely_and_the_server_sees_the_coils_zeroed(start_
                                        "--target-um", *map(str, um(START + (3e-3, 0.0))), "--log", str(log),
                                        "--json", "--quiet"),
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + 300        # a cold start compiles the controller first
     while time.monotonic() < deadline and (not log.exists() or log.read_text().count('"event"') < 10):
         time.sleep(0.05)
     proc.send_signal(sig)
@@ -254,3 +254,21 @@ def test_three_sphere_assembly_through_the_command_line_against_the_server(start
     assert 1 in phases and 2 in phases   # repositioned along the wavefront path, then on the pass
     st = RigClient(srv.address).call("status")
     assert st["state"] == "inactive" and st["coils_zero"]
+
+
+@pytest.mark.parametrize("origin_um", [None, (300.0, 300.0), (4500.0, 300.0), (300.0, 3300.0), (4500.0, 3300.0)])
+def test_a_patrol_square_turns_towards_the_middle_of_the_field(origin_um, tmp_path):
+    """From the simulated rig's own start (``None``) and from near each corner of the 4.8 × 3.6 mm field, the
+    default 1 mm square lies in the field: the robot is driven round it, first along y, then along x."""
+    from magctl.sensing.camera import field_of_view
+
+    options = {} if origin_um is None else {"origin_um": list(origin_um)}
+    log = tmp_path / "patrol.jsonl"
+    report = Runtime(SimRig(n_spheres=0), "patrol", options, log_path=log, realtime=False, max_ticks=5,
+                     quiet=True).run()
+    assert report.exit_status == "stopped", report.reason
+    start = read_log(log).start
+    origin = np.array(start["options"].get("origin_m") or np.array(origin_um) * 1e-6)
+    w, h = field_of_view()
+    corners = origin + 1e-3 * np.array([[0, 1], [1, 1], [1, 0]]) * np.sign(np.array([w, h]) / 2 - origin)
+    assert np.all((corners >= 0) & (corners <= (w, h)))
