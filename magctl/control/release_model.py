@@ -39,6 +39,12 @@ NEIGHBOURS = 30
 """Logged later attempts whose outcomes estimate one candidate's success (twice the map's resampling k)."""
 
 
+NEIGHBOURS = 15
+"""Logged later attempts a draw chooses among (``k`` of the k-nearest-neighbour resampling)."""
+SCALE = 100 * UM
+"""Length that scales both predictors (push length, previous release) of the neighbour search."""
+
+
 @dataclass(frozen=True)
 class ReleaseMap:
     """The front push's release map identified from the closed loop: a conditional distribution (metres).
@@ -64,8 +70,8 @@ class ReleaseMap:
     release: np.ndarray
     lateral: np.ndarray
     contact: np.ndarray
-    k: int = 15
-    scale: float = 100 * UM
+    k: int = NEIGHBOURS
+    scale: float = SCALE
     source: str = ""
 
     @classmethod

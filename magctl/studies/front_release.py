@@ -37,6 +37,7 @@ import numpy as np
 
 from magctl.control.push.front import PUSH
 from magctl.control.push_params import task_defaults
+from magctl.control.release_model import NEIGHBOURS, SCALE
 from magctl.control.status import Status
 from magctl.core import simulate
 from magctl.core.units import UM
@@ -48,10 +49,6 @@ CORRECTION, SPHERES, ROBOT = "controller/task.correction", "plant/spheres.sphere
 RECORD = [STATUS, ATTEMPT, PHASE, CORRECTION, SPHERES, ROBOT]
 CONTACT_MARGIN = 10 * UM
 """Robot–sphere centre distance above the notch contact (models/push.toml ``contact``) still counted as touching."""
-NEIGHBOURS = 15
-"""Logged later attempts a draw chooses among (k of the k-nearest-neighbour resampling)."""
-SCALE = 100 * UM
-"""Length that scales both predictors (push length, previous release) of the neighbour search."""
 
 
 def attempt_rows(sphere, robot, attempt, phase, correction, goal, start) -> list[dict[str, float]]:
