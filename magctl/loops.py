@@ -397,8 +397,6 @@ def closed_loop(ctrl: Diagram, plnt: Diagram, name: str = "loop") -> Diagram:
 
 
 # --- the paper's experiments (§VI) as closed loops -----------------------------------------------------------
-ORIGIN = np.array([2.0e-3, 1.8e-3])
-"""Where the (first) sphere starts: near the middle of the 4.8 × 3.6 mm camera field."""
 EXPERIMENT_TASKS = {"front": "front-push", "side": "side-push", "front-side": "side-push", "assembly": "assemble",
                     "front-assembly": "front-assemble", "front-side-assembly": "front-side-assemble",
                     "assembly-close": "assemble", "assembly-far": "assemble", "assembly-3": "assemble",
@@ -406,8 +404,9 @@ EXPERIMENT_TASKS = {"front": "front-push", "side": "side-push", "front-side": "s
 ASSEMBLY_LAYOUTS_UM = {"assembly-close": ((0, 0), (450, 0)), "assembly-far": ((0, 0), (900, 0)),
                        "assembly-3": ((0, 0), (420, -20), (190, 360)),
                        "assembly-4": ((0, 0), (400, 150), (800, -50), (1150, 200))}
-"""Sphere centres (µm from :data:`ORIGIN`) of the multi-sphere set-ups beyond the paper (docs/push-control.md §8):
-a pair 450 and 900 µm apart (the paper's is 600 µm), three spheres 407-444 µm apart, four in a rough zig-zag."""
+"""Sphere centres (µm from the first sphere of :meth:`Scene.default`) of the multi-sphere set-ups beyond the paper
+(docs/push-control.md §8): a pair 450 and 900 µm apart (the paper's is 600 µm), three spheres 407-444 µm apart,
+four in a rough zig-zag."""
 
 
 @dataclass(frozen=True)
@@ -442,7 +441,8 @@ class Experiment:
 def geometry(kind: str) -> dict:
     """Start positions and goal of the paper's set-ups (§VI), in metres.
 
-    The robot starts 1 mm behind the (first) sphere. Front push: goal 750 µm beyond the sphere;
+    The robot and the (first) sphere are :meth:`Scene.default`'s (``models/rig.toml [scene]``: the robot 1 mm
+    behind the sphere, near the middle of the camera field). Front push: goal 750 µm beyond the sphere;
     side push: 300 µm from it, square to the robot's line (both :func:`default_goal`); ``front-side``: the
     side-push task (with its front push first) on the front push's set-up.
     Assembly: a second sphere 600 µm (centre to centre) ahead of the first; the goal is it. The
@@ -450,8 +450,8 @@ def geometry(kind: str) -> dict:
     """
     if kind not in EXPERIMENT_TASKS:
         raise MagctlError(f"experiment kind {kind!r} is not one of {', '.join(EXPERIMENT_TASKS)}")
-    sphere = ORIGIN.copy()
-    robot = sphere - (1e-3, 0.0)
+    layout = Scene.default(1)
+    robot, sphere = layout.robot, layout.spheres[0]
     if kind in ("front", "side", "front-side"):   # front-side: the side-push task on the front push's set-up
         setup = "front-push" if kind == "front-side" else EXPERIMENT_TASKS[kind]
         return {"spheres": sphere[None], "robot": robot, "goal": default_goal(setup, robot, sphere[None])}
