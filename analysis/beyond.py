@@ -158,16 +158,18 @@ def pair_question(distances_um=PAIR_DISTANCES_UM) -> list[dict]:
     turned away from the fixed sphere) and gap of the planned pair assembly against θ_n = 30°, by distance."""
     from magctl.control.arrangement import arrangement
     from magctl.control.assembly_planner import AssemblyPlanner, GreedyPlanner
-    from magctl.loops import ORIGIN
+    from magctl.loops import Scene
 
+    layout = Scene.default(1)                    # the paper's set-ups' start (models/rig.toml [scene])
+    first_sphere, robot_start = layout.spheres[0], layout.robot
     target = arrangement("pair")
     planner, greedy = AssemblyPlanner(target), GreedyPlanner(target)
     rows = []
     for dist in distances_um:
-        start = np.stack([ORIGIN, ORIGIN + (dist * UM, 0.0)])
+        start = np.stack([first_sphere, first_sphere + (dist * UM, 0.0)])
         row = {"distance_um": float(dist)}
         for name, pl in (("planned", planner), ("greedy", greedy)):
-            p, robot, first, passes = start.copy(), ORIGIN - (1e-3, 0.0), None, 0
+            p, robot, first, passes = start.copy(), robot_start.copy(), None, 0
             while passes < ASSEMBLY_PASSES and not target.assembled(p):
                 plan = pl.plan(p) if name == "planned" else pl.plan(p, robot)
                 first = plan if first is None else first
