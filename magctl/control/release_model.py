@@ -35,14 +35,12 @@ from magctl.core.units import UM
 
 DELTAS = np.arange(-200.0, 401.0, 10.0) * UM
 """Candidate ``δ`` of the policy (m): the span of the logged push lengths minus the goal distances."""
-NEIGHBOURS = 30
+MAP_NEIGHBOURS = 15
+"""Logged later attempts a draw of the release map chooses among (``k`` of its k-nearest-neighbour resampling)."""
+MAP_SCALE = 100 * UM
+"""Length that scales both predictors (push length, previous release) of the map's neighbour search."""
+NEIGHBOURS = 2 * MAP_NEIGHBOURS
 """Logged later attempts whose outcomes estimate one candidate's success (twice the map's resampling k)."""
-
-
-NEIGHBOURS = 15
-"""Logged later attempts a draw chooses among (``k`` of the k-nearest-neighbour resampling)."""
-SCALE = 100 * UM
-"""Length that scales both predictors (push length, previous release) of the neighbour search."""
 
 
 @dataclass(frozen=True)
@@ -70,8 +68,8 @@ class ReleaseMap:
     release: np.ndarray
     lateral: np.ndarray
     contact: np.ndarray
-    k: int = NEIGHBOURS
-    scale: float = SCALE
+    k: int = MAP_NEIGHBOURS
+    scale: float = MAP_SCALE
     source: str = ""
 
     @classmethod

@@ -37,7 +37,7 @@ import numpy as np
 
 from magctl.control.push.front import PUSH
 from magctl.control.push_params import task_defaults
-from magctl.control.release_model import NEIGHBOURS, SCALE
+from magctl.control.release_model import MAP_NEIGHBOURS, MAP_SCALE
 from magctl.control.status import Status
 from magctl.core import simulate
 from magctl.core.units import UM
@@ -189,11 +189,11 @@ def identify(log: dict[str, np.ndarray]) -> dict:
     """
     release, attempt = np.asarray(log["release"]), np.asarray(log["attempt"])
     first = attempt == 1
-    if not first.any() or (~first).sum() < NEIGHBOURS:
-        raise ValueError(f"the log needs first attempts and at least {NEIGHBOURS} later ones")
+    if not first.any() or (~first).sum() < MAP_NEIGHBOURS:
+        raise ValueError(f"the log needs first attempts and at least {MAP_NEIGHBOURS} later ones")
     return {"first": first, "length": np.asarray(log["push_length"]), "previous": previous_release(log),
             "release": release, "lateral": np.asarray(log["lateral_after"]), "contact": np.asarray(log["contact"]),
-            "neighbours": NEIGHBOURS, "scale": SCALE, "release_mean": float(release.mean()),
+            "neighbours": MAP_NEIGHBOURS, "scale": MAP_SCALE, "release_mean": float(release.mean()),
             "release_std": float(release.std()), "p_contact_later": float(np.asarray(log["contact"])[~first].mean())}
 
 
